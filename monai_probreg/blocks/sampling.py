@@ -1,0 +1,36 @@
+"""Reparameterised sampling of the velocity posterior ``q(z | moving, fixed) = N(mean, diag(exp(log_var)))``.
+
+``log_var`` is a log-variance (log sigma^2), per voxel and per component, on the velocity grid.
+This is the variational head's sampling layer (written here: MONAI has no equivalent).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["sample_velocity", "VelocitySampler"]
+
+
+def sample_velocity(
+    mean: Tensor, log_var: Tensor, num_samples: int = 1, generator: torch.Generator | None = None
+) -> Tensor:
+    """Draw ``z = mean + exp(log_var / 2) * eps``, ``eps ~ N(0, I)``; differentiable in mean and log_var.
+
+    Shapes: mean, log_var (B, D, *S) -> (num_samples, B, D, *S).
+    """
+    if mean.shape != log_var.shape:
+        raise ValueError(f"mean and log_var must have the same shape; got {tuple(mean.shape)} and {tuple(log_var.shape)}")
+    if num_samples < 1:
+        raise ValueError(f"num_samples must be >= 1; got {num_samples}")
+    eps = torch.randn((num_samples, *mean.shape), dtype=mean.dtype, device=mean.device, generator=generator)
+    return mean.unsqueeze(0) + torch.exp(0.5 * log_var).unsqueeze(0) * eps
+
+
+class VelocitySampler(nn.Module):
+    """Training: one reparameterised sample. Eval: the posterior mean (deterministic, the MAP of the paper's Eq. 7)."""
+
+    def forward(self, mean: Tensor, log_var: Tensor) -> Tensor:
+        if not self.training:
+            return mean
+        return sample_velocity(mean, log_var, num_samples=1)[0]

@@ -1,0 +1,52 @@
+"""Jacobian determinant of a displacement field and folding statistics.
+
+Written here (no well-kept library computes it for torch fields in our convention). For
+``phi(x) = x + u(x)`` the Jacobian is ``J = I + grad u`` with ``grad u[k, a] = d u_k / d x_a`` estimated by
+central differences in the interior and one-sided differences at the borders, exactly as ``np.gradient``
+(``torch.gradient``, unit spacing: u is in voxels). ``|J| <= 0`` marks folding (non-invertible) voxels.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["jacobian_determinant", "JacobianStats", "jacobian_stats"]
+
+
+def jacobian_determinant(ddf: Tensor) -> Tensor:
+    """det(I + grad u) per voxel. ``ddf`` (B, D, *S) in voxels, D in (2, 3), each axis >= 2 voxels -> (B, *S)."""
+    spatial_dims = ddf.ndim - 2
+    if spatial_dims not in (2, 3) or ddf.shape[1] != spatial_dims:
+        raise ValueError(f"ddf must have shape (B, spatial_dims, *S) with spatial_dims in (2, 3); got {tuple(ddf.shape)}")
+    if min(ddf.shape[2:]) < 2:
+        raise ValueError(f"every spatial axis needs >= 2 voxels for finite differences; got {tuple(ddf.shape[2:])}")
+    grads = torch.gradient(ddf, dim=tuple(range(2, ddf.ndim)))  # grads[a][:, k] = d u_k / d x_a
+    jac = torch.stack(grads, dim=2)  # (B, k, a, *S)
+    eye = torch.eye(spatial_dims, dtype=ddf.dtype, device=ddf.device).view(1, spatial_dims, spatial_dims,
+                                                                          *([1] * spatial_dims))
+    jac = jac + eye
+    jac = jac.movedim((1, 2), (-2, -1))  # (B, *S, k, a)
+    return torch.linalg.det(jac)
+
+
+class JacobianStats(NamedTuple):
+    """Folding summary of one field: count and percentage of ``|J| <= 0`` voxels, std of log|J| where J > 0."""
+
+    num_folding: int
+    percent_folding: float
+    std_log_jacobian: float
+
+
+def jacobian_stats(det: Tensor, mask: Tensor | None = None) -> JacobianStats:
+    """Summarise a determinant map (*S) or (1, *S), optionally restricted to ``mask`` (same shape, bool)."""
+    values = det if mask is None else det[mask.to(torch.bool)]
+    values = values.flatten()
+    if values.numel() == 0:
+        raise ValueError("no voxel to summarise (empty map or empty mask)")
+    folding = int((values <= 0).sum())
+    positive = values[values > 0]
+    std_log = float(torch.log(positive.double()).std(unbiased=False)) if positive.numel() > 0 else float("nan")
+    return JacobianStats(folding, 100.0 * folding / values.numel(), std_log)

@@ -1,0 +1,131 @@
+"""The full probabilistic diffeomorphic registration model (VoxelMorph-diff, Dalca et al. 2018).
+
+Pipeline: ``VelocityUNet`` -> posterior (mean, log_var) on the velocity grid (input / int_downsize)
+-> a velocity z (a reparameterised sample in training, the mean in eval) -> scaling and squaring
+(``num_steps`` squarings) on the velocity grid -> displacement resized to the image grid
+(align-corners scaling) -> MONAI ``Warp`` of the moving image.
+
+Which image goes where (MONAI's convention, the published code's, and ours): the **moving** image is
+resampled into the **fixed** image's grid, ``warped[x] = moving[x + displacement[x]]``. In the paper's
+generative model ``x ~ N(y o phi_z, sigma^2 I)`` the warped image is ``y`` = our ``moving`` and ``x`` = our
+``fixed`` (scan-to-atlas training: moving = subject scan, fixed = atlas).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
+from monai_probreg.blocks.sampling import VelocitySampler, sample_velocity
+from monai_probreg.blocks.warp import warp_image
+from monai_probreg.networks.velocity_unet import VelocityUNet
+
+__all__ = ["RegistrationOutput", "PosteriorSamples", "ProbRegNet"]
+
+
+class RegistrationOutput(NamedTuple):
+    """What ``ProbRegNet.forward`` returns, whatever the flags (fields not computed are ``None``).
+
+    warped: (B, C, *S) moving image resampled into the fixed grid.
+    displacement: (B, D, *S) voxels of the image grid, of ``exp(velocity)``; channel k = tensor axis 2 + k.
+    velocity: (B, D, *V) the velocity that was integrated (sample in training, mean in eval), velocity-grid voxels.
+    velocity_mean, velocity_log_var: (B, D, *V) posterior parameters (log_var is log sigma^2).
+    inverse_displacement: (B, D, *S) of ``exp(-velocity)``, or None unless ``bidirectional``.
+    warped_fixed: (B, C, *S) fixed image resampled into the moving grid by ``exp(-velocity)``, or None.
+    """
+
+    warped: Tensor
+    displacement: Tensor
+    velocity: Tensor
+    velocity_mean: Tensor
+    velocity_log_var: Tensor
+    inverse_displacement: Tensor | None
+    warped_fixed: Tensor | None
+
+
+class PosteriorSamples(NamedTuple):
+    """K posterior samples: displacements (K, B, D, *S) in image voxels, plus the posterior parameters."""
+
+    displacements: Tensor
+    velocity_mean: Tensor
+    velocity_log_var: Tensor
+
+
+class ProbRegNet(nn.Module):
+    """Probabilistic diffeomorphic registration network.
+
+    Args:
+        spatial_dims: 2 or 3.
+        in_channels: channels per image (moving and fixed each).
+        enc_channels, dec_channels, int_downsize: see :class:`VelocityUNet`.
+        num_steps: scaling-and-squaring steps T (paper: 7).
+        bidirectional: also return the inverse displacement and the fixed image warped onto the moving one.
+        padding_mode: how the moving image is extrapolated outside its grid ("border", "zeros", "reflection").
+    """
+
+    def __init__(
+        self,
+        spatial_dims: int = 3,
+        in_channels: int = 1,
+        enc_channels: Sequence[int] = (16, 32, 32, 32),
+        dec_channels: Sequence[int] = (32, 32, 32, 32, 16),
+        int_downsize: int = 2,
+        num_steps: int = 7,
+        bidirectional: bool = False,
+        padding_mode: str = "border",
+    ) -> None:
+        super().__init__()
+        self.spatial_dims = spatial_dims
+        self.bidirectional = bidirectional
+        self.padding_mode = padding_mode
+        self.unet = VelocityUNet(
+            spatial_dims=spatial_dims,
+            in_channels=2 * in_channels,
+            enc_channels=enc_channels,
+            dec_channels=dec_channels,
+            int_downsize=int_downsize,
+        )
+        self.sampler = VelocitySampler()
+        self.integrate = ScalingAndSquaring(num_steps=num_steps)
+
+    def velocity_to_displacement(self, velocity: Tensor, spatial_size: Sequence[int]) -> Tensor:
+        """Integrate a velocity (B, D, *V) on its grid and resize the displacement to ``spatial_size``."""
+        return resize_displacement(self.integrate(velocity), spatial_size)
+
+    def forward(self, moving: Tensor, fixed: Tensor) -> RegistrationOutput:
+        posterior = self.unet(moving, fixed)
+        velocity = self.sampler(posterior.mean, posterior.log_var)
+        size = moving.shape[2:]
+        displacement = self.velocity_to_displacement(velocity, size)
+        warped = warp_image(moving, displacement, padding_mode=self.padding_mode)
+        inverse = warped_fixed = None
+        if self.bidirectional:
+            inverse = self.velocity_to_displacement(-velocity, size)
+            warped_fixed = warp_image(fixed, inverse, padding_mode=self.padding_mode)
+        return RegistrationOutput(
+            warped=warped,
+            displacement=displacement,
+            velocity=velocity,
+            velocity_mean=posterior.mean,
+            velocity_log_var=posterior.log_var,
+            inverse_displacement=inverse,
+            warped_fixed=warped_fixed,
+        )
+
+    @torch.no_grad()
+    def sample(
+        self, moving: Tensor, fixed: Tensor, num_samples: int, generator: torch.Generator | None = None
+    ) -> PosteriorSamples:
+        """Draw ``num_samples`` velocities from q(z | moving, fixed) and integrate them (in one batch).
+
+        Independent of train/eval mode. Shapes: moving, fixed (B, C, *S) -> displacements (K, B, D, *S).
+        """
+        posterior = self.unet(moving, fixed)
+        z = sample_velocity(posterior.mean, posterior.log_var, num_samples, generator=generator)
+        k, b = z.shape[:2]
+        disp = self.velocity_to_displacement(z.flatten(0, 1), moving.shape[2:])
+        return PosteriorSamples(disp.unflatten(0, (k, b)), posterior.mean, posterior.log_var)

@@ -1,0 +1,136 @@
+"""The paper's ``def_psi(x, y)``: a UNet from (moving, fixed) to the velocity posterior's mean and log-variance.
+
+Architecture (the published VoxelMorph-diff code, defaults shown):
+
+- input: moving and fixed concatenated, 2 channels, spatial size a multiple of 2**len(enc_channels);
+- encoder: one stride-2 3x3(x3) conv per level, ``enc_channels = (16, 32, 32, 32)`` -> 1/16 resolution;
+- decoder: ``dec_channels[0]`` conv at the bottom, then one stage per ``dec_channels[1 : 1 + n_up]`` of
+  (upsample x2, concatenate the encoder skip, conv) up to the velocity grid, then the remaining
+  ``dec_channels`` as plain convs there. With ``int_downsize = 2`` that is 3 stages and one 16-filter conv;
+- LeakyReLU(0.2) after every conv (MONAI ``Convolution`` blocks);
+- two 3x3(x3) heads (written here, MONAI has no variational head): mean (weights N(0, 1e-5), bias 0) and
+  log-variance (weights N(0, 1e-10), bias -10), both on the velocity grid of size ``S / int_downsize``.
+
+Shapes: moving, fixed (B, 1, *S) -> VelocityPosterior(mean, log_var), each (B, spatial_dims, *S / int_downsize).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from monai.networks.blocks import Convolution
+from torch import Tensor, nn
+
+__all__ = ["VelocityPosterior", "VelocityUNet"]
+
+
+class VelocityPosterior(NamedTuple):
+    """Parameters of ``q(z | moving, fixed)``, both (B, spatial_dims, *velocity_grid), in velocity-grid voxels."""
+
+    mean: Tensor
+    log_var: Tensor  # log sigma^2, not log sigma
+
+
+class VelocityUNet(nn.Module):
+    """UNet producing the posterior over a stationary velocity field.
+
+    Args:
+        spatial_dims: 2 or 3.
+        in_channels: channels of moving + fixed together (2 for single-channel images).
+        enc_channels: filters of the stride-2 encoder convs; its length is the depth.
+        dec_channels: bottom conv, then one per upsampling stage, then extra convs at the velocity grid.
+        int_downsize: velocity grid = input grid / int_downsize; a power of two, at most 2**depth.
+        negative_slope: LeakyReLU slope.
+        mean_init_std, log_var_init_std, log_var_init_bias: head initialisation (paper code: 1e-5, 1e-10, -10).
+    """
+
+    def __init__(
+        self,
+        spatial_dims: int = 3,
+        in_channels: int = 2,
+        enc_channels: Sequence[int] = (16, 32, 32, 32),
+        dec_channels: Sequence[int] = (32, 32, 32, 32, 16),
+        int_downsize: int = 2,
+        negative_slope: float = 0.2,
+        mean_init_std: float = 1e-5,
+        log_var_init_std: float = 1e-10,
+        log_var_init_bias: float = -10.0,
+    ) -> None:
+        super().__init__()
+        if spatial_dims not in (2, 3):
+            raise ValueError(f"spatial_dims must be 2 or 3; got {spatial_dims}")
+        depth = len(enc_channels)
+        if depth < 1:
+            raise ValueError("enc_channels must have at least one level")
+        if int_downsize < 1 or (int_downsize & (int_downsize - 1)) or int_downsize > 2**depth:
+            raise ValueError(f"int_downsize must be a power of two in [1, {2**depth}]; got {int_downsize}")
+        num_up = depth - int(math.log2(int_downsize))
+        if len(dec_channels) < 1 + num_up:
+            raise ValueError(
+                f"dec_channels needs at least {1 + num_up} entries (bottom conv + {num_up} upsampling stages) "
+                f"for depth {depth} and int_downsize {int_downsize}; got {len(dec_channels)}"
+            )
+        self.spatial_dims = spatial_dims
+        self.int_downsize = int_downsize
+        self.divisor = 2**depth
+
+        act = ("leakyrelu", {"negative_slope": negative_slope})
+
+        def conv(cin: int, cout: int, stride: int = 1) -> Convolution:
+            return Convolution(spatial_dims, cin, cout, strides=stride, kernel_size=3, act=act, norm=None)
+
+        self.encoder = nn.ModuleList()
+        skip_channels = [in_channels]
+        cin = in_channels
+        for cout in enc_channels:
+            self.encoder.append(conv(cin, cout, stride=2))
+            skip_channels.append(cout)
+            cin = cout
+        self.bottom = conv(cin, dec_channels[0])
+        cin = dec_channels[0]
+        self.up_convs = nn.ModuleList()
+        for i in range(num_up):
+            skip = skip_channels[depth - 1 - i]  # encoder output one level above the current one
+            self.up_convs.append(conv(cin + skip, dec_channels[1 + i]))
+            cin = dec_channels[1 + i]
+        self.extra_convs = nn.Sequential(*[conv(c_in, c_out) for c_in, c_out in
+                                           zip([cin, *dec_channels[1 + num_up:-1]], dec_channels[1 + num_up:])])
+        if len(dec_channels) > 1 + num_up:
+            cin = dec_channels[-1]
+        conv_type = nn.Conv3d if spatial_dims == 3 else nn.Conv2d
+        self.mean_head = conv_type(cin, spatial_dims, kernel_size=3, padding=1)
+        self.log_var_head = conv_type(cin, spatial_dims, kernel_size=3, padding=1)
+        with torch.no_grad():
+            nn.init.normal_(self.mean_head.weight, 0.0, mean_init_std)
+            nn.init.zeros_(self.mean_head.bias)
+            nn.init.normal_(self.log_var_head.weight, 0.0, log_var_init_std)
+            nn.init.constant_(self.log_var_head.bias, log_var_init_bias)
+
+    def forward(self, moving: Tensor, fixed: Tensor) -> VelocityPosterior:
+        if moving.shape != fixed.shape:
+            raise ValueError(f"moving and fixed must have the same shape; got {tuple(moving.shape)} and {tuple(fixed.shape)}")
+        if moving.ndim != self.spatial_dims + 2:
+            raise ValueError(
+                f"expected (B, C, *S) inputs with {self.spatial_dims} spatial dims; got shape {tuple(moving.shape)}"
+            )
+        bad = [s for s in moving.shape[2:] if s % self.divisor]
+        if bad:
+            raise ValueError(
+                f"spatial size must be a multiple of {self.divisor} (2**depth); got {tuple(moving.shape[2:])}"
+            )
+        x = torch.cat([moving, fixed], dim=1)
+        skips = [x]
+        for layer in self.encoder:
+            x = layer(x)
+            skips.append(x)
+        x = self.bottom(x)
+        for i, layer in enumerate(self.up_convs):
+            skip = skips[len(self.encoder) - 1 - i]
+            x = F.interpolate(x, scale_factor=2, mode="nearest")
+            x = layer(torch.cat([x, skip], dim=1))
+        x = self.extra_convs(x)
+        return VelocityPosterior(mean=self.mean_head(x), log_var=self.log_var_head(x))

@@ -25,6 +25,8 @@ def label_dice(pred: Tensor, target: Tensor, labels: Sequence[int] | None = None
             raise ValueError(f"{name} must hold integer labels; got non-integer values")
     p = pred.reshape(-1).long()
     t = target.reshape(-1).long()
+    if (p.numel() and min(int(p.min()), int(t.min())) < 0) or (labels is not None and min(labels, default=0) < 0):
+        raise ValueError("label values must be >= 0 (0 = background); got negative values")
     if labels is None:
         labels = [int(v) for v in torch.unique(t).tolist() if v != 0]
     labels = [int(v) for v in labels]
@@ -33,7 +35,7 @@ def label_dice(pred: Tensor, target: Tensor, labels: Sequence[int] | None = None
     lut_size = int(max(p.max().item(), t.max().item(), max(labels))) + 1
     lut = torch.zeros(lut_size, dtype=torch.long)
     lut[torch.tensor(labels)] = torch.arange(1, len(labels) + 1)  # 0 = any label not scored
-    p_idx, t_idx = lut[p.clamp(min=0)], lut[t.clamp(min=0)]
+    p_idx, t_idx = lut[p], lut[t]
     n = len(labels) + 1
     joint = torch.bincount(p_idx * n + t_idx, minlength=n * n).view(n, n).double()
     inter = joint.diagonal()[1:]

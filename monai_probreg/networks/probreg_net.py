@@ -17,12 +17,13 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.sampling import VelocitySampler, sample_velocity
 from monai_probreg.blocks.warp import warp_image
-from monai_probreg.networks.velocity_unet import VelocityUNet
+from monai_probreg.networks.velocity_unet import VelocityPosterior, VelocityUNet
 
 __all__ = ["RegistrationOutput", "PosteriorSamples", "ProbRegNet"]
 
@@ -65,6 +66,9 @@ class ProbRegNet(nn.Module):
         num_steps: scaling-and-squaring steps T (paper: 7).
         bidirectional: also return the inverse displacement and the fixed image warped onto the moving one.
         padding_mode: how the moving image is extrapolated outside its grid ("border", "zeros", "reflection").
+        network_size: if given, the UNet sees moving and fixed resized (linear, align corners) to this grid, and
+            the displacement is resized back to the input grid, so a model trained at reduced resolution
+            registers images of any size on their own grid. None: the UNet runs on the input grid.
     """
 
     def __init__(
@@ -77,11 +81,15 @@ class ProbRegNet(nn.Module):
         num_steps: int = 7,
         bidirectional: bool = False,
         padding_mode: str = "border",
+        network_size: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self.spatial_dims = spatial_dims
         self.bidirectional = bidirectional
         self.padding_mode = padding_mode
+        self.network_size = tuple(int(n) for n in network_size) if network_size is not None else None
+        if self.network_size is not None and len(self.network_size) != spatial_dims:
+            raise ValueError(f"network_size must have {spatial_dims} entries; got {network_size}")
         self.unet = VelocityUNet(
             spatial_dims=spatial_dims,
             in_channels=2 * in_channels,
@@ -96,8 +104,18 @@ class ProbRegNet(nn.Module):
         """Integrate a velocity (B, D, *V) on its grid and resize the displacement to ``spatial_size``."""
         return resize_displacement(self.integrate(velocity), spatial_size)
 
+    def posterior(self, moving: Tensor, fixed: Tensor) -> VelocityPosterior:
+        """q(z | moving, fixed) on the velocity grid, resizing the inputs to ``network_size`` first if set."""
+        if moving.shape != fixed.shape:
+            raise ValueError(f"moving and fixed must have the same shape; got {tuple(moving.shape)} and {tuple(fixed.shape)}")
+        if self.network_size is not None and tuple(moving.shape[2:]) != self.network_size:
+            mode = "trilinear" if self.spatial_dims == 3 else "bilinear"
+            moving = F.interpolate(moving, size=self.network_size, mode=mode, align_corners=True)
+            fixed = F.interpolate(fixed, size=self.network_size, mode=mode, align_corners=True)
+        return self.unet(moving, fixed)
+
     def forward(self, moving: Tensor, fixed: Tensor) -> RegistrationOutput:
-        posterior = self.unet(moving, fixed)
+        posterior = self.posterior(moving, fixed)
         velocity = self.sampler(posterior.mean, posterior.log_var)
         size = moving.shape[2:]
         displacement = self.velocity_to_displacement(velocity, size)
@@ -124,7 +142,7 @@ class ProbRegNet(nn.Module):
 
         Independent of train/eval mode. Shapes: moving, fixed (B, C, *S) -> displacements (K, B, D, *S).
         """
-        posterior = self.unet(moving, fixed)
+        posterior = self.posterior(moving, fixed)
         z = sample_velocity(posterior.mean, posterior.log_var, num_samples, generator=generator)
         k, b = z.shape[:2]
         disp = self.velocity_to_displacement(z.flatten(0, 1), moving.shape[2:])

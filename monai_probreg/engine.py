@@ -1,0 +1,161 @@
+"""Glue between the registration model and MONAI/ignite engines (``SupervisedTrainer``/``SupervisedEvaluator``).
+
+- :func:`prepare_registration_batch` turns a batch dict into ``(moving, targets, (fixed,), {})`` so the engine
+  calls ``network(moving, fixed)``; ``targets`` is the batch dict (images and, if present, labels).
+- :class:`RegistrationLoss` adapts :class:`~monai_probreg.losses.elbo.ProbRegLoss` to the engine's
+  ``loss_function(pred, targets)`` and keeps the last terms for logging.
+- :class:`RegistrationMetrics` is an ignite metric: mean Dice of the moving labels warped (nearest neighbour)
+  onto the fixed labels at the labels' resolution, and the |J| <= 0 count of the displacement there.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from ignite.engine import Engine, Events
+from ignite.metrics import Metric
+from torch import Tensor, nn
+
+from monai_probreg.blocks.integration import resize_displacement
+from monai_probreg.blocks.warp import warp_labels
+from monai_probreg.losses.elbo import LossTerms, ProbRegLoss
+from monai_probreg.metrics.dice import label_dice
+from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
+from monai_probreg.networks.probreg_net import RegistrationOutput
+
+__all__ = ["prepare_registration_batch", "RegistrationLoss", "RegistrationMetrics", "LossTermsLogger", "latest_checkpoint", "attach_resume",
+           "one_hot_labels"]
+
+_KEYS = ("moving", "fixed", "moving_label", "fixed_label")
+
+
+def prepare_registration_batch(batchdata: dict, device: str | torch.device | None = None,
+                               non_blocking: bool = False, **kwargs: Any) -> tuple:
+    """Engine ``prepare_batch``: ``(moving, targets, (fixed,), {})`` with every tensor on ``device``."""
+    for key in ("moving", "fixed"):
+        if key not in batchdata:
+            raise KeyError(f"batch has no {key!r} entry; got keys {sorted(batchdata)}")
+    targets = {k: batchdata[k].to(device=device, non_blocking=non_blocking, **kwargs)
+               for k in _KEYS if isinstance(batchdata.get(k), Tensor)}  # label paths not loaded stay behind
+    return targets["moving"], targets, (targets["fixed"],), {}
+
+
+def one_hot_labels(labels: Tensor, label_values: Sequence[int]) -> Tensor:
+    """(B, 1, *S) integer map -> (B, 1 + len(label_values), *S) float one-hot; channel 0 = everything else."""
+    lut = torch.zeros(int(max(int(labels.max()), max(label_values))) + 1, dtype=torch.long, device=labels.device)
+    lut[torch.as_tensor(list(label_values), device=labels.device)] = torch.arange(1, len(label_values) + 1,
+                                                                              device=labels.device)
+    idx = lut[labels.long().clamp(min=0)[:, 0]]
+    return torch.nn.functional.one_hot(idx, len(label_values) + 1).movedim(-1, 1).float()
+
+
+class RegistrationLoss(nn.Module):
+    """``loss_function(pred, targets)`` for the engines.
+
+    Args:
+        loss: the objective (image likelihood + KL [+ Dice]).
+        label_values: label ids one-hot encoded for the Dice term (needed only when ``loss.label_weight > 0``;
+            the label maps must then be on the network grid).
+    """
+
+    def __init__(self, loss: ProbRegLoss, label_values: Sequence[int] | None = None) -> None:
+        super().__init__()
+        self.loss = loss
+        self.label_values = list(label_values) if label_values is not None else None
+        self.last_terms: LossTerms | None = None
+
+    def forward(self, pred: RegistrationOutput, targets: dict) -> Tensor:
+        moving_oh = fixed_oh = None
+        if self.loss.label_weight > 0:
+            if self.label_values is None or "moving_label" not in targets:
+                raise ValueError("a label term needs label_values and moving_label/fixed_label in the batch")
+            moving_oh = one_hot_labels(targets["moving_label"], self.label_values)
+            fixed_oh = one_hot_labels(targets["fixed_label"], self.label_values)
+        terms = self.loss(pred, targets["moving"], targets["fixed"], moving_oh, fixed_oh)
+        self.last_terms = LossTerms(*(t.detach() for t in terms))
+        if not torch.isfinite(terms.total):
+            raise FloatingPointError(f"non-finite training loss ({terms}); stopping before weights become NaN")
+        return terms.total
+
+
+class LossTermsLogger:
+    """Logs the parts of the loss (image, KL, label) every ``interval`` iterations."""
+
+    def __init__(self, loss: RegistrationLoss, interval: int = 10, name: str = "monai_probreg.train") -> None:
+        self.loss, self.interval, self.logger = loss, interval, logging.getLogger(name)
+
+    def attach(self, engine: Engine) -> None:
+        engine.add_event_handler(Events.ITERATION_COMPLETED(every=self.interval), self)
+
+    def __call__(self, engine: Engine) -> None:
+        t = self.loss.last_terms
+        if t is not None:
+            self.logger.info(f"epoch {engine.state.epoch} iter {engine.state.iteration}: total {float(t.total):.4f} "
+                             f"image {float(t.image):.4f} kl {float(t.kl):.4f} label {float(t.label):.4f}")
+
+
+class RegistrationMetrics(Metric):
+    """Mean Dice over ``label_values`` (default: non-zero labels of the fixed map) and mean |J| <= 0 count.
+
+    ``compute()`` returns ``{"dice": float, "folding": float}``; attach with a name and read
+    ``state.metrics[name]``; use :meth:`dice_only` as the key metric (a float) for checkpoint selection.
+    """
+
+    def __init__(self, label_values: Sequence[int] | None = None,
+                 output_transform=lambda out: (out["pred"], out["label"])) -> None:
+        self.label_values = list(label_values) if label_values is not None else None
+        super().__init__(output_transform=output_transform)
+
+    def reset(self) -> None:
+        self._dice: list[float] = []
+        self._folding: list[int] = []
+
+    def update(self, output: tuple[RegistrationOutput, dict]) -> None:
+        pred, targets = output
+        moving_label, fixed_label = targets["moving_label"], targets["fixed_label"]
+        ddf = resize_displacement(pred.displacement.float(), moving_label.shape[2:])
+        warped = warp_labels(moving_label, ddf)
+        for b in range(ddf.shape[0]):
+            dice = label_dice(warped[b], fixed_label[b], self.label_values)
+            values = [v for v in dice.values() if v == v]
+            self._dice.append(sum(values) / max(len(values), 1))
+            self._folding.append(jacobian_stats(jacobian_determinant(ddf[b : b + 1])).num_folding)
+
+    def compute(self) -> dict[str, float]:
+        if not self._dice:
+            raise RuntimeError("RegistrationMetrics has no data; was the evaluator run on labelled pairs?")
+        return {"dice": sum(self._dice) / len(self._dice), "folding": sum(self._folding) / len(self._folding)}
+
+    def completed(self, engine: Engine, name: str) -> None:
+        result = self.compute()
+        engine.state.metrics[name] = result["dice"]
+        engine.state.metrics[f"{name}_folding"] = result["folding"]
+
+
+def latest_checkpoint(ckpt_dir: str, prefix: str = "train_state") -> str | None:
+    """Newest ``<prefix>*.pt`` in ``ckpt_dir`` by modification time, or None (start from scratch)."""
+    from pathlib import Path
+
+    folder = Path(ckpt_dir)
+    if not folder.is_dir():
+        return None
+    found = sorted(folder.glob(f"{prefix}*.pt"), key=lambda p: p.stat().st_mtime)
+    return str(found[-1]) if found else None
+
+
+def attach_resume(engine: Engine, ckpt_dir: str, load_dict: dict, prefix: str = "train_state",
+                  map_location: str | torch.device | None = None) -> str | None:
+    """Attach MONAI's ``CheckpointLoader`` (``weights_only=True``) for the newest training state, if any.
+
+    Returns the checkpoint path that will be loaded when the engine starts, or None (fresh start).
+    """
+    from monai.handlers import CheckpointLoader
+
+    path = latest_checkpoint(ckpt_dir, prefix)
+    if path is not None:
+        CheckpointLoader(load_path=path, load_dict=load_dict, map_location=map_location).attach(engine)
+        logging.getLogger("monai_probreg.train").info(f"resuming from {path}")
+    return path

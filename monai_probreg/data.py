@@ -137,7 +137,7 @@ def registration_transforms(
     chain = [
         LoadImaged(keys=keys, image_only=True),
         EnsureChannelFirstd(keys=keys),
-        Orientationd(keys=keys, axcodes=axcodes),
+        Orientationd(keys=keys, axcodes=axcodes, labels=(("L", "R"), ("P", "A"), ("I", "S"))),
         ScaleIntensityRangePercentilesd(keys=list(IMAGE_KEYS), lower=lower_percentile, upper=upper_percentile,
                                         b_min=0.0, b_max=1.0, clip=True),
         DivisiblePadd(keys=keys, k=divisor),

@@ -38,7 +38,7 @@ class ScalingAndSquaring(DVF2DDF):
     """
 
     def __init__(self, num_steps: int = 7, padding_mode: str = "border") -> None:
-        if not isinstance(num_steps, int) or num_steps < 1:
+        if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 1:
             raise ValueError(f"num_steps must be a positive integer; got {num_steps!r}")
         with warnings.catch_warnings():  # DVF2DDF builds a MONAI Warp we replace below; silence its notice
             warnings.filterwarnings("ignore", message=".*Using PyTorch native grid_sample.*")

@@ -62,6 +62,7 @@ class CachedWarp(Warp):
 
     def get_reference_grid(self, ddf: Tensor, jitter: bool = False, seed: int = 0) -> Tensor:
         if jitter:
+            self._grid_key = None  # MONAI stores its jittered grid in ref_grid: never reuse it as ours
             return super().get_reference_grid(ddf, jitter=jitter, seed=seed)
         key = (tuple(ddf.shape[2:]), ddf.dtype, ddf.device)
         if self.ref_grid is None or self._grid_key != key:

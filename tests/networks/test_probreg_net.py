@@ -250,3 +250,20 @@ def test_training_reduces_the_loss_on_a_shifted_blob():
     assert after.image < 0.3 * before.image  # it registers, not only fits log_var in the KL
     assert out.displacement[0, 0, 16, 16] > 0.5  # moving towards +2 along axis 0: the pull-back sign
     assert out.displacement[0, 1, 16, 16].abs() < 0.5
+
+
+def test_network_size_registers_any_input_size_on_its_own_grid():
+    """network_size: the UNet runs on a fixed grid; a constant velocity b there (V = network_size / 2) becomes
+    b (S - 1) / (V - 1) voxels of the input grid S, whatever S is (here not even a multiple of 16)."""
+    net = ProbRegNet(spatial_dims=2, network_size=(32, 32)).eval()
+    bias = torch.tensor([0.5, -0.8])
+    _set_heads(net, mean_bias=bias)
+    moving, fixed = torch.rand(1, 1, 45, 38), torch.rand(1, 1, 45, 38)
+    with torch.no_grad():
+        out = net(moving, fixed)
+    assert out.velocity_mean.shape == (1, 2, 16, 16)
+    assert out.displacement.shape == (1, 2, 45, 38)
+    expected = (bias * torch.tensor([44 / 15, 37 / 15])).view(1, 2, 1, 1).expand_as(out.displacement)
+    torch.testing.assert_close(out.displacement, expected, atol=1e-5, rtol=0)  # constant field: float32 rounding
+    with pytest.raises(ValueError, match="network_size"):
+        ProbRegNet(spatial_dims=3, network_size=(32, 32))

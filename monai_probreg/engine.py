@@ -27,6 +27,7 @@ from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import RegistrationOutput
 
 __all__ = ["prepare_registration_batch", "RegistrationLoss", "RegistrationMetrics", "LossTermsLogger", "latest_checkpoint", "attach_resume",
+           "key_metric_tracker",
            "one_hot_labels"]
 
 _KEYS = ("moving", "fixed", "moving_label", "fixed_label")
@@ -159,3 +160,24 @@ def attach_resume(engine: Engine, ckpt_dir: str, load_dict: dict, prefix: str = 
         CheckpointLoader(load_path=path, load_dict=load_dict, map_location=map_location).attach(engine)
         logging.getLogger("monai_probreg.train").info(f"resuming from {path}")
     return path
+
+
+class _NoTracker:
+    """Stand-in with an empty state when there is no best-metric saver (e.g. a DDP rank without validation)."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        return None
+
+
+def key_metric_tracker(saver: Any) -> Any:
+    """The best-score bookkeeping of a MONAI ``CheckpointSaver(save_key_metric=True)``, for the training state.
+
+    MONAI's saver can *load* this state but has no ``state_dict`` to *save* it, so after a resume the first
+    validation would always count as a new best and overwrite ``model.pt`` even when worse. Saving its ignite
+    ``Checkpoint`` (scores and file names only) in the training state keeps "best" meaning best across restarts.
+    """
+    tracker = getattr(saver, "_key_metric_checkpoint", None)
+    return tracker if tracker is not None else _NoTracker()

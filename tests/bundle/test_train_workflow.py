@@ -1,0 +1,176 @@
+"""bundle/configs/train.yaml (and multi_gpu_train.yaml) run end to end on the tiny synthetic dataset.
+
+Every run is tiny on purpose (3 subjects of 32^3, network grid 32^3, one or two epochs): these tests pin the
+wiring (what is written where, what a resume restores, which rank writes), not the quality of the training.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import pytest
+import torch
+from ignite.engine import Events
+from monai.bundle import ConfigWorkflow
+
+from monai_probreg import ProbRegNet
+
+ROOT = Path(__file__).resolve().parents[2]
+BUNDLE = ROOT / "bundle"
+TRAIN = BUNDLE / "configs" / "train.yaml"
+MULTI_GPU = BUNDLE / "configs" / "multi_gpu_train.yaml"
+
+TINY = {"network_size": [32, 32, 32], "val_ids": ["T01"], "val_interval": 1, "num_workers": 0}
+
+
+def _workflow(tmp_path: Path, dataset: Path, config: str | Sequence[str] = str(TRAIN), **override) -> ConfigWorkflow:
+    """An initialised train workflow on ``dataset`` writing into ``tmp_path`` (ckpt/, runs/)."""
+    settings = {**TINY, "bundle_root": str(BUNDLE), "dataset_dir": str(dataset),
+                "ckpt_dir": str(tmp_path / "ckpt"), "output_dir": str(tmp_path / "runs"), **override}
+    wf = ConfigWorkflow(config_file=config, workflow_type="train", logging_file=False, **settings)
+    wf.initialize()
+    return wf
+
+
+def _train_states(ckpt_dir: Path) -> list[Path]:
+    return sorted(ckpt_dir.glob("train_state*.pt"))
+
+
+def _epoch(trainer_state: dict) -> int:
+    """ignite's Engine.state_dict keeps iteration and epoch_length; the epoch follows from them."""
+    return trainer_state["iteration"] // trainer_state["epoch_length"]
+
+
+def _net_from_config(wf: ConfigWorkflow) -> ProbRegNet:
+    p = wf.parser
+    return ProbRegNet(spatial_dims=3, enc_channels=p["enc_channels"], dec_channels=p["dec_channels"],
+                      int_downsize=p["int_downsize"], num_steps=p["num_steps"], bidirectional=p["bidirectional"],
+                      network_size=p["network_size"])
+
+
+def test_train_writes_best_weights_and_training_state(tmp_path, tiny_dataset):
+    wf = _workflow(tmp_path, tiny_dataset, max_epochs=2)
+    assert wf.check_properties() == []  # every required TrainProperties/MetaProperties entry, optional IDs right
+    wf.run()
+    wf.finalize()
+
+    ckpt = tmp_path / "ckpt"
+    weights = torch.load(ckpt / "model.pt", weights_only=True)
+    _net_from_config(wf).load_state_dict(weights)  # strict: the same architecture, plain (unwrapped) names
+    states = _train_states(ckpt)
+    assert len(states) == 1, f"n_saved=1 keeps one training state; found {[p.name for p in states]}"
+    state = torch.load(states[0], weights_only=True)
+    assert set(state) == {"model", "optimizer", "trainer", "best_model"}
+    assert _epoch(state["trainer"]) == 2
+    # the best-Dice bookkeeping travels with the training state, so a resume keeps comparing against it
+    (best,) = state["best_model"]["_saved"]
+    assert str(best[1]).startswith("model")  # ignite names it model_key_metric=<score>.pt; MONAI writes model.pt
+    assert best[0] == pytest.approx(wf.evaluator.state.best_metric)  # the priority is the best val Dice
+    assert any((tmp_path / "runs").glob("events.out.tfevents.*"))
+
+
+def test_resume_continues_from_saved_epoch_with_optimizer_state(tmp_path, tiny_dataset):
+    first = _workflow(tmp_path, tiny_dataset, max_epochs=1)
+    first.run()
+    first.finalize()
+    (saved,) = _train_states(tmp_path / "ckpt")
+    saved_state = torch.load(saved, weights_only=True)
+    iters_per_epoch = saved_state["trainer"]["epoch_length"]
+    assert iters_per_epoch == 2  # 2 training subjects, batch 1
+    assert _epoch(saved_state["trainer"]) == 1
+
+    second = _workflow(tmp_path, tiny_dataset, max_epochs=2)
+    trainer = second.trainer
+    seen = {"epochs": [], "iterations": 0}
+
+    @trainer.on(Events.EPOCH_STARTED)
+    def _check_restored(engine):  # after CheckpointLoader (Events.STARTED), before the first update
+        seen["epochs"].append(engine.state.epoch)
+        if len(seen["epochs"]) == 1:
+            seen["iteration_at_start"] = engine.state.iteration
+            net = second.parser.get_parsed_content("network")
+            for name, value in net.state_dict().items():
+                torch.testing.assert_close(value, saved_state["model"][name], rtol=0, atol=0, msg=name)
+            opt_state = second.parser.get_parsed_content("optimizer").state_dict()["state"]
+            seen["adam_steps_at_start"] = {int(s["step"]) for s in opt_state.values()}
+
+    @trainer.on(Events.ITERATION_COMPLETED)
+    def _count(engine):
+        seen["iterations"] += 1
+
+    second.run()
+    second.finalize()
+
+    assert seen["epochs"] == [2], "the resumed run must train only epoch 2"
+    assert seen["iteration_at_start"] == iters_per_epoch
+    assert seen["iterations"] == iters_per_epoch
+    assert seen["adam_steps_at_start"] == {iters_per_epoch}, "Adam moments/step counts not restored"
+    final = torch.load(_train_states(tmp_path / "ckpt")[-1], weights_only=True)
+    assert final["trainer"]["iteration"] == 2 * iters_per_epoch
+    assert {int(s["step"]) for s in final["optimizer"]["state"].values()} == {2 * iters_per_epoch}
+
+
+def test_semi_supervised_training_uses_the_label_term(tmp_path, tiny_dataset):
+    wf = _workflow(tmp_path, tiny_dataset, max_epochs=1, label_weight=0.5, label_values=[21, 22, 181])
+    wf.run()
+    wf.finalize()
+    terms = wf.parser.get_parsed_content("loss").last_terms
+    assert terms is not None and torch.isfinite(terms.total)
+    # a Dice loss of labels that overlap only partly; exactly 0 would mean the term was never computed
+    assert 0.0 < float(terms.label) < 1.0
+    torch.testing.assert_close(terms.total, terms.image + terms.kl + 0.5 * terms.label, rtol=1e-5, atol=1e-5)
+
+
+def test_multi_gpu_config_parses_and_overrides_single_process_pieces():
+    from monai.bundle import ConfigParser
+
+    single = ConfigParser.load_config_file(str(TRAIN))
+    config = ConfigParser.load_config_files([str(TRAIN), str(MULTI_GPU)])
+    assert config["imports"] == single["imports"] + ["$import torch.distributed as dist"]  # '+imports' extends
+    assert config["network"]["_target_"] == "torch.nn.parallel.DistributedDataParallel"
+    assert config["train"]["dataloader"]["sampler"] == "@train#sampler"
+    assert config["train"]["dataloader"]["shuffle"] is False
+    # the indices multi_gpu_train.yaml disables on ranks > 0 must still point at the handlers named there
+    train_targets = [h["_target_"] for h in config["train"]["handlers"]]
+    val_targets = [h["_target_"] for h in config["validate"]["handlers"]]
+    assert train_targets == ["ValidationHandler", "StatsHandler", "TensorBoardStatsHandler"]
+    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "CheckpointSaver"]
+    assert all("_disabled_" in h for h in config["train"]["handlers"] + config["validate"]["handlers"])
+    assert "finalize" in config and "run" in config
+
+
+@pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+                    reason="torch.distributed with the gloo backend is not available in this torch build")
+def test_two_process_ddp_training_on_gloo(tmp_path, tiny_dataset):
+    try:
+        import torch.distributed.run  # noqa: F401  (what the torchrun script runs)
+    except ImportError as err:
+        pytest.skip(f"torchrun (torch.distributed.run) is unavailable: {err}")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+           "-m", "monai.bundle", "run", "--config_file", f"['{TRAIN}','{MULTI_GPU}']",
+           "--bundle_root", str(BUNDLE), "--dataset_dir", str(tiny_dataset),
+           "--ckpt_dir", str(tmp_path / "ckpt"), "--output_dir", str(tmp_path / "runs"),
+           "--network_size", "[32,32,32]", "--val_ids", "['T01']", "--val_interval", "1",
+           "--num_workers", "0", "--max_epochs", "1"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}  # gloo on CPU even on a GPU host
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-4000:]
+
+    ckpt = tmp_path / "ckpt"
+    assert sorted(p.name for p in ckpt.iterdir()) == ["model.pt", "train_state_checkpoint_epoch=1.pt"]
+    ProbRegNet(network_size=[32, 32, 32]).load_state_dict(torch.load(ckpt / "model.pt", weights_only=True))
+    state = torch.load(ckpt / "train_state_checkpoint_epoch=1.pt", weights_only=True)
+    assert not any(k.startswith("module.") for k in state["model"]), "DDP wrapper leaked into the checkpoint"
+    # 2 training subjects over 2 ranks: one iteration per rank per epoch (disjoint shards, not the whole set each)
+    assert state["trainer"]["iteration"] == 1
+    assert re.search(r"Epoch: 1/1, Iter: 1/1", log), log[-4000:]
+    # TensorBoard files are named events.out.tfevents.<time>.<host>.<pid>.<n>: all from one process (rank 0)
+    writers = {p.name.split(".")[-2] for p in (tmp_path / "runs").glob("events.out.tfevents.*")}
+    assert len(writers) == 1, f"TensorBoard events written by several processes: {writers}"
+    assert len(re.findall(r"Key metric: val_dice", log)) == 1, "validation must run on rank 0 only"

@@ -35,7 +35,7 @@ from monai.transforms import (
 )
 
 __all__ = ["DatasetIndex", "index_dataset", "pair_dicts", "split_ids", "registration_transforms",
-           "IMAGE_KEYS", "LABEL_KEYS"]
+           "atlas_label_values", "IMAGE_KEYS", "LABEL_KEYS"]
 
 IMAGE_KEYS = ("moving", "fixed")
 LABEL_KEYS = ("moving_label", "fixed_label")
@@ -151,3 +151,16 @@ def registration_transforms(
     if labels:
         chain.append(EnsureTyped(keys=labels, dtype=torch.int16))
     return Compose(chain)
+
+
+def atlas_label_values(index: DatasetIndex) -> list[int]:
+    """Sorted non-zero label ids of the atlas label map (the structures Dice is computed over)."""
+    if index.atlas_label is None:
+        raise ValueError(f"the dataset has no atlas label map next to {index.atlas_image}")
+    import nibabel as nib
+    import numpy as np
+
+    data = np.asanyarray(nib.load(str(index.atlas_label)).dataobj)
+    if not np.array_equal(data, np.round(data)):
+        raise ValueError(f"{index.atlas_label} must hold integer labels; got non-integer values")
+    return [int(v) for v in np.unique(data) if v != 0]

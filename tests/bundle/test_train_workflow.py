@@ -116,9 +116,13 @@ def test_resume_continues_from_saved_epoch_with_optimizer_state(tmp_path, tiny_d
 
 
 def test_semi_supervised_training_uses_the_label_term(tmp_path, tiny_dataset):
-    wf = _workflow(tmp_path, tiny_dataset, max_epochs=1, label_weight=0.5, label_values=[21, 22, 181])
+    semi = str(TRAIN.parent / "train_semisupervised.yaml")
+    wf = _workflow(tmp_path, tiny_dataset, config=[str(TRAIN), semi], max_epochs=1)
+    assert wf.parser.get_parsed_content("label_values") == [21, 22, 181]  # read from the atlas label map
     wf.run()
     wf.finalize()
+    assert (tmp_path / "ckpt" / "model_semisupervised.pt").is_file()
+    assert not (tmp_path / "ckpt" / "model.pt").exists()  # the unsupervised weights are never overwritten
     terms = wf.parser.get_parsed_content("loss").last_terms
     assert terms is not None and torch.isfinite(terms.total)
     # a Dice loss of labels that overlap only partly; exactly 0 would mean the term was never computed

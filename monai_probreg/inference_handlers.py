@@ -1,0 +1,129 @@
+"""Ignite/MONAI engine pieces of the inference and evaluation bundle workflows (a thin layer on
+:mod:`monai_probreg.inference`).
+
+A ``SupervisedEvaluator`` with ``prepare_batch=monai_probreg.engine.prepare_registration_batch`` and
+``decollate=False`` calls ``inferer(moving, network, fixed)`` -> :class:`RegistrationInferer` (timed
+:func:`~monai_probreg.inference.register_pair`); its handlers then see ``state.output`` =
+``{"image": moving, "label": batch tensors, "pred": RegistrationOutput}`` and ``state.batch["id"]``:
+:class:`RegistrationWriter` writes the NIfTI outputs, :class:`RegistrationScorer` scores each subject and
+writes ``scores.csv`` / ``summary.json`` when the run completes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from ignite.engine import Engine, Events
+from monai.inferers import Inferer
+from torch import Tensor
+
+from monai_probreg.inference import (
+    OUTPUT_NAMES,
+    OUTPUTS_README,
+    PairScores,
+    score_pair,
+    summary_table,
+    timed_register_pair,
+    write_outputs,
+    write_scores,
+    write_text,
+)
+from monai_probreg.networks.probreg_net import RegistrationOutput
+
+__all__ = ["RegistrationInferer", "RegistrationWriter", "RegistrationScorer"]
+
+_LOG = logging.getLogger("monai_probreg.inference")
+
+
+class RegistrationInferer(Inferer):
+    """Engine inferer: ``network(moving, fixed)`` through :func:`timed_register_pair`; the wall time of the
+    last call (the whole batch) is kept in ``last_runtime_s`` for the handlers."""
+
+    last_runtime_s: float = math.nan
+
+    def __call__(self, inputs: Tensor, network: Callable, *args: Any, **kwargs: Any) -> RegistrationOutput:
+        if len(args) != 1 or kwargs:
+            raise ValueError(f"expected one extra argument, the fixed image; got {len(args)}, keywords {sorted(kwargs)}")
+        output, self.last_runtime_s = timed_register_pair(network, inputs, args[0])  # type: ignore[arg-type]
+        return output
+
+
+class _PerSubjectHandler:
+    """Ignite handler base: ``start``, then ``each(engine, sid, pair, targets, runtime)`` per batch item (pair and
+    targets sliced to B = 1; runtime = the inferer's batch time / batch size), then ``done``."""
+
+    def attach(self, engine: Engine) -> None:
+        engine.add_event_handler(Events.STARTED, self.start)
+        engine.add_event_handler(Events.ITERATION_COMPLETED, self._iteration)
+        engine.add_event_handler(Events.COMPLETED, self.done)
+
+    def _iteration(self, engine: Engine) -> None:
+        pred, targets = engine.state.output["pred"], engine.state.output["label"]  # type: ignore[index]
+        ids, batch = engine.state.batch["id"], pred.displacement.shape[0]  # type: ignore[index]
+        runtime = getattr(getattr(engine, "inferer", None), "last_runtime_s", math.nan) / batch
+        for b, sid in enumerate(ids):
+            pair = RegistrationOutput(*(t[b : b + 1] if t is not None else None for t in pred))
+            with torch.inference_mode():
+                self.each(engine, sid, pair, {k: v[b : b + 1] for k, v in targets.items()}, runtime)
+
+    def each(self, engine: Engine, sid: str, pair: RegistrationOutput, targets: dict, runtime: float) -> None:
+        raise NotImplementedError
+
+    def start(self, engine: Engine) -> None:
+        pass
+
+    def done(self, engine: Engine) -> None:
+        pass
+
+
+class RegistrationWriter(_PerSubjectHandler):
+    """Writes :func:`write_outputs` for every subject into ``output_dir``: the maps in ``names`` (default all of
+    :data:`~monai_probreg.inference.OUTPUT_NAMES`; ``warped_label`` only when the batch has labels)."""
+
+    def __init__(self, output_dir: str | os.PathLike, names: Sequence[str] = OUTPUT_NAMES) -> None:
+        unknown = set(names) - set(OUTPUT_NAMES)
+        if unknown:
+            raise ValueError(f"unknown output names {sorted(unknown)}; choose from {list(OUTPUT_NAMES)}")
+        self.output_dir, self.names = Path(output_dir), tuple(names)
+
+    def start(self, engine: Engine) -> None:
+        write_text(self.output_dir / "README.txt", OUTPUTS_README)
+
+    def each(self, engine: Engine, sid: str, pair: RegistrationOutput, targets: dict, runtime: float) -> None:
+        affine = targets["fixed"].affine
+        affine = affine[0] if affine.ndim == 3 else affine
+        write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names)
+        _LOG.info(f"[{engine.state.iteration}/{engine.state.epoch_length}] {sid}: {runtime:.2f} s "
+                  f"-> {self.output_dir / sid}")
+
+
+class RegistrationScorer(_PerSubjectHandler):
+    """Scores every subject with :func:`score_pair` (and the identity), then :func:`write_scores` and prints
+    the summary table. ``config`` is stored in summary.json; ``labels`` default to the atlas' non-zero ids."""
+
+    def __init__(self, output_dir: str | os.PathLike, config: Mapping[str, Any] | None = None,
+                 labels: Sequence[int] | None = None) -> None:
+        self.output_dir, self.config, self.labels = Path(output_dir), dict(config or {}), labels
+        self.rows: list[tuple[str, PairScores, PairScores]] = []
+
+    def start(self, engine: Engine) -> None:
+        self.rows = []
+
+    def each(self, engine: Engine, sid: str, pair: RegistrationOutput, targets: dict, runtime: float) -> None:
+        if "moving_label" not in targets:
+            raise ValueError(f"subject {sid!r} has no labels loaded; scoring needs moving_label and fixed_label")
+        reg = score_pair(pair.displacement, targets["moving_label"], targets["fixed_label"], runtime, self.labels)
+        base = score_pair(None, targets["moving_label"], targets["fixed_label"], 0.0, self.labels)
+        self.rows.append((sid, reg, base))
+        _LOG.info(f"[{engine.state.iteration}/{engine.state.epoch_length}] {sid}: Dice {reg.mean_dice:.3f} "
+                  f"(no registration {base.mean_dice:.3f}), |J|<=0 {reg.num_folding}, {runtime:.2f} s")
+
+    def done(self, engine: Engine) -> None:
+        summary = write_scores(self.output_dir, self.rows, self.config)
+        print(summary_table(summary) + f"\nper-subject scores: {self.output_dir / 'scores.csv'}", flush=True)

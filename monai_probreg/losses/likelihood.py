@@ -47,7 +47,7 @@ class GaussianImageLoss(nn.Module):
         return gaussian_image_loss(warped, fixed, self.image_sigma, self.reduction)
 
 
-def make_image_loss(name: str, spatial_dims: int = 3, image_sigma: float = 0.05, lncc_kernel_size: int = 9,
+def make_image_loss(name: str, spatial_dims: int = 3, image_sigma: float = 0.04, lncc_kernel_size: int = 9,
                     reduction: str = "mean") -> nn.Module:
     """Build the likelihood term by name: ``"gaussian"`` (the paper's) or ``"lncc"`` (MONAI's local NCC, in [-1, 0])."""
     if name == "gaussian":

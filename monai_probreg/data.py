@@ -23,8 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from monai.transforms import (
     Compose,
+    MapTransform,
     DivisiblePadd,
     EnsureChannelFirstd,
     EnsureTyped,
@@ -34,7 +36,7 @@ from monai.transforms import (
     ScaleIntensityRangePercentilesd,
 )
 
-__all__ = ["DatasetIndex", "index_dataset", "pair_dicts", "split_ids", "registration_transforms",
+__all__ = ["DatasetIndex", "NearestResizeAlignCornersd", "index_dataset", "pair_dicts", "split_ids", "registration_transforms",
            "atlas_label_values", "IMAGE_KEYS", "LABEL_KEYS"]
 
 IMAGE_KEYS = ("moving", "fixed")
@@ -113,6 +115,31 @@ def pair_dicts(index: DatasetIndex, ids: Sequence[str] | None = None, require_la
     return pairs
 
 
+class NearestResizeAlignCornersd(MapTransform):
+    """Nearest-neighbour resize of label maps with align-corners geometry, matching the images' linear resize.
+
+    MONAI's ``Resized(mode="nearest")`` maps output voxel i to input floor(i * n / m) (half-open geometry), up to
+    one input voxel away from where the align-corners image resize samples; the label term of semi-supervised
+    training would then compare slightly shifted maps. We sample at exactly the align-corners positions.
+    """
+
+    def __init__(self, keys: Sequence[str], spatial_size: Sequence[int]) -> None:
+        super().__init__(keys)
+        self.spatial_size = tuple(int(n) for n in spatial_size)
+
+    def __call__(self, data: dict) -> dict:
+        d = dict(data)
+        for key in self.key_iterator(d):
+            labels = d[key]
+            ndims = labels.ndim - 1
+            theta = torch.eye(ndims, ndims + 1, dtype=torch.float32).unsqueeze(0)
+            grid = F.affine_grid(theta, [1, 1, *self.spatial_size], align_corners=True)
+            src = torch.as_tensor(labels, dtype=torch.float32).unsqueeze(0)
+            resized = F.grid_sample(src, grid, mode="nearest", align_corners=True)[0]
+            d[key] = resized.to(torch.as_tensor(labels).dtype)
+        return d
+
+
 def registration_transforms(
     with_labels: bool = True,
     divisor: int = 16,
@@ -146,7 +173,7 @@ def registration_transforms(
         chain.append(Resized(keys=list(IMAGE_KEYS), spatial_size=tuple(network_size), mode="trilinear",
                              align_corners=True, anti_aliasing=False))
         if resize_labels and labels:
-            chain.append(Resized(keys=labels, spatial_size=tuple(network_size), mode="nearest"))
+            chain.append(NearestResizeAlignCornersd(keys=labels, spatial_size=network_size))
     chain.append(EnsureTyped(keys=list(IMAGE_KEYS), dtype=torch.float32))
     if labels:
         chain.append(EnsureTyped(keys=labels, dtype=torch.int16))

@@ -117,17 +117,27 @@ def test_resume_continues_from_saved_epoch_with_optimizer_state(tmp_path, tiny_d
 
 def test_semi_supervised_training_uses_the_label_term(tmp_path, tiny_dataset):
     semi = str(TRAIN.parent / "train_semisupervised.yaml")
-    wf = _workflow(tmp_path, tiny_dataset, config=[str(TRAIN), semi], max_epochs=1)
+    # the variant fine-tunes from the unsupervised weights: give it a model whose mean-head bias is recognisable
+    init = ProbRegNet(spatial_dims=3, network_size=TINY["network_size"])
+    with torch.no_grad():
+        init.unet.mean_head.bias.fill_(0.123)
+    torch.save(init.state_dict(), tmp_path / "unsupervised.pt")
+    wf = _workflow(tmp_path, tiny_dataset, config=[str(TRAIN), semi], max_epochs=1,
+                   init_model_file=str(tmp_path / "unsupervised.pt"))
     assert wf.parser.get_parsed_content("label_values") == [21, 22, 181]  # read from the atlas label map
     wf.run()
     wf.finalize()
+    # 2 Adam steps of lr 2e-4 move a parameter by at most ~4e-4: the start was the given weights, not a fresh init
+    bias = wf.parser.get_parsed_content("network_def").unet.mean_head.bias
+    assert torch.allclose(bias, torch.full_like(bias, 0.123), atol=1e-2)
     assert (tmp_path / "ckpt" / "model_semisupervised.pt").is_file()
     assert not (tmp_path / "ckpt" / "model.pt").exists()  # the unsupervised weights are never overwritten
     terms = wf.parser.get_parsed_content("loss").last_terms
     assert terms is not None and torch.isfinite(terms.total)
     # a Dice loss of labels that overlap only partly; exactly 0 would mean the term was never computed
     assert 0.0 < float(terms.label) < 1.0
-    torch.testing.assert_close(terms.total, terms.image + terms.kl + 0.5 * terms.label, rtol=1e-5, atol=1e-5)
+    weight = wf.parser.get_parsed_content("label_weight")
+    torch.testing.assert_close(terms.total, terms.image + terms.kl + weight * terms.label, rtol=1e-5, atol=1e-5)
 
 
 def test_multi_gpu_config_parses_and_overrides_single_process_pieces():

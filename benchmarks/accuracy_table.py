@@ -1,0 +1,349 @@
+"""Accuracy benchmark: no registration vs ANTs SyN vs our models, side by side on the same subjects and grid.
+
+Registers every validation subject to the atlas of a dataset folder (moving = subject, fixed = atlas) with
+  - "no registration" (the identity),
+  - "ANTs SyN" (antspyx, ``ants.registration(fixed, moving, type_of_transform="SyN")``, antspyx defaults; optional
+    extra ``pip install -e ".[bench]"``; the row says "skipped" when antspyx cannot be imported),
+  - "ours (unsupervised)" (``models/model.pt``) and "ours (semi-supervised)" (``models/model_semisupervised.pt``),
+    each only when its weights file exists (else the row says "not trained"),
+and reports per method: mean Dice over the atlas' labels (mean and population std over subjects), |J| <= 0 voxels
+per pair, std of log|J| (over the voxels where J > 0), wall time per pair and threads.
+
+Everything comes from the bundle configs (nothing duplicated here): the subjects default to ``val_ids`` of
+``configs/train.yaml``; the network settings, device and preprocessing are those of ``configs/evaluate.yaml``
+(override a value with ``--override KEY=VALUE``, as on the ``monai.bundle run`` command line); the semi-supervised
+weights file is ``ckpt_dir/model_filename`` of train.yaml + train_semisupervised.yaml.
+
+Same grid for every method: each pair goes once through evaluate.yaml's preprocessing (RAS, intensities
+percentile-scaled to [0, 1], padded to the divisor) and every method is scored on that atlas grid with
+:func:`monai_probreg.inference.score_pair` (labels warped nearest neighbour, Dice per atlas label). ANTs gets
+the same arrays as images of spacing 1 mm, origin 0, identity direction, so its physical space is our voxel
+space (no geometry mismatch).
+
+Wall time per pair: ours = :func:`~monai_probreg.inference.timed_register_pair` (network + integration + warp,
+after one untimed warm-up pass per model), as evaluate.yaml reports it; ANTs = the ``ants.registration`` call
+(affine + SyN stages, transform files included). Neither includes loading or scoring.
+
+    python benchmarks/accuracy_table.py                       # table + benchmarks/results/accuracy_table.{json,png}
+    python benchmarks/accuracy_table.py --subjects S11 S14 --methods identity ants --threads 2
+    python benchmarks/accuracy_table.py --override network_size=null   # a model trained on the native grid
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import monai
+import numpy as np
+import torch
+import yaml
+from monai.bundle import ConfigParser
+from monai.data import Dataset
+
+import monai_probreg
+from monai_probreg.data import index_dataset
+from monai_probreg.inference import PairScores, evaluate_pair, labelled_pairs, load_weights, register_pair, score_pair
+from monai_probreg.inference import write_text
+from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"   # ../shared/data/lpba40 from the repository root
+DEFAULT_OUT = REPO / "benchmarks" / "results"
+METHODS = {  # --methods key -> row name, in table order
+    "identity": "no registration",
+    "ants": "ANTs SyN",
+    "unsupervised": "ours (unsupervised)",
+    "semisupervised": "ours (semi-supervised)",
+}
+ANTS_SETTINGS = {
+    "call": 'ants.registration(fixed, moving, type_of_transform="SyN")',
+    "parameters": "antspyx defaults (affine + SyN stages; default random sampling, so results vary slightly per run)",
+    "image_geometry": "evaluate.yaml-preprocessed arrays, spacing 1 mm, origin 0, identity direction",
+    "labels": 'ants.apply_transforms(fixed, moving_label, fwdtransforms, interpolator="nearestNeighbor")',
+    "jacobian": "monai_probreg jacobian_determinant of the composed (affine + SyN) forward displacement field "
+                "(ants.apply_transforms(..., compose=...)), in voxels since 1 voxel = 1 mm here",
+    "threads": "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS",
+}
+
+
+# ------------------------------------------------------------------------------------------------ configs
+def _parser(bundle_root: Path, names: Sequence[str], overrides: dict[str, Any] | None = None) -> ConfigParser:
+    """A ConfigParser over ``bundle_root/configs/<names>`` (merged in order), bundle_root and overrides set."""
+    parser = ConfigParser()
+    parser.read_config([str(bundle_root / "configs" / n) for n in names])
+    parser["bundle_root"] = str(bundle_root)
+    for key, value in (overrides or {}).items():
+        parser[key] = value
+    return parser
+
+
+def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    overrides = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"--override expects KEY=VALUE (VALUE in YAML, e.g. network_size=[80,96,80]); "
+                             f"got {item!r}")
+        overrides[key] = yaml.safe_load(value)
+    return overrides
+
+
+# ------------------------------------------------------------------------------------------------ methods
+def _plain(t: torch.Tensor) -> torch.Tensor:
+    return t.as_tensor() if isinstance(t, monai.data.MetaTensor) else t
+
+
+def ants_register(moving: torch.Tensor, fixed: torch.Tensor, moving_label: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """ANTs SyN of ``moving`` onto ``fixed`` (both (1, 1, *S) on one grid) with antspyx defaults.
+
+    Returns (moving labels warped nearest neighbour by ANTs (1, 1, *S) int16, the composed forward displacement
+    (1, 3, *S) in our convention, registration wall time in s). The images get spacing 1, origin 0 and identity
+    direction, so ITK's physical x, y, z are array axes 0, 1, 2 in voxels, and ITK's forward transform maps a fixed
+    point x to the moving point x + u(x): exactly our pull-back ``warped[x] = moving[x + u(x)]``.
+    """
+    import ants
+
+    def image(t: torch.Tensor) -> ants.ANTsImage:
+        array = np.ascontiguousarray(_plain(t)[0, 0].detach().cpu().numpy(), dtype=np.float32)
+        return ants.from_numpy(array, origin=(0.0, 0.0, 0.0), spacing=(1.0, 1.0, 1.0), direction=np.eye(3))
+
+    fixed_img, moving_img = image(fixed), image(moving)
+    with tempfile.TemporaryDirectory(prefix="ants_syn_") as tmp:
+        start = time.perf_counter()
+        result = ants.registration(fixed_img, moving_img, type_of_transform="SyN", outprefix=f"{tmp}/tx_")
+        runtime = time.perf_counter() - start
+        fwd = result["fwdtransforms"]
+        warped = ants.apply_transforms(fixed_img, image(moving_label.float()), fwd, interpolator="nearestNeighbor")
+        # |J| from the whole forward transform (affine then SyN), on the same finite differences as ours
+        field = ants.image_read(ants.apply_transforms(fixed_img, moving_img, fwd, compose=f"{tmp}/composed_"))
+        displacement = torch.from_numpy(np.ascontiguousarray(field.numpy(), dtype=np.float32))  # (X, Y, Z, 3)
+    labels = torch.from_numpy(np.rint(warped.numpy())).to(torch.int16)[None, None]
+    return labels, displacement.movedim(-1, 0)[None], runtime
+
+
+def _ants_scores(pair: dict, labels: Sequence[int] | None) -> PairScores:
+    warped_label, displacement, runtime = ants_register(pair["moving"], pair["fixed"], pair["moving_label"])
+    # Dice of ANTs' own nearest-neighbour label warp; folding of its composed field
+    scores = score_pair(None, warped_label, pair["fixed_label"], runtime, labels)
+    return scores._replace(**jacobian_stats(jacobian_determinant(displacement))._asdict())
+
+
+def _ants_available() -> tuple[bool, str]:
+    try:
+        import ants
+    except ImportError as err:
+        return False, f"skipped: antspyx not importable ({err}); pip install -e '.[bench]'"
+    return True, getattr(ants, "__version__", "unknown")
+
+
+# ------------------------------------------------------------------------------------------------ reporting
+def _stat(values: Sequence[float]) -> dict[str, float | None]:
+    arr = np.asarray([v for v in values if not math.isnan(v)], dtype=np.float64)
+    return {"mean": float(arr.mean()), "std": float(arr.std())} if arr.size else {"mean": None, "std": None}
+
+
+def _subject_record(s: PairScores) -> dict[str, Any]:
+    def num(v: float) -> float | None:
+        return None if math.isnan(v) else float(v)
+    return {"mean_dice": num(s.mean_dice), "dice": {str(k): num(v) for k, v in s.dice.items()},
+            "num_folding": int(s.num_folding), "percent_folding": float(s.percent_folding),
+            "std_log_jacobian": num(s.std_log_jacobian), "runtime_s": float(s.runtime_s)}
+
+
+def _aggregate(scores: Sequence[PairScores]) -> dict[str, dict[str, float | None]]:
+    fields = ("mean_dice", "num_folding", "percent_folding", "std_log_jacobian", "runtime_s")
+    return {f: _stat([float(getattr(s, f)) for s in scores]) for f in fields}
+
+
+def markdown_table(methods: dict[str, dict[str, Any]]) -> str:
+    """The README table: one row per method; rows that did not run say why."""
+    lines = ["| method | mean Dice (std over subjects) | \\|J\\|<=0 per pair | std log\\|J\\| | s per pair | threads |",
+             "|---|---|---|---|---|---|"]
+    for row in methods.values():
+        if row["status"] != "ok":
+            lines.append(f"| {row['name']} | {row['status']} | | | | |")
+            continue
+        agg, timed = row["aggregate"], row["key"] != "identity"
+        dice = f"{agg['mean_dice']['mean']:.3f} ({agg['mean_dice']['std']:.3f})"
+        folding = f"{agg['num_folding']['mean']:.1f}"
+        std_log = "n/a" if agg["std_log_jacobian"]["mean"] is None else f"{agg['std_log_jacobian']['mean']:.3f}"
+        seconds = f"{agg['runtime_s']['mean']:.2f}" if timed else "–"
+        lines.append(f"| {row['name']} | {dice} | {folding} | {std_log} | {seconds} | {row['threads'] or '–'} |")
+    return "\n".join(lines)
+
+
+def bar_chart(methods: dict[str, dict[str, Any]], path: Path, title: str) -> None:
+    """Mean Dice per method (error bars: std over subjects, dots: subjects); written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in methods.values() if r["status"] == "ok"]
+    fig, ax = plt.subplots(figsize=(1.8 + 1.7 * max(len(rows), 1), 4.5), layout="constrained")
+    for i, row in enumerate(rows):
+        agg = row["aggregate"]["mean_dice"]
+        ax.bar(i, agg["mean"], yerr=agg["std"], capsize=6, color=f"C{i}", alpha=0.8)
+        subjects = [s["mean_dice"] for s in row["per_subject"].values() if s["mean_dice"] is not None]
+        ax.scatter(np.full(len(subjects), i) + np.linspace(-0.15, 0.15, len(subjects)), subjects,
+                   s=12, color="black", zorder=3)
+        ax.text(i, min(agg["mean"] + agg["std"] + 0.02, 0.97), f"{agg['mean']:.3f}", ha="center", fontsize=10)
+    ax.set_xticks(range(len(rows)), [r["name"].replace(" (", "\n(") for r in rows], fontsize=10)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("mean Dice over atlas labels")
+    ax.set_title(title, fontsize=11)
+    ax.grid(axis="y", alpha=0.3)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+# ------------------------------------------------------------------------------------------------ main
+def _semi_model_file(bundle_root: Path) -> Path:
+    """Where train_semisupervised.yaml (on top of train.yaml) writes its best weights: ckpt_dir/model_filename."""
+    semi = _parser(bundle_root, ["train.yaml", "train_semisupervised.yaml"])
+    return Path(semi.get_parsed_content("ckpt_dir"), semi.get_parsed_content("model_filename"))
+
+
+def _methods(keys: Sequence[str], evaluate: ConfigParser, model_files: dict[str, Path], device: torch.device,
+             labels: Sequence[int] | None, threads: int):
+    """Table rows (in :data:`METHODS` order) and, for the rows that can run, ``pair dict -> PairScores``.
+
+    Returns (rows, runners, networks to warm up, antspyx version or None). A row that cannot run keeps a status
+    saying why (antspyx not importable, weights file missing)."""
+    rows: dict[str, dict[str, Any]] = {}
+    runners: dict[str, Callable[[dict], PairScores]] = {}
+    warmup: dict[str, torch.nn.Module] = {}
+    antspyx = None
+    for key in (k for k in METHODS if k in keys):
+        row = rows[key] = {"key": key, "name": METHODS[key], "status": "ok", "threads": None, "per_subject": {}}
+        if key == "identity":
+            runners[key] = lambda p: score_pair(None, p["moving_label"], p["fixed_label"], 0.0, labels)
+        elif key == "ants":
+            ok, message = _ants_available()
+            if not ok:
+                row["status"] = message
+                continue
+            antspyx, row["threads"] = message, threads
+            runners[key] = lambda p: _ants_scores(p, labels)
+        else:
+            path = model_files[key]
+            row["model_file"] = str(path)
+            if not path.is_file():
+                row["status"] = f"not trained (no {path})"
+                continue
+            network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), path, device)
+            row["threads"] = threads if device.type == "cpu" else str(device)
+            runners[key] = (lambda net: lambda p: evaluate_pair(net, p["moving"], p["fixed"], p["moving_label"],
+                                                                 p["fixed_label"], labels)[0])(network)
+            warmup[key] = network  # the first pass allocates: run once untimed
+    return rows, runners, warmup, antspyx
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET,
+                    help="atlas/, images/, labels/ (default: %(default)s)")
+    ap.add_argument("--subjects", nargs="+", default=None, help="subject ids (default: val_ids of configs/train.yaml)")
+    ap.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="rows to compute")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="CPU threads for torch and ITK (default: torch's default)")
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where accuracy_table.{json,png} go")
+    ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle", help="bundle with configs/ and models/")
+    ap.add_argument("--model-file", type=Path, default=None,
+                    help="unsupervised weights (default: evaluate.yaml's model_file)")
+    ap.add_argument("--semi-model-file", type=Path, default=None,
+                    help="semi-supervised weights (default: ckpt_dir/model_filename of train_semisupervised.yaml)")
+    ap.add_argument("--device", default=None, help="torch device for our models (default: evaluate.yaml's)")
+    ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
+                    help="override an evaluate.yaml value (YAML), e.g. network_size=[80,96,80]; repeatable")
+    args = ap.parse_args(argv)
+
+    dataset_dir = args.dataset_dir.resolve()
+    if not dataset_dir.is_dir():
+        print(f"skipped: dataset not found at {dataset_dir}", flush=True)
+        return 0
+
+    threads = args.threads or torch.get_num_threads()
+    torch.set_num_threads(threads)
+    os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(threads)  # ITK reads it once, at its first use
+    bundle_root = args.bundle_root.resolve()
+    overrides = _parse_overrides(args.override)
+    evaluate = _parser(bundle_root, ["evaluate.yaml"], {**overrides, "dataset_dir": str(dataset_dir)})
+    subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    model_files = {"unsupervised": args.model_file or Path(evaluate.get_parsed_content("model_file")),
+                   "semisupervised": args.semi_model_file or _semi_model_file(bundle_root)}
+    device = torch.device(args.device) if args.device else evaluate.get_parsed_content("device")
+    labels = evaluate.get_parsed_content("label_values")
+    pairs = labelled_pairs(index_dataset(dataset_dir), subjects)
+    dataset = Dataset(pairs, transform=evaluate.get_parsed_content("preprocessing"))
+    rows, runners, warmup, antspyx = _methods(args.methods, evaluate, model_files, device, labels, threads)
+    versions = {"python": platform.python_version(), "torch": torch.__version__, "monai": monai.__version__,
+                "numpy": np.__version__, "monai_probreg": monai_probreg.__version__, "antspyx": antspyx}
+    for key, row in rows.items():
+        if row["status"] != "ok":
+            print(f"{row['name']}: {row['status']}", flush=True)
+
+    print(f"{len(pairs)} subjects -> atlas {pairs[0]['fixed']}; {threads} threads; device {device}", flush=True)
+    scores: dict[str, list[PairScores]] = {key: [] for key in runners}
+    for i, item in enumerate(dataset):
+        pair = {k: (v[None].to(device) if k in ("moving", "fixed") else v[None]) if isinstance(v, torch.Tensor) else v
+                for k, v in item.items()}
+        for key, run in runners.items():
+            if key in warmup:
+                register_pair(warmup.pop(key), pair["moving"], pair["fixed"])
+            s = run(pair)
+            scores[key].append(s)
+            rows[key]["per_subject"][pair["id"]] = _subject_record(s)
+            print(f"[{i + 1}/{len(pairs)}] {pair['id']} {METHODS[key]}: Dice {s.mean_dice:.3f}, "
+                  f"|J|<=0 {s.num_folding}, {s.runtime_s:.2f} s", flush=True)
+    for key, row in rows.items():
+        if key in scores:
+            row["aggregate"] = _aggregate(scores[key])
+
+    table = markdown_table(rows)
+    network_keys = ("network_size", "int_downsize", "num_steps", "enc_channels", "dec_channels", "divisor")
+    result = {
+        "dataset_dir": str(dataset_dir),
+        "atlas": pairs[0]["fixed"],
+        "subjects": [p["id"] for p in pairs],
+        "settings": {
+            "threads": threads,
+            "device": str(device),
+            "network (evaluate.yaml)": {k: evaluate.get_parsed_content(k) for k in network_keys},
+            "overrides": overrides,
+            "preprocessing (evaluate.yaml)": evaluate["preprocessing"],  # every method is scored on this grid
+            "labels_scored": "every non-zero atlas label" if labels is None else list(labels),
+            "dice": "score_pair: nearest-neighbour warped moving labels vs atlas labels; "
+                    "std = population std over subjects",
+            "folding": "|J| <= 0 voxels over the whole atlas grid; std log|J| over voxels with J > 0",
+            "runtime": "ours: network + integration + warp after one warm-up pass; ANTs: the ants.registration call",
+            "ants": ANTS_SETTINGS,
+        },
+        "versions": {**versions, "platform": platform.platform(), "cpu": platform.processor() or platform.machine()},
+        "methods": rows,
+        "markdown": table,
+    }
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    json_path = write_text(args.out_dir / "accuracy_table.json", json.dumps(result, indent=2) + "\n")
+    png_path = args.out_dir / "accuracy_table.png"
+    bar_chart(rows, png_path, f"{dataset_dir.name}: {len(pairs)} subjects to the atlas")
+    print(f"\n{table}\n\nwrote {json_path}\nwrote {png_path}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,201 @@
+"""benchmarks/accuracy_table.py on the tiny synthetic dataset, with random weights (never the real data).
+
+Pins what the README table rests on: the JSON layout, Dice in [0, 1], the no-registration Dice equal to Dice computed
+with numpy from the label files, a random near-identity model scoring like no registration, the subjects read from
+train.yaml's val_ids, rows that cannot run saying why, and the missing-dataset exit. When antspyx is importable,
+also ANTs SyN (about 0.5 s per 32^3 pair): it must improve Dice (moving = subject, fixed = atlas), and its forward
+field converted to our convention must reproduce ANTs' own nearest-neighbour label warp.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+import torch
+from conftest import TINY_LABELS
+
+from monai_probreg import ProbRegNet
+
+REPO = Path(__file__).resolve().parents[2]
+SCRIPT = REPO / "benchmarks" / "accuracy_table.py"
+SUBJECTS = ["T01", "T02", "T03"]
+FAST = ["--threads", "1", "--override", "network_size=[16,16,16]"]  # 1 thread; a small UNet grid (any size loads)
+RECORD_KEYS = {"mean_dice", "dice", "num_folding", "percent_folding", "std_log_jacobian", "runtime_s"}
+AGGREGATE_KEYS = RECORD_KEYS - {"dice"}
+
+
+def _load_script():
+    spec = importlib.util.spec_from_file_location("accuracy_table_benchmark", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+accuracy_table = _load_script()
+
+
+def _ants_importable() -> bool:
+    try:
+        import ants  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(monkeypatch):
+    threads = torch.get_num_threads()
+    monkeypatch.setenv("ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS", "1")  # main() sets it; monkeypatch restores it
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of the bundle's configs with a randomly initialised ProbRegNet state_dict in models/model.pt."""
+    root = tmp_path_factory.mktemp("bundle")
+    shutil.copytree(REPO / "bundle" / "configs", root / "configs")
+    (root / "models").mkdir()
+    torch.manual_seed(0)
+    torch.save(ProbRegNet().state_dict(), root / "models" / "model.pt")
+    return root
+
+
+def _numpy_dice(dataset: Path, sid: str) -> float:
+    """Mean Dice over the atlas' labels between the subject's and the atlas' label files (same grid here)."""
+    atlas = np.asarray(nib.load(dataset / "atlas" / "A01_label.nii.gz").dataobj)
+    subject = np.asarray(nib.load(dataset / "labels" / f"{sid}.nii.gz").dataobj)
+    labels = [v for v in np.unique(atlas) if v != 0]
+    return float(np.mean([2 * np.sum((atlas == v) & (subject == v)) / (np.sum(atlas == v) + np.sum(subject == v))
+                          for v in labels]))
+
+
+def _run(tmp_path: Path, dataset: Path, bundle: Path, *extra: str) -> dict:
+    out = tmp_path / "out"
+    argv = ["--dataset-dir", str(dataset), "--bundle-root", str(bundle), "--out-dir", str(out), *FAST, *extra]
+    assert accuracy_table.main(argv) == 0
+    return json.loads((out / "accuracy_table.json").read_text())
+
+
+def test_table_json_and_chart(tmp_path, tiny_dataset, bundle, capsys):
+    with_ants = _ants_importable()
+    methods = ["identity", "unsupervised", "semisupervised"] + (["ants"] if with_ants else [])
+    result = _run(tmp_path, tiny_dataset, bundle, "--subjects", *SUBJECTS, "--methods", *methods)
+
+    assert result["subjects"] == SUBJECTS and result["dataset_dir"] == str(tiny_dataset.resolve())
+    assert {"settings", "versions", "methods", "markdown", "atlas"} <= set(result)
+    assert result["settings"]["threads"] == 1
+    assert result["settings"]["network (evaluate.yaml)"]["network_size"] == [16, 16, 16]
+    assert result["versions"]["torch"] == torch.__version__
+    # rows in table order, whatever the order of --methods
+    assert list(result["methods"]) == [m for m in accuracy_table.METHODS if m in methods]
+
+    rows = result["methods"]
+    semi = rows["semisupervised"]
+    assert semi["status"].startswith("not trained") and str(bundle / "models") in semi["status"]
+    assert semi["per_subject"] == {} and "aggregate" not in semi
+    ran = {k: r for k, r in rows.items() if k != "semisupervised"}
+    for key, row in ran.items():
+        assert row["status"] == "ok" and row["name"] == accuracy_table.METHODS[key]
+        assert list(row["per_subject"]) == SUBJECTS and set(row["aggregate"]) == AGGREGATE_KEYS
+        for record in row["per_subject"].values():
+            assert set(record) == RECORD_KEYS and set(record["dice"]) == {str(lab) for lab in TINY_LABELS}
+            assert all(0.0 <= d <= 1.0 for d in [record["mean_dice"], *record["dice"].values()]), (key, record)
+            assert isinstance(record["num_folding"], int) and record["num_folding"] >= 0
+        dice = [r["mean_dice"] for r in row["per_subject"].values()]
+        # population std over subjects, as evaluate.yaml's summary.json (float64 sums: 1e-12)
+        assert row["aggregate"]["mean_dice"]["mean"] == pytest.approx(np.mean(dice), abs=1e-12)
+        assert row["aggregate"]["mean_dice"]["std"] == pytest.approx(np.std(dice), abs=1e-12)
+
+    identity, ours = rows["identity"]["per_subject"], rows["unsupervised"]["per_subject"]
+    for sid in SUBJECTS:
+        # RAS reorientation and padding do not change Dice: equal to numpy on the files (float64: 1e-12)
+        assert identity[sid]["mean_dice"] == pytest.approx(_numpy_dice(tiny_dataset, sid), abs=1e-12)
+        # random initial weights move voxels by < 1e-4: the nearest-neighbour warp is the identity
+        assert ours[sid]["mean_dice"] == pytest.approx(identity[sid]["mean_dice"], abs=1e-12)
+        assert ours[sid]["runtime_s"] > 0 and identity[sid]["runtime_s"] == 0
+    assert rows["unsupervised"]["threads"] == 1 and rows["identity"]["threads"] is None
+    assert rows["unsupervised"]["model_file"] == str(bundle / "models" / "model.pt")  # evaluate.yaml's model_file
+
+    if with_ants:
+        ants_rows = rows["ants"]["per_subject"]
+        assert rows["ants"]["threads"] == 1 and result["versions"]["antspyx"]
+        for sid in SUBJECTS:
+            # the phantoms differ by shifts of up to 2 voxels: SyN takes Dice from ~0.7 to ~0.93 (observed);
+            # a swapped moving/fixed or a mis-converted grid would not improve it
+            assert ants_rows[sid]["mean_dice"] > identity[sid]["mean_dice"] + 0.05, sid
+            assert ants_rows[sid]["runtime_s"] > 0 and np.isfinite(ants_rows[sid]["std_log_jacobian"])
+
+    out = capsys.readouterr().out
+    assert result["markdown"] in out
+    assert "| method | mean Dice (std over subjects) |" in out and "| ours (semi-supervised) | not trained" in out
+    assert "[3/3] T03 ours (unsupervised): Dice" in out  # progress per pair
+    png = (tmp_path / "out" / "accuracy_table.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_default_subjects_are_train_yaml_val_ids(tmp_path, tiny_dataset, bundle):
+    """The split is written once, in train.yaml: the script reads val_ids from the bundle it is given."""
+    custom = tmp_path / "bundle"
+    shutil.copytree(bundle, custom)
+    train = custom / "configs" / "train.yaml"
+    text = train.read_text()
+    assert text.count("\nval_ids: ") == 1
+    train.write_text("\n".join("val_ids: [T03, T01]" if line.startswith("val_ids: ") else line
+                               for line in text.splitlines()) + "\n")
+    result = _run(tmp_path, tiny_dataset, custom, "--methods", "identity")
+    assert result["subjects"] == ["T03", "T01"] and list(result["methods"]) == ["identity"]
+
+
+def test_rows_without_antspyx_or_weights_say_why(tmp_path, tiny_dataset, bundle, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ants", None)  # `import ants` raises ImportError
+    result = _run(tmp_path, tiny_dataset, bundle, "--subjects", "T01", "--methods", "identity", "ants", "unsupervised",
+                  "--model-file", str(tmp_path / "missing.pt"))
+    rows = result["methods"]
+    assert rows["ants"]["status"].startswith("skipped: antspyx not importable")
+    assert rows["unsupervised"]["status"] == f"not trained (no {tmp_path / 'missing.pt'})"
+    assert rows["identity"]["status"] == "ok" and result["versions"]["antspyx"] is None
+    out = capsys.readouterr().out
+    assert "| ANTs SyN | skipped: antspyx not importable" in out
+
+
+def test_ants_field_reproduces_ants_label_warp(tiny_dataset):
+    """Our reading of ANTs' composed forward field (voxels, component k = array axis k, pull-back) warps the labels
+    exactly as ANTs' nearest-neighbour interpolation does, and the sign matters."""
+    pytest.importorskip("ants")
+    from monai.data import Dataset
+
+    from monai_probreg.blocks.warp import warp_labels
+    from monai_probreg.data import index_dataset, registration_transforms
+    from monai_probreg.inference import labelled_pairs, score_pair
+
+    item = Dataset(labelled_pairs(index_dataset(tiny_dataset), ["T01"]), registration_transforms())[0]
+    pair = {k: v[None] for k, v in item.items() if isinstance(v, torch.Tensor)}
+    ants_labels, displacement, runtime = accuracy_table.ants_register(pair["moving"], pair["fixed"],
+                                                                      pair["moving_label"])
+    assert displacement.shape == (1, 3, 32, 32, 32) and runtime > 0
+    ours = warp_labels(pair["moving_label"].as_tensor(), displacement)
+    # both sample the moving labels nearest neighbour at the same points x + u(x); only points within float32
+    # rounding of a voxel boundary could differ (none observed): allow 0.1% of voxels
+    assert (ours != ants_labels).float().mean().item() < 1e-3
+    forward = score_pair(displacement, pair["moving_label"], pair["fixed_label"]).mean_dice
+    backward = score_pair(-displacement, pair["moving_label"], pair["fixed_label"]).mean_dice
+    assert forward > backward + 0.1
+
+
+def test_missing_dataset_skips_with_exit_code_0(tmp_path):
+    missing = tmp_path / "no_such_dataset"
+    cmd = [sys.executable, str(SCRIPT), "--dataset-dir", str(missing), "--out-dir", str(tmp_path / "out")]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip() == f"skipped: dataset not found at {missing}"
+    assert not (tmp_path / "out").exists()

@@ -76,7 +76,7 @@ def main() -> None:
     }
     print(f"\nForward time at {'x'.join(map(str, args.size))}, batch 1, {result['threads']} threads, "
           f"median of {args.repeats} (warm-up {args.warmup}):")
-    print(f"| method | median time (s) | x ours |\n|---|---|---|")
+    print("| method | median time (s) | x ours |\n|---|---|---|")
     for row in rows:
         print(f"| {row['method']} | {row['median_s']:.2f} | {row['ratio_to_ours']:.1f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)

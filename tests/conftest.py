@@ -52,3 +52,45 @@ def make_tiny_dataset(root: Path, num_subjects: int = 3, shape: Sequence[int] = 
 def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Read-only tiny dataset: 3 labelled subjects of 32^3 (copy it before writing into it)."""
     return make_tiny_dataset(tmp_path_factory.mktemp("tiny_dataset"))
+
+
+@pytest.fixture
+def single_thread():
+    """Run a test with one torch thread (the bundle tests share 2 cores with whatever else runs)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def bundle_with_random_model(root: Path, bundle_dir: Path, network_size: Sequence[int] | None = None) -> Path:
+    """Copy ``bundle_dir/configs`` to ``root`` and save a seeded random ProbRegNet state_dict as models/model.pt."""
+    import shutil
+
+    import torch
+
+    from monai_probreg import ProbRegNet
+
+    shutil.copytree(bundle_dir / "configs", root / "configs")
+    (root / "models").mkdir()
+    torch.manual_seed(0)
+    torch.save(ProbRegNet(network_size=network_size).state_dict(), root / "models" / "model.pt")
+    return root
+
+
+def numpy_mean_dice(dataset: Path, sid: str) -> float:
+    """Mean Dice over the atlas' labels between subject ``sid``'s and the atlas' label files (same grid here)."""
+    atlas = np.asarray(nib.load(dataset / "atlas" / "A01_label.nii.gz").dataobj)
+    subject = np.asarray(nib.load(dataset / "labels" / f"{sid}.nii.gz").dataobj)
+    labels = [v for v in np.unique(atlas) if v != 0]
+    return float(np.mean([2 * np.sum((atlas == v) & (subject == v)) / (np.sum(atlas == v) + np.sum(subject == v))
+                          for v in labels]))
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of the repository's bundle configs with random weights (network_size 16^3) in models/model.pt."""
+    repo_bundle = Path(__file__).resolve().parents[1] / "bundle"
+    return bundle_with_random_model(tmp_path_factory.mktemp("bundle"), repo_bundle, network_size=(16, 16, 16))

@@ -17,7 +17,7 @@ from monai_probreg.data import (
     registration_transforms,
     split_ids,
 )
-from tests.conftest import TINY_LABELS, make_tiny_dataset
+from conftest import TINY_LABELS, make_tiny_dataset
 
 
 def test_index_reads_atlas_and_subjects_from_the_folder(tiny_dataset):

@@ -40,12 +40,7 @@ SHAPE = [1, 1, *SIZE]
 NETWORK_SIZES = {"native-grid": None, "network_size-16": (16, 16, 16)}
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _net(network_size, seed: int = 0) -> ProbRegNet:

@@ -33,12 +33,7 @@ from monai_probreg.inference import (
 LABELS = (21, 22, 181)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _identity_net(**kwargs) -> ProbRegNet:

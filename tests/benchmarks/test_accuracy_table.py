@@ -17,13 +17,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import nibabel as nib
 import numpy as np
 import pytest
 import torch
-from conftest import TINY_LABELS
+from conftest import TINY_LABELS, bundle_with_random_model, numpy_mean_dice
 
-from monai_probreg import ProbRegNet
 
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "benchmarks" / "accuracy_table.py"
@@ -52,31 +50,16 @@ def _ants_importable() -> bool:
 
 
 @pytest.fixture(autouse=True)
-def _one_thread(monkeypatch):
-    threads = torch.get_num_threads()
+def _one_itk_thread(monkeypatch, single_thread):
     monkeypatch.setenv("ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS", "1")  # main() sets it; monkeypatch restores it
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A copy of the bundle's configs with a randomly initialised ProbRegNet state_dict in models/model.pt."""
-    root = tmp_path_factory.mktemp("bundle")
-    shutil.copytree(REPO / "bundle" / "configs", root / "configs")
-    (root / "models").mkdir()
-    torch.manual_seed(0)
-    torch.save(ProbRegNet().state_dict(), root / "models" / "model.pt")
-    return root
+    return bundle_with_random_model(tmp_path_factory.mktemp("bundle"), REPO / "bundle", network_size=None)
 
 
-def _numpy_dice(dataset: Path, sid: str) -> float:
-    """Mean Dice over the atlas' labels between the subject's and the atlas' label files (same grid here)."""
-    atlas = np.asarray(nib.load(dataset / "atlas" / "A01_label.nii.gz").dataobj)
-    subject = np.asarray(nib.load(dataset / "labels" / f"{sid}.nii.gz").dataobj)
-    labels = [v for v in np.unique(atlas) if v != 0]
-    return float(np.mean([2 * np.sum((atlas == v) & (subject == v)) / (np.sum(atlas == v) + np.sum(subject == v))
-                          for v in labels]))
 
 
 def _run(tmp_path: Path, dataset: Path, bundle: Path, *extra: str) -> dict:
@@ -119,7 +102,7 @@ def test_table_json_and_chart(tmp_path, tiny_dataset, bundle, capsys):
     identity, ours = rows["identity"]["per_subject"], rows["unsupervised"]["per_subject"]
     for sid in SUBJECTS:
         # RAS reorientation and padding do not change Dice: equal to numpy on the files (float64: 1e-12)
-        assert identity[sid]["mean_dice"] == pytest.approx(_numpy_dice(tiny_dataset, sid), abs=1e-12)
+        assert identity[sid]["mean_dice"] == pytest.approx(numpy_mean_dice(tiny_dataset, sid), abs=1e-12)
         # random initial weights move voxels by < 1e-4: the nearest-neighbour warp is the identity
         assert ours[sid]["mean_dice"] == pytest.approx(identity[sid]["mean_dice"], abs=1e-12)
         assert ours[sid]["runtime_s"] > 0 and identity[sid]["runtime_s"] == 0

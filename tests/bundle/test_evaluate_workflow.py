@@ -10,69 +10,27 @@ from __future__ import annotations
 import csv
 import json
 import os
-import shutil
 import subprocess
 import sys
-from pathlib import Path
 
-import nibabel as nib
 import numpy as np
 import pytest
-import torch
-from conftest import TINY_LABELS, make_tiny_dataset
-from monai.bundle import ConfigWorkflow
+from conftest import TINY_LABELS, make_tiny_dataset, numpy_mean_dice
 
-from monai_probreg import ProbRegNet
-
-BUNDLE = Path(__file__).resolve().parents[2] / "bundle"
+from bundle_fixtures import infer_workflow, root_cause
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
-@pytest.fixture(scope="module")
-def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A copy of the bundle's configs with a randomly initialised ProbRegNet state_dict in models/model.pt."""
-    root = tmp_path_factory.mktemp("bundle")
-    shutil.copytree(BUNDLE / "configs", root / "configs")
-    (root / "models").mkdir()
-    torch.manual_seed(0)
-    torch.save(ProbRegNet(network_size=(16, 16, 16)).state_dict(), root / "models" / "model.pt")
-    return root
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
-def _workflow(bundle: Path, dataset: Path, output: Path, **override) -> ConfigWorkflow:
-    settings = {"bundle_root": str(bundle), "dataset_dir": str(dataset), "output_dir": str(output),
-                "network_size": [16, 16, 16], "num_workers": 0, **override}
-    wf = ConfigWorkflow(config_file=str(bundle / "configs" / "evaluate.yaml"), workflow_type="infer",
-                        logging_file=False, **settings)
-    wf.initialize()
-    return wf
 
 
-def _root_cause(exc: BaseException) -> BaseException:
-    """MONAI wraps errors of config expressions in RuntimeError('Failed to evaluate ...'); unwrap them."""
-    while exc.__cause__ is not None:
-        exc = exc.__cause__
-    return exc
-
-
-def _numpy_dice(dataset: Path, sid: str) -> float:
-    """Mean Dice over the atlas' labels between the subject's and the atlas' label files (same grid here)."""
-    atlas = np.asarray(nib.load(dataset / "atlas" / "A01_label.nii.gz").dataobj)
-    subject = np.asarray(nib.load(dataset / "labels" / f"{sid}.nii.gz").dataobj)
-    labels = [v for v in np.unique(atlas) if v != 0]
-    return float(np.mean([2 * np.sum((atlas == v) & (subject == v)) / (np.sum(atlas == v) + np.sum(subject == v))
-                          for v in labels]))
 
 
 def test_evaluate_scores_every_labelled_subject(tmp_path, tiny_dataset, bundle, capsys):
-    wf = _workflow(bundle, tiny_dataset, tmp_path / "out")
+    wf = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "out")
     assert wf.check_properties() == []  # InferProperties (+ MetaProperties when metadata.json exists), optional IDs
     wf.run()
     wf.finalize()
@@ -85,7 +43,7 @@ def test_evaluate_scores_every_labelled_subject(tmp_path, tiny_dataset, bundle, 
         dice += [float(row[f"dice_{lab}"]) for lab in TINY_LABELS]
         assert all(0.0 <= d <= 1.0 for d in dice), row
         # padding and RAS reorientation do not change Dice: the baseline equals numpy on the files (float64: 1e-12)
-        assert float(row["mean_dice_no_registration"]) == pytest.approx(_numpy_dice(tiny_dataset, row["id"]), abs=1e-12)
+        assert float(row["mean_dice_no_registration"]) == pytest.approx(numpy_mean_dice(tiny_dataset, row["id"]), abs=1e-12)
         # random initial weights move voxels by < 1e-4: the nearest-neighbour warp is the identity
         assert float(row["mean_dice"]) == pytest.approx(float(row["mean_dice_no_registration"]), abs=1e-12)
         assert int(row["num_folding"]) == 0 and float(row["runtime_s"]) > 0
@@ -115,20 +73,20 @@ def test_evaluate_command_line_as_documented(tmp_path, tiny_dataset, bundle):
 
 def test_evaluate_without_labels_says_so(tmp_path, bundle):
     dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, with_labels=False)
-    wf = _workflow(bundle, dataset, tmp_path / "out")
+    wf = infer_workflow("evaluate.yaml", bundle, dataset, tmp_path / "out")
     with pytest.raises(Exception) as info:
         wf.run()
-    cause = _root_cause(info.value)
+    cause = root_cause(info.value)
     assert isinstance(cause, ValueError) and "evaluation needs labels" in str(cause) and str(dataset) in str(cause)
 
 
 @pytest.mark.parametrize("missing", ["dataset_dir", "model_file"])
 def test_missing_input_gives_one_line_error_naming_the_path(tmp_path, tiny_dataset, bundle, missing):
     path = tmp_path / "does_not_exist"
-    wf = _workflow(bundle, tiny_dataset, tmp_path / "out", **{missing: str(path)})
+    wf = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "out", **{missing: str(path)})
     with pytest.raises(Exception) as info:
         wf.run()
-    cause = _root_cause(info.value)
+    cause = root_cause(info.value)
     assert isinstance(cause, FileNotFoundError)
     assert str(path) in str(cause) and "\n" not in str(cause)
     assert not (tmp_path / "out").exists()

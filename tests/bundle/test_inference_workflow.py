@@ -6,59 +6,25 @@ the wiring and the geometry of what is written (files, shapes, affines, label id
 
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
 
 import nibabel as nib
 import numpy as np
 import pytest
-import torch
 from conftest import TINY_LABELS, make_tiny_dataset
-from monai.bundle import ConfigWorkflow
 
-from monai_probreg import ProbRegNet
+from bundle_fixtures import infer_workflow, root_cause
+
 from monai_probreg.inference import OUTPUT_NAMES
 
-BUNDLE = Path(__file__).resolve().parents[2] / "bundle"
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
-@pytest.fixture(scope="module")
-def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A copy of the bundle's configs with a randomly initialised ProbRegNet state_dict in models/model.pt."""
-    root = tmp_path_factory.mktemp("bundle")
-    shutil.copytree(BUNDLE / "configs", root / "configs")
-    (root / "models").mkdir()
-    torch.manual_seed(0)
-    torch.save(ProbRegNet(network_size=(16, 16, 16)).state_dict(), root / "models" / "model.pt")
-    return root
-
-
-def _workflow(bundle: Path, dataset: Path, output: Path, **override) -> ConfigWorkflow:
-    settings = {"bundle_root": str(bundle), "dataset_dir": str(dataset), "output_dir": str(output),
-                "network_size": [16, 16, 16], "num_workers": 0, **override}
-    wf = ConfigWorkflow(config_file=str(bundle / "configs" / "inference.yaml"), workflow_type="infer",
-                        logging_file=False, **settings)
-    wf.initialize()
-    return wf
-
-
-def _root_cause(exc: BaseException) -> BaseException:
-    """MONAI wraps errors of config expressions in RuntimeError('Failed to evaluate ...'); unwrap them."""
-    while exc.__cause__ is not None:
-        exc = exc.__cause__
-    return exc
 
 
 def test_inference_writes_every_subject_on_the_atlas_grid(tmp_path, tiny_dataset, bundle):
-    wf = _workflow(bundle, tiny_dataset, tmp_path / "out")
+    wf = infer_workflow("inference.yaml", bundle, tiny_dataset, tmp_path / "out")
     assert wf.check_properties() == []  # InferProperties (+ MetaProperties when metadata.json exists), optional IDs
     wf.run()
     wf.finalize()
@@ -87,7 +53,7 @@ def test_inference_writes_every_subject_on_the_atlas_grid(tmp_path, tiny_dataset
 
 def test_inference_without_labels_writes_no_label_maps(tmp_path, bundle):
     dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, with_labels=False)
-    wf = _workflow(bundle, dataset, tmp_path / "out")
+    wf = infer_workflow("inference.yaml", bundle, dataset, tmp_path / "out")
     wf.run()
     assert sorted(p.name for p in (tmp_path / "out" / "T01").iterdir()) == sorted(
         f"{name}.nii.gz" for name in OUTPUT_NAMES if name != "warped_label")
@@ -96,10 +62,10 @@ def test_inference_without_labels_writes_no_label_maps(tmp_path, bundle):
 @pytest.mark.parametrize("missing", ["dataset_dir", "model_file"])
 def test_missing_input_gives_one_line_error_naming_the_path(tmp_path, tiny_dataset, bundle, missing):
     path = tmp_path / "does_not_exist"
-    wf = _workflow(bundle, tiny_dataset, tmp_path / "out", **{missing: str(path)})
+    wf = infer_workflow("inference.yaml", bundle, tiny_dataset, tmp_path / "out", **{missing: str(path)})
     with pytest.raises(Exception) as info:
         wf.run()
-    cause = _root_cause(info.value)
+    cause = root_cause(info.value)
     assert isinstance(cause, FileNotFoundError)
     assert str(path) in str(cause) and "\n" not in str(cause)
     assert not (tmp_path / "out").exists()

@@ -24,7 +24,7 @@ from pathlib import Path
 import monai
 import torch
 
-from monai_probreg import ProbRegNet
+from monai_probreg import ProbRegNet, resize_displacement, warp_image
 
 
 def time_call(fn: Callable[[], object], warmup: int, repeats: int) -> list[float]:
@@ -61,6 +61,19 @@ def main() -> None:
             times = time_call(lambda: net(moving, fixed), args.warmup, args.repeats)
             rows.append({"method": name, "median_s": statistics.median(times), "runs_s": times})
             print(f"  {name}: {', '.join(f'{t:.2f}' for t in times)} s", flush=True)
+        ours = methods["ours (ProbRegNet, mean)"]
+        posterior = ours.posterior(moving, fixed)
+        velocity_ddf = ours.integrate(posterior.mean)
+        ddf = resize_displacement(velocity_ddf, args.size)
+        stage_fns = {
+            "UNet (moving, fixed) -> posterior": lambda: ours.posterior(moving, fixed),
+            f"integration ({'x'.join(map(str, posterior.mean.shape[2:]))}, {ours.integrate.num_steps} steps)":
+                lambda: ours.integrate(posterior.mean),
+            "upsampling of the displacement": lambda: resize_displacement(velocity_ddf, args.size),
+            "warp of the moving image": lambda: warp_image(moving, ddf),
+        }
+        stages = [{"stage": name, "median_s": statistics.median(time_call(fn, args.warmup, args.repeats))}
+                  for name, fn in stage_fns.items()]
     base = rows[0]["median_s"]
     for row in rows:
         row["ratio_to_ours"] = row["median_s"] / base
@@ -73,12 +86,16 @@ def main() -> None:
         "monai": monai.__version__,
         "cpu": platform.processor() or platform.machine(),
         "rows": rows,
+        "stages_ours": stages,
     }
     print(f"\nForward time at {'x'.join(map(str, args.size))}, batch 1, {result['threads']} threads, "
           f"median of {args.repeats} (warm-up {args.warmup}):")
     print("| method | median time (s) | x ours |\n|---|---|---|")
     for row in rows:
         print(f"| {row['method']} | {row['median_s']:.2f} | {row['ratio_to_ours']:.1f} |")
+    print("\nOurs by stage (each timed alone, median):\n| stage | median time (s) |\n|---|---|")
+    for stage in stages:
+        print(f"| {stage['stage']} | {stage['median_s']:.2f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"\nwrote {args.out}")

@@ -44,8 +44,8 @@ from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.uncertainty import velocity_entropy
 
 __all__ = ["OUTPUT_NAMES", "OUTPUTS_README", "DISPLACEMENT_DESCRIPTION", "load_weights", "labelled_pairs",
-           "register_pair", "timed_register_pair", "write_text", "save_nifti", "write_outputs", "PairScores",
-           "score_pair", "evaluate_pair", "write_scores", "summary_table"]
+           "register_pair", "timed_register_pair", "atomic_write", "write_text", "save_nifti", "write_outputs",
+           "PairScores", "score_pair", "evaluate_pair", "write_scores", "summary_table"]
 
 OUTPUT_NAMES = ("warped", "displacement", "jacobian", "entropy", "warped_label")
 DISPLACEMENT_DESCRIPTION = "displacement in voxels, comp k = array axis k; warped[i]=moving[i+u(i)]"
@@ -118,6 +118,12 @@ def _atomic_write(path: Path, write: Callable[[str], None]) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
+    """Write a file atomically with any writer: ``write(tmp)`` on a temporary name next to ``path`` that keeps
+    its suffixes (so ``itk.imwrite`` picks the right format), then ``os.replace`` onto ``path``."""
+    return _atomic_write(Path(path), write)
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

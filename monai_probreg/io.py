@@ -8,10 +8,11 @@ Conventions (the physical-space conventions of the package; :mod:`monai_probreg.
 - ``index_to_lps`` (4, 4) maps a voxel index ``(i, j, k, 1)`` to a physical point in ITK's LPS millimetres:
   ``origin + direction @ diag(spacing) @ (i, j, k)``. nibabel's RAS affine is ``diag(-1, -1, 1, 1) @ index_to_lps``.
 - ITK reads the geometry (direction, spacing, origin); images are read as float32, label maps as float64 and
-  checked to hold non-negative integers, then stored as int32.
+  checked to hold non-negative integers, then stored as int32. NIfTI voxels are also checked as stored, with
+  nibabel: ITK's NIfTI reader zero-fills a truncated file and turns NaN into 0 without a warning.
 
 Every problem with an input raises :class:`InputError` with one line naming the file and the problem, before any
-output is written: missing or unreadable file, not a 3-D scalar volume (2-D, 4-D with more than one volume,
+output is written: missing, unreadable or truncated file, not a 3-D scalar volume (2-D, 4-D with more than one volume,
 vector/RGB pixels), NaN/Inf voxels, a constant image, a non-integer or negative label map, and label maps on a grid
 other than their image's (:func:`check_same_grid`).
 """
@@ -19,6 +20,7 @@ other than their image's (:func:`check_same_grid`).
 from __future__ import annotations
 
 import os
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,7 +46,9 @@ class InputError(ValueError):
 
 @dataclass(frozen=True)
 class Volume:
-    """A 3-D scalar volume and its geometry. ``array``: (I, J, K) in index order; ``index_to_lps``: (4, 4)."""
+    """A 3-D volume and its geometry. ``array``: (I, J, K) in index order, or (I, J, K, C) for a vector field
+    (C components per voxel, e.g. a displacement in LPS mm); ``index_to_lps``: (4, 4); ``shape``: the grid's
+    (I, J, K)."""
 
     array: np.ndarray
     index_to_lps: np.ndarray
@@ -52,7 +56,7 @@ class Volume:
 
     @property
     def shape(self) -> tuple[int, int, int]:
-        return tuple(int(n) for n in self.array.shape)  # type: ignore[return-value]
+        return tuple(int(n) for n in self.array.shape[:3])  # type: ignore[return-value]
 
     @property
     def spacing(self) -> np.ndarray:
@@ -78,7 +82,7 @@ class Volume:
 
     def with_array(self, array: np.ndarray) -> Volume:
         """The same grid holding another array of the same shape."""
-        if tuple(array.shape) != self.shape:
+        if tuple(array.shape[:3]) != self.shape:
             raise ValueError(f"array shape {tuple(array.shape)} does not match the grid {self.shape}")
         return Volume(array, self.index_to_lps, self.path)
 
@@ -135,6 +139,26 @@ def _first_line(err: BaseException) -> str:
     return useful[0].replace("itk::ERROR:", "").strip()[:200]
 
 
+def _check_finite(values: np.ndarray, path: Path, role: str) -> None:
+    nan, inf = int(np.isnan(values).sum()), int(np.isinf(values).sum())
+    if nan or inf:
+        raise InputError(f"{role} {str(path)!r}: {nan} NaN and {inf} Inf voxels; replace them (e.g. with 0) first")
+
+
+def _check_nifti_voxels(path: Path, role: str) -> None:
+    """NIfTI voxels as stored, read with nibabel: ITK's NIfTI reader silently zero-fills a truncated file and
+    turns NaN into 0, so neither problem is visible in what ITK returns."""
+    if not path.name.lower().endswith((".nii", ".nii.gz")):
+        return
+    try:
+        values = np.asanyarray(nib.load(str(path)).dataobj)
+    except (EOFError, OSError, ValueError, zlib.error) as err:
+        raise InputError(f"{role} {str(path)!r}: file is truncated or corrupt ({str(err).splitlines()[0][:120]}); "
+                         "was a download or copy interrupted?") from None
+    if values.dtype.kind == "f":
+        _check_finite(values, path, role)
+
+
 def _read(path: str | os.PathLike, role: str, pixel: type) -> Volume:
     path = Path(path)
     sizes, components = _header(path, role)
@@ -154,13 +178,11 @@ def _read(path: str | os.PathLike, role: str, pixel: type) -> Volume:
         reader.Update()
     except RuntimeError as err:
         raise InputError(f"{role} {str(path)!r}: could not read the voxels ({_first_line(err)})") from None
+    _check_nifti_voxels(path, role)
     volume = volume_from_itk(reader.GetOutput(), str(path))
     if not np.all(np.isfinite(volume.index_to_lps)) or abs(np.linalg.det(volume.index_to_lps[:3, :3])) < 1e-12:
         raise InputError(f"{role} {str(path)!r}: the header's geometry is degenerate (spacing/direction)")
-    bad = ~np.isfinite(volume.array)
-    if bad.any():
-        raise InputError(f"{role} {str(path)!r}: {int(np.isnan(volume.array).sum())} NaN and "
-                         f"{int(np.isinf(volume.array).sum())} Inf voxels; replace them (e.g. with 0) first")
+    _check_finite(volume.array, path, role)
     return volume
 
 

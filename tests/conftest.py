@@ -94,3 +94,78 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A copy of the repository's bundle configs with random weights (network_size 16^3) in models/model.pt."""
     repo_bundle = Path(__file__).resolve().parents[1] / "bundle"
     return bundle_with_random_model(tmp_path_factory.mktemp("bundle"), repo_bundle, network_size=(16, 16, 16))
+
+
+# ----------------------------------------------------------------------------- physical-space phantoms (CLI tests)
+FIXED_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])  # index -> LPS of the synthetic atlases: LPBA40's grid, origin 0
+PHANTOM_LABELS = (1, 2, 3, 4)
+
+
+def asymmetric_phantom(shape: Sequence[int] = (40, 44, 36), seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth 'head' with no symmetry (so a rotation is identifiable): an ellipsoid with three distinct radii,
+    split in two halves, a bright and a dark off-centre blob. Returns (image float32 in ~[0, 1], labels int16)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    grid = np.meshgrid(*[np.arange(n, dtype=np.float64) for n in shape], indexing="ij")
+    centre = [n / 2 - 0.5 for n in shape]
+
+    def ellipsoid(c: Sequence[float], radii: Sequence[float]) -> np.ndarray:
+        return sum(((g - m) / r) ** 2 for g, m, r in zip(grid, c, radii)) < 1
+
+    brain = ellipsoid(centre, [0.36 * shape[0], 0.30 * shape[1], 0.26 * shape[2]])
+    bright = ellipsoid([centre[0] + 5, centre[1] - 4, centre[2] + 3], [5, 3.5, 4]) & brain
+    dark = ellipsoid([centre[0] - 6, centre[1] + 5, centre[2] - 2], [3, 5, 3]) & brain
+    labels = np.zeros(shape, np.int16)
+    labels[brain] = PHANTOM_LABELS[0]
+    labels[brain & (grid[0] > centre[0])] = PHANTOM_LABELS[1]
+    labels[bright] = PHANTOM_LABELS[2]
+    labels[dark] = PHANTOM_LABELS[3]
+    image = ndimage.gaussian_filter(0.5 * brain + 0.4 * bright - 0.3 * dark, 1.0) + 0.01 * rng.standard_normal(shape)
+    return image.astype(np.float32), labels
+
+
+def save_lps(path: Path, array: np.ndarray, index_to_lps: np.ndarray) -> Path:
+    """Save ``array`` (index order) as NIfTI with the grid ``index_to_lps`` (ITK's LPS; nibabel wants RAS)."""
+    nib.save(nib.Nifti1Image(array, np.diag([-1.0, -1.0, 1.0, 1.0]) @ index_to_lps), path)
+    return path
+
+
+def rigid_matrix(angles_deg: Sequence[float], translation_mm: Sequence[float], centre: Sequence[float]) -> np.ndarray:
+    """(4, 4) rotation by ``angles_deg`` (x, y, z Euler, degrees) about ``centre`` then translation, in LPS mm."""
+    from scipy.spatial.transform import Rotation
+
+    matrix = np.eye(4)
+    matrix[:3, :3] = Rotation.from_euler("xyz", angles_deg, degrees=True).as_matrix()
+    matrix[:3, 3] = np.asarray(centre) - matrix[:3, :3] @ np.asarray(centre) + np.asarray(translation_mm)
+    return matrix
+
+
+def moved_scan(image: np.ndarray, labels: np.ndarray, fixed_to_moving: np.ndarray, spacing: Sequence[float],
+               direction: np.ndarray, shape: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The phantom as another scanner would see it: a grid of ``shape``/``spacing``/``direction`` centred on the
+    moved object, with ``moving(q) = image(fixed_to_moving^-1 q)`` (linear; labels nearest).
+    Returns (image, labels, index_to_lps of the new grid)."""
+    from monai_probreg.io import Volume
+    from monai_probreg.physical import apply_affine, grid_points
+    from monai_probreg.resample import sample_linear, sample_nearest
+
+    fixed = Volume(image, FIXED_LPS)
+    centre = grid_points(image.shape, FIXED_LPS).reshape(-1, 3).mean(0)
+    index_to_lps = np.eye(4)
+    index_to_lps[:3, :3] = np.asarray(direction, dtype=np.float64) * np.asarray(spacing, dtype=np.float64)
+    index_to_lps[:3, 3] = apply_affine(fixed_to_moving, centre) - index_to_lps[:3, :3] @ ((np.asarray(shape) - 1) / 2)
+    back = apply_affine(np.linalg.inv(fixed_to_moving), grid_points(tuple(shape), index_to_lps))
+    moved = sample_linear(fixed, back).astype(np.float32)
+    moved_labels = sample_nearest(Volume(labels, FIXED_LPS), back)
+    return moved, moved_labels, index_to_lps
+
+
+def tiny_bundle(root: Path, bundle_dir: Path, network_size: Sequence[int] = (16, 16, 16)) -> Path:
+    """:func:`bundle_with_random_model` whose inference.yaml runs the UNet at ``network_size`` (fast tests)."""
+    bundle_with_random_model(root, bundle_dir)
+    config = root / "configs" / "inference.yaml"
+    text = config.read_text()
+    assert "network_size: [80, 96, 80]" in text
+    config.write_text(text.replace("network_size: [80, 96, 80]", f"network_size: {list(network_size)}"))
+    return root

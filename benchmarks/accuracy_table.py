@@ -212,10 +212,10 @@ def bar_chart(methods: dict[str, dict[str, Any]], path: Path, title: str) -> Non
 
 
 # ------------------------------------------------------------------------------------------------ main
-def _semi_model_file(bundle_root: Path) -> Path:
-    """Where train_semisupervised.yaml (on top of train.yaml) writes its best weights: ckpt_dir/model_filename."""
-    semi = _parser(bundle_root, ["train.yaml", "train_semisupervised.yaml"])
-    return Path(semi.get_parsed_content("ckpt_dir"), semi.get_parsed_content("model_filename"))
+def _trained_model_file(bundle_root: Path, configs: Sequence[str]) -> Path:
+    """Where the training ``configs`` write their best weights: ckpt_dir/model_filename."""
+    train = _parser(bundle_root, list(configs))
+    return Path(train.get_parsed_content("ckpt_dir"), train.get_parsed_content("model_filename"))
 
 
 def _methods(keys: Sequence[str], evaluate: ConfigParser, model_files: dict[str, Path], device: torch.device,
@@ -264,7 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where accuracy_table.{json,png} go")
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle", help="bundle with configs/ and models/")
     ap.add_argument("--model-file", type=Path, default=None,
-                    help="unsupervised weights (default: evaluate.yaml's model_file)")
+                    help="unsupervised weights (default: ckpt_dir/model_filename of train.yaml)")
     ap.add_argument("--semi-model-file", type=Path, default=None,
                     help="semi-supervised weights (default: ckpt_dir/model_filename of train_semisupervised.yaml)")
     ap.add_argument("--device", default=None, help="torch device for our models (default: evaluate.yaml's)")
@@ -284,8 +284,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     overrides = _parse_overrides(args.override)
     evaluate = _parser(bundle_root, ["evaluate.yaml"], {**overrides, "dataset_dir": str(dataset_dir)})
     subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
-    model_files = {"unsupervised": args.model_file or Path(evaluate.get_parsed_content("model_file")),
-                   "semisupervised": args.semi_model_file or _semi_model_file(bundle_root)}
+    model_files = {"unsupervised": args.model_file or _trained_model_file(bundle_root, ["train.yaml"]),
+                   "semisupervised": args.semi_model_file
+                   or _trained_model_file(bundle_root, ["train.yaml", "train_semisupervised.yaml"])}
     device = torch.device(args.device) if args.device else evaluate.get_parsed_content("device")
     labels = evaluate.get_parsed_content("label_values")
     pairs = labelled_pairs(index_dataset(dataset_dir), subjects)

@@ -1,7 +1,7 @@
 """The trained network as the MONAI bundle describes it: settings from a config, weights from a state_dict file.
 
 Defaults follow the bundle layout: ``BUNDLE/configs/inference.yaml`` (its ``network_def`` and ``divisor``: the
-values the weights were trained with; the weights file does not record them) and ``BUNDLE/models/model.pt`` (a plain
+values the weights were trained with; the weights file does not record them) and its ``model_file`` (a plain
 ``ProbRegNet`` state_dict, loaded with ``weights_only=True``), ``BUNDLE`` being the ``bundle/`` folder next to the
 installed package (the repository checkout for an editable install) unless given.
 """
@@ -42,19 +42,22 @@ class LoadedModel:
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
                config_file: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
     """The trained network: settings from ``configs/inference.yaml``'s ``network_def`` (and ``divisor``), weights
-    from ``models/model.pt``, both under ``bundle_root`` unless given; InputError with one line if unusable."""
+    from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable."""
     root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
     config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"
-    weights = Path(model_file) if model_file is not None else root / "models" / "model.pt"
     if not config.is_file():
         raise InputError(f"--config {str(config)!r}: no such file (the bundle's configs/inference.yaml; pass "
                          "--bundle-root or --config)")
+    parser = ConfigParser()
+    parser.read_config(str(config))
+    parser["bundle_root"] = str(root)
+    if model_file is None:  # the config's own default weights (models/<the shipped default>), relative to the bundle
+        model_file = parser.get_parsed_content("model_file") if "model_file" in parser else root / "models" / "model.pt"
+    weights = Path(model_file)
     if not weights.is_file():
         raise InputError(f"--model-file {str(weights)!r}: no such file (train the bundle, or pass --model-file)")
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise InputError(f"--device {device}: CUDA is not available on this machine; use --device cpu")
-    parser = ConfigParser()
-    parser.read_config(str(config))
     try:
         network = parser.get_parsed_content("network_def")
         divisor = int(parser.get("divisor", 16))

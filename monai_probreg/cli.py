@@ -36,7 +36,7 @@ displacement fields, LPS mm), affine.tfm, jacobian.nii.gz, entropy.nii.gz, displ
 warped_label.nii.gz / fixed_label_in_moving.nii.gz (labels), summary.json, qc.png.
 
 The model (network settings and weights) comes from the MONAI bundle: BUNDLE/configs/inference.yaml and
-BUNDLE/models/model.pt, BUNDLE being the repository's bundle/ folder unless --bundle-root, --config or --model-file
+the config's model_file (BUNDLE/models/...), BUNDLE being the repository's bundle/ folder unless --bundle-root, --config or --model-file
 say otherwise. The bundle does not ship the atlas image (LPBA40 may not be redistributed), so --fixed is required:
 pass the image the model was trained against (e.g. lpba40/atlas/S01_image.nii.gz).
 
@@ -71,7 +71,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     model = parser.add_argument_group("model and machine")
     model.add_argument("--bundle-root", metavar="B", help="MONAI bundle folder (default: bundle/ of the repository)")
-    model.add_argument("--model-file", metavar="P", help="weights (default: B/models/model.pt)")
+    model.add_argument("--model-file", metavar="P", help="weights (default: the model_file of the config, the bundle's shipped default)")
     model.add_argument("--config", metavar="Y", help="network settings (default: B/configs/inference.yaml)")
     model.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     model.add_argument("--threads", type=int, default=None, metavar="N", help="CPU threads for torch and ITK "

@@ -66,7 +66,8 @@ def single_thread():
 
 
 def bundle_with_random_model(root: Path, bundle_dir: Path, network_size: Sequence[int] | None = None) -> Path:
-    """Copy ``bundle_dir/configs`` to ``root`` and save a seeded random ProbRegNet state_dict as models/model.pt."""
+    """Copy ``bundle_dir/configs`` to ``root`` and save a seeded random ProbRegNet state_dict as both shipped weights
+    files, models/model.pt (unsupervised) and models/model_semisupervised.pt (the configs' default)."""
     import shutil
 
     import torch
@@ -76,7 +77,9 @@ def bundle_with_random_model(root: Path, bundle_dir: Path, network_size: Sequenc
     shutil.copytree(bundle_dir / "configs", root / "configs")
     (root / "models").mkdir()
     torch.manual_seed(0)
-    torch.save(ProbRegNet(network_size=network_size).state_dict(), root / "models" / "model.pt")
+    state = ProbRegNet(network_size=network_size).state_dict()
+    for name in ("model.pt", "model_semisupervised.pt"):
+        torch.save(state, root / "models" / name)
     return root
 
 

@@ -72,7 +72,9 @@ def _run(tmp_path: Path, dataset: Path, bundle: Path, *extra: str) -> dict:
 def test_table_json_and_chart(tmp_path, tiny_dataset, bundle, capsys):
     with_ants = _ants_importable()
     methods = ["identity", "unsupervised", "semisupervised"] + (["ants"] if with_ants else [])
-    result = _run(tmp_path, tiny_dataset, bundle, "--subjects", *SUBJECTS, "--methods", *methods)
+    missing = tmp_path / "never_trained.pt"
+    result = _run(tmp_path, tiny_dataset, bundle, "--subjects", *SUBJECTS, "--methods", *methods,
+                  "--semi-model-file", str(missing))
 
     assert result["subjects"] == SUBJECTS and result["dataset_dir"] == str(tiny_dataset.resolve())
     assert {"settings", "versions", "methods", "markdown", "atlas"} <= set(result)
@@ -84,7 +86,7 @@ def test_table_json_and_chart(tmp_path, tiny_dataset, bundle, capsys):
 
     rows = result["methods"]
     semi = rows["semisupervised"]
-    assert semi["status"].startswith("not trained") and str(bundle / "models") in semi["status"]
+    assert semi["status"].startswith("not trained") and str(missing) in semi["status"]
     assert semi["per_subject"] == {} and "aggregate" not in semi
     ran = {k: r for k, r in rows.items() if k != "semisupervised"}
     for key, row in ran.items():
@@ -107,7 +109,7 @@ def test_table_json_and_chart(tmp_path, tiny_dataset, bundle, capsys):
         assert ours[sid]["mean_dice"] == pytest.approx(identity[sid]["mean_dice"], abs=1e-12)
         assert ours[sid]["runtime_s"] > 0 and identity[sid]["runtime_s"] == 0
     assert rows["unsupervised"]["threads"] == 1 and rows["identity"]["threads"] is None
-    assert rows["unsupervised"]["model_file"] == str(bundle / "models" / "model.pt")  # evaluate.yaml's model_file
+    assert rows["unsupervised"]["model_file"] == str(bundle / "models" / "model.pt")  # train.yaml's model_filename
 
     if with_ants:
         ants_rows = rows["ants"]["per_subject"]

@@ -78,15 +78,3 @@ def test_evaluate_without_labels_says_so(tmp_path, bundle):
         wf.run()
     cause = root_cause(info.value)
     assert isinstance(cause, ValueError) and "evaluation needs labels" in str(cause) and str(dataset) in str(cause)
-
-
-@pytest.mark.parametrize("missing", ["dataset_dir", "model_file"])
-def test_missing_input_gives_one_line_error_naming_the_path(tmp_path, tiny_dataset, bundle, missing):
-    path = tmp_path / "does_not_exist"
-    wf = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "out", **{missing: str(path)})
-    with pytest.raises(Exception) as info:
-        wf.run()
-    cause = root_cause(info.value)
-    assert isinstance(cause, FileNotFoundError)
-    assert str(path) in str(cause) and "\n" not in str(cause)
-    assert not (tmp_path / "out").exists()

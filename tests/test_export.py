@@ -1,7 +1,7 @@
 """monai_probreg.export: the TorchScript file reproduces the eager eval-mode model at its fixed input shape, refuses
 any other input, carries its contract as metadata, is written atomically; and the command line.
 
-Tolerance for eager vs exported outputs: the export's own VERIFY_RTOL / VERIFY_ATOL (1e-5, reasoned in
+Tolerance for eager vs exported outputs: the export's own VERIFY_RTOL / VERIFY_ATOL (1e-4, reasoned in
 monai_probreg/export.py): the traced graph runs the same float32 kernels; observed differences are ~1e-6 on
 ``warped`` and ~1e-8 voxels on ``displacement``, while a trace that baked in a wrong value or shape is off by O(1).
 """

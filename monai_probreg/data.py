@@ -37,9 +37,10 @@ from monai.transforms import (
 )
 
 __all__ = ["DatasetIndex", "NearestResizeAlignCornersd", "index_dataset", "pair_dicts", "split_ids", "registration_transforms",
-           "atlas_label_values", "IMAGE_KEYS", "LABEL_KEYS"]
+           "atlas_label_values", "IMAGE_KEYS", "LABEL_KEYS", "LOWER_PERCENTILE", "UPPER_PERCENTILE"]
 
 IMAGE_KEYS = ("moving", "fixed")
+LOWER_PERCENTILE, UPPER_PERCENTILE = 0.5, 99.5  # intensities here map to 0 and 1 (training, bundle and command line)
 LABEL_KEYS = ("moving_label", "fixed_label")
 _NII = (".nii.gz", ".nii")
 
@@ -145,8 +146,8 @@ def registration_transforms(
     divisor: int = 16,
     network_size: Sequence[int] | None = None,
     resize_labels: bool = False,
-    lower_percentile: float = 0.5,
-    upper_percentile: float = 99.5,
+    lower_percentile: float = LOWER_PERCENTILE,
+    upper_percentile: float = UPPER_PERCENTILE,
     axcodes: str = "RAS",
 ) -> Compose:
     """Load -> channel first -> RAS -> percentile intensity scaling to [0, 1] -> pad to ``divisor``.

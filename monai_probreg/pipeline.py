@@ -39,6 +39,7 @@ import monai_probreg
 from monai_probreg.bundle_model import LoadedModel
 from monai_probreg.affine import AffineResult, AffineSettings, register_affine
 from monai_probreg.blocks.sampling import sample_velocity
+from monai_probreg.data import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.grid import ModelGrid
 from monai_probreg.inference import register_pair, write_text
 from monai_probreg.io import InputError, Volume, check_same_grid, read_image, read_label, volume_to_itk
@@ -52,14 +53,13 @@ from monai_probreg.qc import QCData, save_qc
 from monai_probreg.resample import sample_linear, sample_nearest
 from monai_probreg.uncertainty import velocity_entropy
 
-__all__ = ["LOWER_PERCENTILE", "UPPER_PERCENTILE", "FixedSpace", "prepare_fixed", "RegistrationOptions",
+__all__ = ["FixedSpace", "prepare_fixed", "RegistrationOptions",
            "normalise_intensity", "register_scan"]
 
-LOWER_PERCENTILE, UPPER_PERCENTILE = 0.5, 99.5  # = monai_probreg.data.registration_transforms (training)
 
 
 def normalise_intensity(array: np.ndarray) -> np.ndarray:
-    """Percentiles 0.5 / 99.5 -> 0 / 1, clipped (MONAI's ScaleIntensityRangePercentiles, as in training)."""
+    """Percentiles LOWER/UPPER_PERCENTILE -> 0 / 1, clipped (MONAI's ScaleIntensityRangePercentiles, as in training)."""
     scale = ScaleIntensityRangePercentiles(lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0,
                                            clip=True)
     return np.asarray(torch.as_tensor(scale(torch.from_numpy(np.asarray(array, np.float32))[None]))[0])

@@ -32,7 +32,8 @@ from monai_probreg.metrics.dice import label_dice
 from monai_probreg.metrics.jacobian import JacobianStats, jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import PosteriorSamples, ProbRegNet, RegistrationOutput
 from monai_probreg.networks.velocity_unet import VelocityPosterior, VelocityUNet
-from monai_probreg.uncertainty import DisplacementUncertainty, displacement_uncertainty, velocity_entropy
+from monai_probreg.calibration import calibrate_log_var
+from monai_probreg.uncertainty import DisplacementUncertainty, displacement_uncertainty, label_entropy, velocity_entropy
 
 __version__ = "0.1.0"
 
@@ -53,11 +54,13 @@ __all__ = [
     "VelocityPosterior",
     "VelocitySampler",
     "VelocityUNet",
+    "calibrate_log_var",
     "compose_displacements",
     "displacement_uncertainty",
     "gaussian_image_loss",
     "integrate_velocity",
     "jacobian_determinant",
+    "label_entropy",
     "jacobian_stats",
     "label_dice",
     "laplacian_kl",

@@ -17,6 +17,7 @@ from monai.bundle import ConfigParser
 from torch import nn
 
 import monai_probreg
+from monai_probreg.calibration import std_scale_for
 from monai_probreg.inference import load_weights
 from monai_probreg.io import InputError
 
@@ -37,12 +38,14 @@ class LoadedModel:
     device: torch.device
     model_file: Path
     config_file: Path
+    std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.calibration
 
 
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
-               config_file: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
+               config_file: str | os.PathLike | None = None, device: str = "cpu", calibrate: bool = True) -> LoadedModel:
     """The trained network: settings from ``configs/inference.yaml``'s ``network_def`` (and ``divisor``), weights
-    from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable."""
+    from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable.
+    ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw."""
     root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
     config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"
     if not config.is_file():
@@ -66,7 +69,13 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
                          f"({str(err).splitlines()[0][:160]})") from None
     try:
         load_weights(network, weights, device)
+    except InputError as err:  # untrusted (a pickle that could run code), truncated or corrupt: its own message
+        raise type(err)(str(err).replace("model file", "--model-file", 1)) from None
     except (RuntimeError, KeyError, ValueError) as err:
         raise InputError(f"--model-file {str(weights)!r}: does not fit the network of {str(config)!r} "
                          f"({str(err).splitlines()[0][:160]})") from None
-    return LoadedModel(network, divisor, torch.device(device), weights, config)
+    try:
+        std_scale = std_scale_for(weights, calibrate)
+    except ValueError as err:  # a sidecar of other weights, or corrupt
+        raise InputError(f"--model-file {str(weights)!r}: {err}") from None
+    return LoadedModel(network, divisor, torch.device(device), weights, config, std_scale)

@@ -9,11 +9,12 @@ failed); 2 for command-line usage errors (argparse).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 __all__ = ["main", "build_parser"]
@@ -58,6 +59,8 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     reg.add_argument("--samples", type=int, default=0, metavar="K",
                      help="posterior samples for the displacement std map (0 = none, default; else >= 2)")
     reg.add_argument("--seed", type=int, default=0, help="random seed of the posterior samples (default 0)")
+    reg.add_argument("--raw-uncertainty", action="store_true", help="entropy and std maps of the raw variational "
+                     "posterior (default: calibrated by the weights' <stem>.calibration.json)")
     reg.add_argument("--no-affine", action="store_true", help="skip the affine pre-alignment (scans already "
                      "aligned to the fixed image)")
     reg.add_argument("--rigid-only", action="store_true", help="pre-align with 6 parameters (no scaling/shear)")
@@ -76,6 +79,12 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     model.add_argument("--threads", type=int, default=None, metavar="N", help="CPU threads for torch and ITK "
                        "(default: all)")
+    model.add_argument("--unet-precision", choices=["auto", "bf16", "fp32"], default=None,
+                       help="the UNet's arithmetic (default: the config's unet_precision, 'auto': bf16 on CPUs with "
+                       "native bf16, else float32; integration and warps are always float32)")
+    model.add_argument("--max-voxels", type=int, default=None, metavar="N",
+                       help="refuse an image of more than N voxels before reading it, instead of running out of memory "
+                       "(default: $MONAI_PROBREG_MAX_VOXELS, else 512^3 = 134217728)")
     model.add_argument("--quiet", action="store_true", help="print nothing but errors and the final summary")
     model.add_argument("--debug", action="store_true", help="show the full traceback of an unexpected error")
 
@@ -169,7 +178,9 @@ def _setup(args: argparse.Namespace):
         torch.set_num_threads(args.threads)
         itk.MultiThreaderBase.SetGlobalDefaultNumberOfThreads(args.threads)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    model = load_model(args.bundle_root, args.model_file, args.config, device)
+    model = load_model(args.bundle_root, args.model_file, args.config, device, calibrate=not args.raw_uncertainty)
+    if args.unet_precision is not None:
+        model.network.unet_precision = args.unet_precision
     fixed = prepare_fixed(args.fixed, args.fixed_label, model.divisor)
     load_itk_modules()
     return model, fixed
@@ -217,52 +228,45 @@ def _register(args: argparse.Namespace) -> int:
 
 
 def _register_batch(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from monai_probreg.inference import write_text
-    from monai_probreg.io import InputError
+    from monai_probreg.batch import BatchItem, print_batch_table, register_batch
     from monai_probreg.outputs import check_output_dir
-    from monai_probreg.pipeline import register_scan
 
     options = _options(args)
     _require_files(args, ["--fixed", "--fixed-label"])
-    items = _batch_items(args)
+    items = [BatchItem(sid, path, label) for sid, path, label in _batch_items(args)]
     out = Path(args.out)
-    for sid, path, _ in items:  # fail fast on what is cheap to check
-        if not path.is_file():
-            raise InputError(f"--moving {str(path)!r}: no such file")
-        check_output_dir(out / sid, args.overwrite)
+    for item in items:  # fail fast on what is cheap to check and would hit every scan
+        check_output_dir(out / item.name, args.overwrite)
     model, fixed = _setup(args)
-    rows = []
-    bar = tqdm(items, desc="registering", unit="scan", disable=args.quiet, file=sys.stderr)
-    for sid, path, label in bar:
-        bar.set_postfix_str(sid)
-        try:
-            summary = register_scan(model, fixed, path, out / sid, label, options, args.overwrite,
-                                    report=lambda stage, s, sid=sid: bar.set_postfix_str(f"{sid}: {stage} done"))
-            dice = summary["dice"] or {}
-            rows.append([sid, "ok", dice.get("mean"), dice.get("mean_affine_only"),
-                         summary["jacobian"]["num_nonpositive"], summary["timings_s"]["total"], ""])
-        except Exception as err:  # noqa: BLE001 - one scan's failure must not stop the batch
-            message = str(err).splitlines()[0] if str(err) else type(err).__name__
-            rows.append([sid, "failed", None, None, None, None, message])
-            if args.debug:
-                traceback.print_exc()
-    bar.close()
-    header = ["scan", "status", "mean_dice", "mean_dice_affine_only", "num_jacobian_nonpositive", "time_s", "error"]
-    csv = "\n".join(",".join("" if v is None else f"{v:.4f}" if isinstance(v, float) else f'"{v}"' if "," in str(v)
-                             else str(v) for v in row) for row in [header, *rows]) + "\n"
-    write_text(out / "batch_summary.csv", csv)
-    print(f"{'scan':<24}{'status':<8}{'Dice':>7}{'affine':>8}{'|J|<=0':>8}{'time (s)':>10}  error")
-    for sid, status, dice, dice_affine, folding, seconds, error in rows:
-        fmt = (lambda v, spec: "-" if v is None else format(v, spec))
-        print(f"{sid:<24}{status:<8}{fmt(dice, '.3f'):>7}{fmt(dice_affine, '.3f'):>8}{fmt(folding, 'd'):>8}"
-              f"{fmt(seconds, '.1f'):>10}  {error}")
-    failed = sum(row[1] != "ok" for row in rows)
+    rows = register_batch(model, fixed, items, out, options, args.overwrite, quiet=args.quiet, debug=args.debug)
+    print_batch_table(rows)
+    failed = sum(row.status != "ok" for row in rows)
     if failed:
         print(f"monai-probreg: error: {failed} of {len(rows)} scans failed (see above and {out}/batch_summary.csv)",
               file=sys.stderr)
     return 1 if failed else 0
+
+
+@contextlib.contextmanager
+def _voxel_limit(limit: int | None) -> Iterator[None]:
+    """``--max-voxels``: the limit of :mod:`monai_probreg.validation` for this call only (restored afterwards)."""
+    from monai_probreg.io import InputError
+    from monai_probreg.validation import MAX_VOXELS_ENV
+
+    if limit is None:
+        yield
+        return
+    if limit < 1:
+        raise InputError(f"--max-voxels: expected a positive number of voxels, got {limit}")
+    previous = os.environ.get(MAX_VOXELS_ENV)
+    os.environ[MAX_VOXELS_ENV] = str(limit)
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(MAX_VOXELS_ENV, None)
+        else:
+            os.environ[MAX_VOXELS_ENV] = previous
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -270,9 +274,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     os.environ.setdefault("KMP_WARNINGS", "0")
     try:
-        return _register(args) if args.command == "register" else _register_batch(args)
+        with _voxel_limit(args.max_voxels):
+            return _register(args) if args.command == "register" else _register_batch(args)
     except KeyboardInterrupt:
-        print("monai-probreg: interrupted; the scan in progress left nothing in its output folder", file=sys.stderr)
+        print("monai-probreg: interrupted; the scan in progress left nothing in its output folder (a batch lists "
+              "the scans not run in batch_summary.csv)", file=sys.stderr)
         return 130
     except Exception as err:  # noqa: BLE001 - one line for users; --debug for the traceback
         from monai_probreg.io import InputError

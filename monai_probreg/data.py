@@ -22,6 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from monai.transforms import (
@@ -30,14 +31,17 @@ from monai.transforms import (
     DivisiblePadd,
     EnsureChannelFirstd,
     EnsureTyped,
-    LoadImaged,
+    LoadImage,
     Orientationd,
     Resized,
     ScaleIntensityRangePercentilesd,
 )
 
-__all__ = ["DatasetIndex", "NearestResizeAlignCornersd", "index_dataset", "pair_dicts", "split_ids", "registration_transforms",
-           "atlas_label_values", "IMAGE_KEYS", "LABEL_KEYS", "LOWER_PERCENTILE", "UPPER_PERCENTILE"]
+from monai_probreg.validation import (InputError, check_image_values, check_label_values, check_nifti_header,
+                                      check_size, corrupt_file_error, is_nifti)
+
+__all__ = ["DatasetIndex", "LoadCheckedd", "NearestResizeAlignCornersd", "index_dataset", "pair_dicts", "split_ids",
+           "registration_transforms", "atlas_label_values", "IMAGE_KEYS", "LABEL_KEYS", "LOWER_PERCENTILE", "UPPER_PERCENTILE"]
 
 IMAGE_KEYS = ("moving", "fixed")
 LOWER_PERCENTILE, UPPER_PERCENTILE = 0.5, 99.5  # intensities here map to 0 and 1 (training, bundle and command line)
@@ -116,6 +120,39 @@ def pair_dicts(index: DatasetIndex, ids: Sequence[str] | None = None, require_la
     return pairs
 
 
+class LoadCheckedd(MapTransform):
+    """MONAI's ``LoadImage(image_only=True)`` per key, inside the package's input checks
+    (:mod:`monai_probreg.validation`, the same as the command line's): header first (size, voxel limit, voxel type,
+    affine, byte count; nothing read yet), then the load (a truncated or corrupt file becomes one line), then the
+    values (finite; images not constant; ``label_keys`` integer labels). Any problem is an :class:`InputError`
+    naming the key and the file, so one damaged scan in a dataset is reported as such, not as a traceback."""
+
+    def __init__(self, keys: Sequence[str], label_keys: Sequence[str] = (), allow_missing_keys: bool = False) -> None:
+        super().__init__(keys, allow_missing_keys)
+        self.label_keys = set(label_keys)
+        self.loader = LoadImage(image_only=True)
+
+    def __call__(self, data: dict) -> dict:
+        d = dict(data)
+        for key in self.key_iterator(d):
+            path = str(d[key])
+            role = key.replace("_", " ") + ("" if key in self.label_keys else " image")
+            if not Path(path).is_file():
+                what = "a folder" if Path(path).is_dir() else "no such file"
+                raise InputError(f"{role} {path!r}: expected an image file, got {what}")
+            if is_nifti(path):
+                check_nifti_header(path, role)
+            try:
+                image = self.loader(path)
+            except Exception as err:  # noqa: BLE001 - whatever the reader raises, the file is unusable
+                raise corrupt_file_error(path, role, err) from None
+            check_size(image.shape, path, role)
+            values = image.detach().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
+            (check_label_values if key in self.label_keys else check_image_values)(values, path, role)
+            d[key] = image
+        return d
+
+
 class NearestResizeAlignCornersd(MapTransform):
     """Nearest-neighbour resize of label maps with align-corners geometry, matching the images' linear resize.
 
@@ -163,7 +200,7 @@ def registration_transforms(
     keys = list(IMAGE_KEYS) + (list(LABEL_KEYS) if with_labels else [])
     labels = list(LABEL_KEYS) if with_labels else []
     chain = [
-        LoadImaged(keys=keys, image_only=True),
+        LoadCheckedd(keys=keys, label_keys=labels),
         EnsureChannelFirstd(keys=keys),
         Orientationd(keys=keys, axcodes=axcodes, labels=(("L", "R"), ("P", "A"), ("I", "S"))),
         ScaleIntensityRangePercentilesd(keys=list(IMAGE_KEYS), lower=lower_percentile, upper=upper_percentile,

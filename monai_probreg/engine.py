@@ -6,29 +6,43 @@
   ``loss_function(pred, targets)`` and keeps the last terms for logging.
 - :class:`RegistrationMetrics` is an ignite metric: mean Dice of the moving labels warped (nearest neighbour)
   onto the fixed labels at the labels' resolution, and the |J| <= 0 count of the displacement there.
+- Crash safety: :class:`AtomicCheckpointSaver` writes every checkpoint to a hidden temporary file renamed onto its
+  name when complete, and deletes the one it replaces only then (MONAI's saver writes in place, after ignite has
+  deleted the old one); :func:`attach_resume` removes the temporaries a kill left and resumes from the newest
+  checkpoint that loads (``weights_only=True``; one that would run code is refused, never skipped past);
+  :class:`NonFiniteGuard` stops training at the first NaN/Inf loss or weight, before the epoch's checkpoints.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+import re
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
 from ignite.engine import Engine, Events
 from ignite.metrics import Metric
+from monai.handlers import CheckpointSaver
 from torch import Tensor, nn
 
 from monai_probreg.blocks.integration import resize_displacement
 from monai_probreg.blocks.warp import warp_labels
+from monai_probreg.inference import atomic_write
 from monai_probreg.losses.elbo import LossTerms, ProbRegLoss
 from monai_probreg.metrics.dice import label_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.validation import InputError, UntrustedFileError, safe_torch_load
 
-__all__ = ["prepare_registration_batch", "RegistrationLoss", "RegistrationMetrics", "LossTermsLogger", "latest_checkpoint", "attach_resume",
-           "key_metric_tracker",
-           "one_hot_labels"]
+__all__ = ["prepare_registration_batch", "RegistrationLoss", "RegistrationMetrics", "LossTermsLogger",
+           "NonFiniteGuard", "AtomicCheckpointSaver", "PARTIAL_FILE", "remove_partial_files", "latest_checkpoint",
+           "attach_resume", "key_metric_tracker", "one_hot_labels"]
+
+# The temporary name of monai_probreg.inference.atomic_write: ".<name>.<12 hex>.tmp<suffixes of name>".
+PARTIAL_FILE = re.compile(r"\..+\.[0-9a-f]{12}\.tmp(\.[^.]+)*")
+_LOG = logging.getLogger("monai_probreg.train")
 
 _KEYS = ("moving", "fixed", "moving_label", "fixed_label")
 
@@ -136,29 +150,130 @@ class RegistrationMetrics(Metric):
         engine.state.metrics[f"{name}_folding"] = result["folding"]
 
 
-def latest_checkpoint(ckpt_dir: str, prefix: str = "train_state") -> str | None:
-    """Newest ``<prefix>*.pt`` in ``ckpt_dir`` by modification time, or None (start from scratch)."""
-    from pathlib import Path
+class NonFiniteGuard:
+    """Stops training at the first non-finite loss or weight with a ``FloatingPointError`` naming the epoch, the
+    iteration and the first bad parameter.
 
+    It runs at ``ITERATION_COMPLETED``, after the optimizer step and before ``EPOCH_COMPLETED`` (validation and the
+    checkpoints), so no checkpoint ever holds NaN weights: the newest on disk is the last good epoch's. Checking the
+    weights costs one ``isfinite().all()`` per parameter tensor and a single host sync per iteration.
+
+    Args:
+        check_weights: also check the trainer's ``network`` parameters (a finite loss can still give Inf gradients).
+        output_transform: engine output -> loss tensor (MONAI trainers: ``output["loss"]``).
+    """
+
+    def __init__(self, check_weights: bool = True,
+                 output_transform: Callable[[Any], Tensor] = lambda output: output["loss"]) -> None:
+        self.check_weights, self.output_transform = check_weights, output_transform
+
+    def attach(self, engine: Engine) -> None:
+        engine.add_event_handler(Events.ITERATION_COMPLETED, self)
+
+    def __call__(self, engine: Engine) -> None:
+        where = f"training stopped at epoch {engine.state.epoch}, iteration {engine.state.iteration}"
+        advice = ("no checkpoint of this epoch was written; resume from the last one with a lower learning_rate or "
+                  "check the data")
+        loss = torch.as_tensor(self.output_transform(engine.state.output)).detach()
+        if not bool(torch.isfinite(loss).all()):
+            raise FloatingPointError(f"{where}: expected a finite loss, got {loss.flatten()[:4].tolist()}; {advice}")
+        network = getattr(engine, "network", None)
+        if not self.check_weights or network is None:
+            return
+        params = [(name, p.detach()) for name, p in network.named_parameters()]
+        finite = torch.stack([torch.isfinite(p).all() for _, p in params]) if params else torch.ones(1, dtype=bool)
+        if not bool(finite.all()):  # one host sync
+            name, p = params[int((~finite).nonzero()[0])]
+            bad = int((~torch.isfinite(p)).sum())
+            raise FloatingPointError(f"{where}: expected finite weights, got {bad} NaN/Inf values in {name!r} after "
+                                     f"the optimizer step; {advice}")
+
+
+def _make_crash_safe(handler: Any) -> None:
+    """Make an ignite ``DiskSaver`` write through :func:`~monai_probreg.inference.atomic_write` and delete the file a
+    new checkpoint replaces only once the new one is complete (ignite's ``Checkpoint`` deletes it first, so a kill
+    during the write would leave no training state at all)."""
+    if not callable(getattr(handler, "_save_func", None)) or not callable(getattr(handler, "remove", None)):
+        raise TypeError(f"expected an ignite DiskSaver with _save_func and remove, got {type(handler).__name__}; "
+                        "this ignite version is not supported by AtomicCheckpointSaver")
+    remove_now, pending = handler.remove, []
+
+    def remove_later(filename: str) -> None:
+        pending.append(filename)
+
+    def save(checkpoint: Any, path: Path, func: Callable) -> None:
+        atomic_write(path, lambda tmp: func(checkpoint, tmp, **handler.kwargs))
+        while pending:
+            filename = pending.pop(0)
+            if (getattr(handler, "filename", None) or filename) != Path(path).name:  # MONAI's fixed model.pt
+                remove_now(filename)
+
+    handler._save_func, handler.remove = save, remove_later
+
+
+class AtomicCheckpointSaver(CheckpointSaver):
+    """MONAI's ``CheckpointSaver`` (same arguments), crash-safe: each file is written to a hidden temporary in
+    ``save_dir`` renamed onto its name once complete, and the checkpoint it replaces (``n_saved``) is deleted only
+    after that. A crash or SIGKILL at any moment leaves the previous checkpoint intact plus at most a temporary
+    (:data:`PARTIAL_FILE`), which :func:`attach_resume` removes. (MONAI's saver writes in place, ``atomic=False``,
+    and ignite deletes the old checkpoint before writing the new one.)"""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        for checkpoint in (self._final_checkpoint, self._key_metric_checkpoint, self._interval_checkpoint):
+            if checkpoint is not None:
+                _make_crash_safe(checkpoint.save_handler)
+
+
+def remove_partial_files(folder: str | Path) -> list[Path]:
+    """Delete the temporaries an interrupted atomic write left in ``folder`` (only names matching PARTIAL_FILE)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    removed = [p for p in folder.iterdir() if p.is_file() and PARTIAL_FILE.fullmatch(p.name)]
+    for path in removed:
+        path.unlink(missing_ok=True)
+        _LOG.warning(f"removed {path.name}: a checkpoint whose writing was interrupted")
+    return removed
+
+
+def latest_checkpoint(ckpt_dir: str, prefix: str = "train_state") -> str | None:
+    """Newest ``<prefix>*.pt`` in ``ckpt_dir`` (by modification time) that loads, or None (start from scratch).
+
+    A truncated or corrupt file is skipped with a warning (the next newest is tried); one that
+    ``torch.load(weights_only=True)`` refuses raises :class:`~monai_probreg.validation.UntrustedFileError`: a file
+    that would run code is never skipped past silently.
+    """
     folder = Path(ckpt_dir)
     if not folder.is_dir():
         return None
-    found = sorted(folder.glob(f"{prefix}*.pt"), key=lambda p: p.stat().st_mtime)
-    return str(found[-1]) if found else None
+    found = sorted(folder.glob(f"{prefix}*.pt"), key=lambda p: p.stat().st_mtime_ns)
+    for path in reversed(found):
+        try:
+            safe_torch_load(path, "training checkpoint")
+        except UntrustedFileError:
+            raise
+        except InputError as err:
+            _LOG.warning(f"skipping {err}")
+            continue
+        return str(path)
+    return None
 
 
 def attach_resume(engine: Engine, ckpt_dir: str, load_dict: dict, prefix: str = "train_state",
                   map_location: str | torch.device | None = None) -> str | None:
-    """Attach MONAI's ``CheckpointLoader`` (``weights_only=True``) for the newest training state, if any.
+    """Attach MONAI's ``CheckpointLoader`` (``weights_only=True``) for the newest usable training state, if any,
+    after removing the temporaries of interrupted writes (:func:`remove_partial_files`).
 
     Returns the checkpoint path that will be loaded when the engine starts, or None (fresh start).
     """
     from monai.handlers import CheckpointLoader
 
+    remove_partial_files(ckpt_dir)
     path = latest_checkpoint(ckpt_dir, prefix)
     if path is not None:
         CheckpointLoader(load_path=path, load_dict=load_dict, map_location=map_location).attach(engine)
-        logging.getLogger("monai_probreg.train").info(f"resuming from {path}")
+        _LOG.info(f"resuming from {path}")
     return path
 
 

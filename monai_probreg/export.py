@@ -28,7 +28,8 @@ Before tracing, the identity-grid caches are emptied so the grids are built insi
 of being stored in the file as constants (60 MB for a 160 x 192 x 160 grid).
 
 Device: tracing records the device of the grids it builds, so the file runs on the device it was exported on
-(``--device``); to deploy on GPU, export on GPU. float32 only.
+(``--device``); to deploy on GPU, export on GPU. float32 only: the eager model's inference speed levers (bf16
+UNet, channels-last, threaded sampling; :class:`~monai_probreg.ProbRegNet`) are switched off in the traced copy.
 
 The file carries ``metadata.json`` as a TorchScript extra file (input shape, output names and shapes, units,
 channel order, pull-back convention, network settings, the verification result); read it with
@@ -203,6 +204,9 @@ def export_torchscript(network: ProbRegNet, input_size: Sequence[int], path: str
         raise ValueError(f"input_size must be {network.spatial_dims} positive sizes; got {list(input_size)}")
     input_shape = [1, 1, *size]
     net = copy.deepcopy(network).eval().requires_grad_(False)
+    # the portable float32 path: no bf16 autocast or channels-last UNet (CPU-specific), MONAI's Warp (the threaded
+    # grid_sample would bake this machine's thread count into the graph)
+    net.unet_precision, net.channels_last, net.fast_sampling = "fp32", False, False
     device = next(net.parameters()).device
     wrapper = MeanRegistration(net, input_shape, device.type).to(device)
     trace_pair, check_pair = _random_pair(input_shape, device, 0), _random_pair(input_shape, device, 1)

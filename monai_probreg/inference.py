@@ -41,13 +41,16 @@ from monai_probreg.data import DatasetIndex, pair_dicts
 from monai_probreg.metrics.dice import label_dice
 from monai_probreg.metrics.jacobian import JacobianStats, jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.posterior_maps import PosteriorMaps
 from monai_probreg.uncertainty import velocity_entropy
+from monai_probreg.validation import safe_torch_load
 
-__all__ = ["OUTPUT_NAMES", "OUTPUTS_README", "DISPLACEMENT_DESCRIPTION", "load_weights", "labelled_pairs",
+__all__ = ["OUTPUT_NAMES", "SAMPLED_NAMES", "OUTPUTS_README", "DISPLACEMENT_DESCRIPTION", "load_weights", "labelled_pairs",
            "register_pair", "timed_register_pair", "atomic_write", "write_text", "save_nifti", "write_outputs",
-           "PairScores", "score_pair", "evaluate_pair", "write_scores", "summary_table"]
+           "PairScores", "score_pair", "evaluate_pair", "write_scores", "read_scores", "summary_table"]
 
-OUTPUT_NAMES = ("warped", "displacement", "jacobian", "entropy", "warped_label")
+OUTPUT_NAMES = ("warped", "displacement", "jacobian", "entropy", "warped_label", "displacement_std", "label_entropy")
+SAMPLED_NAMES = ("displacement_std", "label_entropy")  # need K >= 2 posterior samples (PosteriorMaps)
 DISPLACEMENT_DESCRIPTION = "displacement in voxels, comp k = array axis k; warped[i]=moving[i+u(i)]"
 OUTPUTS_README = """\
 Registration outputs of monai_probreg (VoxelMorph-diff), one folder per subject: <id>/<name>.nii.gz.
@@ -58,8 +61,14 @@ that grid's affine, so it overlays the atlas in world coordinates.
                        axis k of this grid, in VOXELS; pull back: warped[i] = moving[i + u(i)];
                        in millimetres (world axes): affine[:3, :3] @ u (ITK/ANTs expect mm, LPS)
   jacobian.nii.gz      det(I + grad u) of x -> x + u(x); <= 0 marks folding
-  entropy.nii.gz       entropy of the velocity posterior q(z) (Dalca et al. 2018, Eq. 8), resized to this grid
+  entropy.nii.gz       entropy (nats) of the calibrated velocity posterior q(z) (Dalca et al. 2018, Eq. 8),
+                       resized to this grid; relative: compare regions, not absolute values
   warped_label.nii.gz  moving labels warped nearest neighbour (written when labels exist)
+  displacement_std.nii.gz  sqrt(sum of the 3 variances) of K displacements drawn from the calibrated posterior,
+                       in voxels: how far, roughly, each voxel's correspondence may be off (calibration and its
+                       limits: the bundle docs, "Uncertainty")
+  label_entropy.nii.gz entropy (nats) of the moving labels warped by the K samples: 0 = every sample agrees;
+                       high values flag voxels whose warped label is likely wrong (written when labels exist)
 """
 
 
@@ -69,12 +78,14 @@ def _plain(t: Tensor) -> Tensor:
 
 def load_weights(network: nn.Module, model_file: str | os.PathLike, device: str | torch.device = "cpu") -> nn.Module:
     """Load a plain state_dict (``torch.load(weights_only=True)``, strict) into ``network``; move it to ``device``
-    and put it in eval mode. A missing file is a one-line ``FileNotFoundError`` naming the path."""
+    and put it in eval mode. A missing file is a one-line ``FileNotFoundError`` naming the path; a file holding more
+    than tensors (a pickle that could run code) an ``UntrustedFileError`` (:func:`~monai_probreg.validation.
+    safe_torch_load`: nothing in it is run); a truncated or corrupt one an ``InputError``."""
     path = Path(model_file)
     if not path.is_file():
         raise FileNotFoundError(f"model file {str(path)!r} does not exist (train.yaml writes models/model.pt; "
                                 "or pass --model_file PATH)")
-    network.load_state_dict(torch.load(path, map_location=device, weights_only=True))
+    network.load_state_dict(safe_torch_load(path, "model file", map_location=device))
     return network.to(device).eval()
 
 
@@ -145,12 +156,14 @@ def save_nifti(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray, de
 
 def write_outputs(output_dir: str | os.PathLike, subject_id: str, output: RegistrationOutput,
                   affine: Tensor | np.ndarray, moving_label: Tensor | None = None,
-                  names: Sequence[str] = OUTPUT_NAMES) -> dict[str, Path]:
+                  names: Sequence[str] = OUTPUT_NAMES, maps: PosteriorMaps | None = None) -> dict[str, Path]:
     """Write one subject's results into ``output_dir/<subject_id>/`` (see the module docstring).
 
     Shapes: ``output`` of one pair (B = 1) on the fixed grid S; ``affine`` (4, 4) of that grid;
     ``moving_label`` (1, 1, *S) integer, or None (no ``warped_label``). ``names``: which of :data:`OUTPUT_NAMES`
-    to write. Returns {name: path written}.
+    to write. ``maps``: calibrated :class:`~monai_probreg.posterior_maps.PosteriorMaps` (then ``entropy`` is
+    theirs, and :data:`SAMPLED_NAMES` are written when present); None: ``entropy`` of the raw posterior and no
+    sampled maps. Returns {name: path written}.
     """
     unknown = set(names) - set(OUTPUT_NAMES)
     if unknown:
@@ -159,11 +172,14 @@ def write_outputs(output_dir: str | os.PathLike, subject_id: str, output: Regist
     if disp.ndim != 5 or disp.shape[0] != 1:
         raise ValueError(f"expected one 3-d pair, displacement (1, 3, X, Y, Z); got {tuple(disp.shape)}")
     folder, aff, size = Path(output_dir) / subject_id, np.asarray(torch.as_tensor(affine).cpu()), disp.shape[2:]
-    maps: dict[str, tuple[Callable[[], Tensor], str, str | None]] = {
+    makers: dict[str, tuple[Callable[[], Tensor], str, str | None]] = {
         "warped": (lambda: output.warped[0, 0], "moving image warped to the fixed grid, intensities in [0, 1]", None),
         "displacement": (lambda: disp[0].movedim(0, -1).unsqueeze(-2), DISPLACEMENT_DESCRIPTION, "vector"),
         "jacobian": (lambda: jacobian_determinant(disp)[0], "Jacobian determinant of x -> x + u(x)", None),
-        "entropy": (lambda: velocity_entropy(output.velocity_log_var.float(), size)[0, 0], "velocity entropy", None),
+        "entropy": (lambda: velocity_entropy(output.velocity_log_var.float(), size)[0, 0] if maps is None
+                    else maps.velocity_entropy, "velocity entropy" + (" (raw)" if maps is None else ""), None),
+        "displacement_std": (lambda: maps.displacement_std, "displacement std over posterior samples, voxels", None),
+        "label_entropy": (lambda: maps.label_entropy, "entropy of labels warped by posterior samples", None),
         "warped_label": (lambda: warp_labels(_plain(moving_label).to(disp.device), disp)[0, 0].to(torch.int16),
                          "moving labels warped to the fixed grid, nearest neighbour", None),
     }
@@ -171,7 +187,9 @@ def write_outputs(output_dir: str | os.PathLike, subject_id: str, output: Regist
     for name in names:
         if name == "warped_label" and moving_label is None:
             continue
-        compute, description, intent = maps[name]
+        if name in SAMPLED_NAMES and (maps is None or getattr(maps, name) is None):
+            continue
+        compute, description, intent = makers[name]
         array = _plain(compute()).detach().cpu().numpy()
         array = array if array.dtype == np.int16 else array.astype(np.float32)
         written[name] = save_nifti(folder / f"{name}.nii.gz", array, aff, description, intent)
@@ -233,8 +251,9 @@ def _label_mean(scores: Sequence[PairScores], label: int) -> float | None:
 
 def write_scores(output_dir: str | os.PathLike, rows: Sequence[tuple[str, PairScores, PairScores]],
                  config: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Write ``scores.csv`` (one row per subject) and ``summary.json`` (mean and population std over subjects,
-    registered and no-registration, per-label means, ``config``) into ``output_dir``; return the summary."""
+    """Write ``scores.csv`` (one row per subject), ``summary.json`` (mean and population std over subjects,
+    registered and no-registration, per-label means, ``config``) and ``scores.json`` (every score of every subject,
+    :func:`read_scores` reads it back: how sharded runs are merged) into ``output_dir``; return the summary."""
     if not rows:
         raise ValueError("no scored subjects to summarise")
     labels = sorted({lab for _, reg, _ in rows for lab in reg.dice})
@@ -257,7 +276,30 @@ def write_scores(output_dir: str | os.PathLike, rows: Sequence[tuple[str, PairSc
     out = Path(output_dir)
     write_text(out / "scores.csv", table.getvalue())
     write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    records = [{"id": sid, "registered": _subject_scores(reg), "no_registration": _subject_scores(base)}
+               for sid, reg, base in rows]
+    write_text(out / "scores.json", json.dumps({"subjects": records, "config": summary["config"]}) + "\n")
     return summary
+
+
+def _subject_scores(scores: PairScores) -> dict[str, Any]:
+    """PairScores as JSON (NaN -> null, label ids as strings)."""
+    def num(v: float) -> float | None:
+        return None if math.isnan(v) else float(v)
+    return {**{f: num(float(getattr(scores, f))) for f in PairScores._fields if f != "dice"},
+            "dice": {str(k): num(v) for k, v in scores.dice.items()}}
+
+
+def read_scores(path: str | os.PathLike) -> tuple[list[tuple[str, PairScores, PairScores]], dict[str, Any]]:
+    """The rows and config of a ``scores.json`` written by :func:`write_scores`, ready to pass back to it."""
+    data = json.loads(Path(path).read_text())
+
+    def scores(record: Mapping[str, Any]) -> PairScores:
+        value = {f: math.nan if record[f] is None else record[f] for f in PairScores._fields if f != "dice"}
+        dice = {int(k): math.nan if v is None else v for k, v in record["dice"].items()}
+        return PairScores(dice=dice, **{**value, "num_folding": int(value["num_folding"])})
+    rows = [(r["id"], scores(r["registered"]), scores(r["no_registration"])) for r in data["subjects"]]
+    return rows, data.get("config", {})
 
 
 def summary_table(summary: Mapping[str, Any]) -> str:

@@ -26,6 +26,7 @@ from torch import Tensor
 from monai_probreg.inference import (
     OUTPUT_NAMES,
     OUTPUTS_README,
+    SAMPLED_NAMES,
     PairScores,
     score_pair,
     summary_table,
@@ -35,6 +36,7 @@ from monai_probreg.inference import (
     write_text,
 )
 from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.posterior_maps import posterior_maps
 
 __all__ = ["RegistrationInferer", "RegistrationWriter", "RegistrationScorer"]
 
@@ -84,13 +86,24 @@ class _PerSubjectHandler:
 
 class RegistrationWriter(_PerSubjectHandler):
     """Writes :func:`write_outputs` for every subject into ``output_dir``: the maps in ``names`` (default all of
-    :data:`~monai_probreg.inference.OUTPUT_NAMES`; ``warped_label`` only when the batch has labels)."""
+    :data:`~monai_probreg.inference.OUTPUT_NAMES`; the label maps only when the batch has labels).
 
-    def __init__(self, output_dir: str | os.PathLike, names: Sequence[str] = OUTPUT_NAMES) -> None:
+    With ``network`` given, the uncertainty maps are :func:`~monai_probreg.posterior_maps.posterior_maps` of the
+    posterior calibrated by ``std_scale`` (1 = raw), from ``num_samples`` seeded samples (needed, >= 2, for
+    :data:`~monai_probreg.inference.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's."""
+
+    def __init__(self, output_dir: str | os.PathLike, names: Sequence[str] = OUTPUT_NAMES,
+                 network: torch.nn.Module | None = None, num_samples: int = 0, std_scale: float = 1.0,
+                 seed: int = 0) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
             raise ValueError(f"unknown output names {sorted(unknown)}; choose from {list(OUTPUT_NAMES)}")
+        sampled = sorted(set(names) & set(SAMPLED_NAMES))
+        if sampled and (network is None or num_samples < 2):
+            raise ValueError(f"outputs {sampled} need the network and num_samples >= 2; got "
+                             f"{'no network' if network is None else f'num_samples {num_samples}'}")
         self.output_dir, self.names = Path(output_dir), tuple(names)
+        self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
 
     def start(self, engine: Engine) -> None:
         write_text(self.output_dir / "README.txt", OUTPUTS_README)
@@ -98,7 +111,13 @@ class RegistrationWriter(_PerSubjectHandler):
     def each(self, engine: Engine, sid: str, pair: RegistrationOutput, targets: dict, runtime: float) -> None:
         affine = targets["fixed"].affine
         affine = affine[0] if affine.ndim == 3 else affine
-        write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names)
+        maps = None
+        if self.network is not None:
+            sampled = set(self.names) & set(SAMPLED_NAMES)
+            label = targets.get("moving_label") if "label_entropy" in self.names else None
+            maps = posterior_maps(self.network, pair.velocity_mean, pair.velocity_log_var, pair.displacement.shape[2:],
+                                  self.num_samples if sampled else 0, self.std_scale, label, self.seed)
+        write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
         _LOG.info(f"[{engine.state.iteration}/{engine.state.epoch_length}] {sid}: {runtime:.2f} s "
                   f"-> {self.output_dir / sid}")
 

@@ -12,21 +12,26 @@ Conventions (the physical-space conventions of the package; :mod:`monai_probreg.
   nibabel: ITK's NIfTI reader zero-fills a truncated file and turns NaN into 0 without a warning.
 
 Every problem with an input raises :class:`InputError` with one line naming the file and the problem, before any
-output is written: missing, unreadable or truncated file, not a 3-D scalar volume (2-D, 4-D with more than one volume,
-vector/RGB pixels), NaN/Inf voxels, a constant image, a non-integer or negative label map, and label maps on a grid
-other than their image's (:func:`check_same_grid`).
+output is written: missing, unreadable, truncated or corrupt file, a header whose size disagrees with the data, not a
+3-D scalar volume (2-D, 4-D with more than one volume, an axis of one voxel, vector/RGB pixels), more voxels than
+:func:`~monai_probreg.validation.max_voxels` (checked before the voxels are read), a degenerate geometry, NaN/Inf
+voxels, a constant image, a non-integer or negative label map, and label maps on a grid other than their image's
+(:func:`check_same_grid`). The checks themselves live in :mod:`monai_probreg.validation`, shared with the bundle.
 """
 
 from __future__ import annotations
 
 import os
-import zlib
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import itk
 import nibabel as nib
 import numpy as np
+
+from monai_probreg.validation import (InputError, check_image_values, check_label_values, check_nifti_header,
+                                      check_nifti_voxels, check_size, corrupt_file_error, is_nifti)
 
 __all__ = ["InputError", "Volume", "LPS_TO_RAS", "read_image", "read_label", "check_same_grid", "volume_to_itk",
            "volume_from_itk", "geometry_of"]
@@ -38,10 +43,6 @@ LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])  # its own inverse: RAS affine = LP
 # (a resampled or cropped label map) is at least a fraction of a voxel.
 _ORIGIN_TOL_MM = 1e-3
 _RELATIVE_TOL = 1e-4
-
-
-class InputError(ValueError):
-    """A user input that cannot be used; ``str(error)`` is one line naming the file and the problem."""
 
 
 @dataclass(frozen=True)
@@ -120,69 +121,54 @@ def _header(path: Path, role: str) -> tuple[list[int], int]:
         raise InputError(f"{role} {str(path)!r}: is a folder, not an image file")
     if not os.access(path, os.R_OK):
         raise InputError(f"{role} {str(path)!r}: file is not readable (permissions)")
+    if path.stat().st_size == 0:
+        raise corrupt_file_error(path, role, EOFError())
     image_io = itk.ImageIOFactory.CreateImageIO(str(path), itk.CommonEnums.IOFileMode_ReadMode)
     if image_io is None:
+        if is_nifti(path):  # ITK cannot even identify a damaged .nii.gz; nibabel says what is wrong
+            check_nifti_voxels(check_nifti_header(path, role), path, role)
         raise InputError(f"{role} {str(path)!r}: not an image format ITK can read (use NIfTI .nii/.nii.gz, "
                          ".nrrd, .mha, ...)")
     try:
         image_io.SetFileName(str(path))
         image_io.ReadImageInformation()
     except RuntimeError as err:
+        if is_nifti(path):
+            check_nifti_header(path, role)
         raise InputError(f"{role} {str(path)!r}: unreadable header ({_first_line(err)})") from None
     sizes = [int(image_io.GetDimensions(d)) for d in range(image_io.GetNumberOfDimensions())]
     return sizes, int(image_io.GetNumberOfComponents())
 
 
 def _first_line(err: BaseException) -> str:
+    """The message of an ITK exception without its source location (``.../itkNiftiImageIO.cxx:2135:``)."""
     lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-    useful = [line for line in lines if "Description:" in line] or lines or [type(err).__name__]
-    return useful[0].replace("itk::ERROR:", "").strip()[:200]
-
-
-def _check_finite(values: np.ndarray, path: Path, role: str) -> None:
-    nan, inf = int(np.isnan(values).sum()), int(np.isinf(values).sum())
-    if nan or inf:
-        raise InputError(f"{role} {str(path)!r}: {nan} NaN and {inf} Inf voxels; replace them (e.g. with 0) first")
-
-
-def _check_nifti_voxels(path: Path, role: str) -> None:
-    """NIfTI voxels as stored, read with nibabel: ITK's NIfTI reader silently zero-fills a truncated file and
-    turns NaN into 0, so neither problem is visible in what ITK returns."""
-    if not path.name.lower().endswith((".nii", ".nii.gz")):
-        return
-    try:
-        values = np.asanyarray(nib.load(str(path)).dataobj)
-    except (EOFError, OSError, ValueError, zlib.error) as err:
-        raise InputError(f"{role} {str(path)!r}: file is truncated or corrupt ({str(err).splitlines()[0][:120]}); "
-                         "was a download or copy interrupted?") from None
-    if values.dtype.kind == "f":
-        _check_finite(values, path, role)
+    located = [line for line in lines if not re.fullmatch(r"\S+\.(cxx|hxx|txx|h)(:\d+)?:?", line)]
+    useful = [line for line in lines if "Description:" in line] or located or lines or [type(err).__name__]
+    text = re.sub(r"^(itk::ERROR:|ITK ERROR:)\s*", "", useful[0]).replace("Description:", "").strip()
+    if "orthonormal" in text:
+        text += " The header's voxel axes are sheared (not at right angles); resample the image first"
+    return text[:200]
 
 
 def _read(path: str | os.PathLike, role: str, pixel: type) -> Volume:
     path = Path(path)
     sizes, components = _header(path, role)
-    while len(sizes) > 3 and sizes[-1] == 1:  # (X, Y, Z, 1) is one 3-D volume
-        sizes.pop()
+    nifti = check_nifti_header(path, role) if is_nifti(path) else None  # before any voxel is read
     if components != 1:
         raise InputError(f"{role} {str(path)!r}: has {components} values per voxel (vector or RGB image); "
                          "need a scalar 3-D volume")
-    if len(sizes) != 3:
-        what = f"{len(sizes)}-D, size {tuple(sizes)}"
-        hint = "; pass a single 3-D volume (e.g. extract one with fslroi)" if len(sizes) > 3 else "; need a 3-D volume"
-        raise InputError(f"{role} {str(path)!r}: is {what}{hint}")
-    if min(sizes) < 2:
-        raise InputError(f"{role} {str(path)!r}: size {tuple(sizes)} has an axis of one voxel; need a 3-D volume")
+    check_size(sizes, path, role)
     try:
         reader = itk.ImageFileReader[itk.Image[pixel, 3]].New(FileName=str(path))
         reader.Update()
     except RuntimeError as err:
         raise InputError(f"{role} {str(path)!r}: could not read the voxels ({_first_line(err)})") from None
-    _check_nifti_voxels(path, role)
+    if nifti is not None:
+        check_nifti_voxels(nifti, path, role)
     volume = volume_from_itk(reader.GetOutput(), str(path))
     if not np.all(np.isfinite(volume.index_to_lps)) or abs(np.linalg.det(volume.index_to_lps[:3, :3])) < 1e-12:
         raise InputError(f"{role} {str(path)!r}: the header's geometry is degenerate (spacing/direction)")
-    _check_finite(volume.array, path, role)
     return volume
 
 
@@ -193,25 +179,15 @@ def read_image(path: str | os.PathLike, role: str = "image") -> Volume:
     (nothing to register).
     """
     volume = _read(path, role, itk.F)
-    low, high = float(volume.array.min()), float(volume.array.max())
-    if low == high:
-        raise InputError(f"{role} {str(path)!r}: the image is constant (every voxel = {low:g}); nothing to register")
+    check_image_values(volume.array, path, role)
     return volume
 
 
 def read_label(path: str | os.PathLike, role: str = "label map") -> Volume:
     """Read a 3-D label map (non-negative integers, 0 = background) as int32 with its geometry."""
     volume = _read(path, role, itk.D)
-    values = volume.array
-    fractional = values != np.round(values)
-    if fractional.any():
-        example = float(values[fractional].flat[0])
-        raise InputError(f"{role} {str(path)!r}: not a label map: {int(fractional.sum())} voxels hold non-integer "
-                         f"values (e.g. {example:g})")
-    if values.min() < 0 or values.max() > np.iinfo(np.int32).max:
-        raise InputError(f"{role} {str(path)!r}: label values must be integers in [0, 2^31); got "
-                         f"[{values.min():g}, {values.max():g}]")
-    return Volume(values.astype(np.int32), volume.index_to_lps, volume.path)
+    check_label_values(volume.array, path, role)
+    return Volume(volume.array.astype(np.int32), volume.index_to_lps, volume.path)
 
 
 def check_same_grid(label: Volume, image: Volume, label_role: str = "label map", image_role: str = "image") -> None:

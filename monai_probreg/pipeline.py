@@ -38,7 +38,6 @@ from torch import nn
 import monai_probreg
 from monai_probreg.bundle_model import LoadedModel
 from monai_probreg.affine import AffineResult, AffineSettings, register_affine
-from monai_probreg.blocks.sampling import sample_velocity
 from monai_probreg.data import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.grid import ModelGrid
 from monai_probreg.inference import register_pair, write_text
@@ -51,7 +50,8 @@ from monai_probreg.physical import (affine_to_itk, apply_affine, compose_forward
                                     voxel_to_mm)
 from monai_probreg.qc import QCData, save_qc
 from monai_probreg.resample import sample_linear, sample_nearest
-from monai_probreg.uncertainty import velocity_entropy
+from monai_probreg.calibration import calibrate_log_var
+from monai_probreg.uncertainty import sampled_displacement_moments, velocity_entropy
 
 __all__ = ["FixedSpace", "prepare_fixed", "RegistrationOptions",
            "normalise_intensity", "register_scan"]
@@ -137,20 +137,14 @@ def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
 
 def _displacement_std_mm(network: nn.Module, mean: torch.Tensor, log_var: torch.Tensor, size: tuple[int, ...],
                          spacing: np.ndarray, samples: int, seed: int, chunk: int = 4) -> np.ndarray:
-    """sqrt(sum_c var_c) in mm of ``samples`` posterior displacements (streamed, ``chunk`` at a time). The trace of
-    the covariance is rotation-invariant, so per-axis voxel variances times spacing^2 give it exactly."""
+    """sqrt(sum_c var_c) in mm of ``samples`` posterior displacements (streamed, ``chunk`` at a time). The trace of the covariance is
+    rotation-invariant, so per-axis voxel variances times spacing^2 give it exactly."""
     generator = torch.Generator(device=mean.device).manual_seed(seed)
-    total = squares = None
     with torch.inference_mode():
-        for start in range(0, samples, chunk):
-            z = sample_velocity(mean, log_var, min(chunk, samples - start), generator=generator)
-            disp = network.velocity_to_displacement(z.flatten(0, 1), size)  # (n, 3, *S) float32
-            part, part_sq = disp.sum(0, dtype=torch.float64), (disp * disp).sum(0, dtype=torch.float64)
-            total = part if total is None else total + part
-            squares = part_sq if squares is None else squares + part_sq
-        variance = ((squares - total**2 / samples) / (samples - 1)).clamp(min=0)
+        _, variance = sampled_displacement_moments(
+            mean, log_var, lambda z: network.velocity_to_displacement(z, size), samples, generator, chunk)
         weights = torch.as_tensor(spacing**2, dtype=variance.dtype, device=variance.device).view(3, 1, 1, 1)
-        return (variance * weights).sum(0).sqrt().float().cpu().numpy()
+        return (variance[0] * weights).sum(0).sqrt().cpu().numpy()
 
 
 @dataclass
@@ -174,13 +168,14 @@ def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.nda
         output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
         with eval_mode(model.network), torch.inference_mode():
             inverse = model.network.velocity_to_displacement(-output.velocity_mean, shape)  # exp(-v)
+        log_var = calibrate_log_var(output.velocity_log_var, model.std_scale)  # std_scale 1 = raw
         maps = _ModelMaps(_numpy(output.displacement[0]), _numpy(inverse[0]),
                           _numpy(jacobian_determinant(output.displacement)[0]),
-                          _numpy(velocity_entropy(output.velocity_log_var, shape)[0, 0]), _numpy(output.warped[0, 0]))
+                          _numpy(velocity_entropy(log_var, shape)[0, 0]), _numpy(output.warped[0, 0]))
     if samples:
         with _timed(timings, "samples", report):
-            maps.std = _displacement_std_mm(model.network, output.velocity_mean, output.velocity_log_var, shape,
-                                            spacing, samples, seed)
+            maps.std = _displacement_std_mm(model.network, output.velocity_mean, log_var, shape, spacing, samples,
+                                            seed)
     return maps
 
 
@@ -296,7 +291,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             "fixed_label": fixed.label.path if fixed.label is not None else None,
             "model": {"model_file": str(model.model_file), "config": str(model.config_file),
                       "device": str(model.device), "model_grid_shape": list(fixed.grid.shape),
-                      "divisor": model.divisor},
+                      "divisor": model.divisor, "posterior_std_scale": model.std_scale},
             "timings_s": timings,
             "affine": {**affine.summary(), "settings": options.affine.as_dict() if options.affine else None},
             "jacobian": {"num_nonpositive": stats.num_folding, "percent_nonpositive": stats.percent_folding,

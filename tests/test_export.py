@@ -46,7 +46,9 @@ pytestmark = pytest.mark.usefixtures("single_thread")
 def _net(network_size, seed: int = 0) -> ProbRegNet:
     """Random weights, with a mean head strong enough for ~1 voxel displacements (the paper's init gives ~0)."""
     torch.manual_seed(seed)
-    net = ProbRegNet(network_size=network_size)
+    # float32 UNet: the export traces the float32 path, so the eager reference must not be the bf16 one (the default
+    # on CPUs with native bf16); channels-last and fast sampling stay on, float32 rounding only
+    net = ProbRegNet(network_size=network_size, unet_precision="fp32")
     with torch.no_grad():
         net.unet.mean_head.weight.normal_(0.0, 1.0)
     return net

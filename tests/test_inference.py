@@ -15,9 +15,11 @@ from monai.data import MetaTensor
 
 from monai_probreg import ProbRegNet, RegistrationOutput, label_dice
 from monai_probreg.data import index_dataset, pair_dicts, registration_transforms
+from monai_probreg.posterior_maps import PosteriorMaps
 from monai_probreg.inference import (
     DISPLACEMENT_DESCRIPTION,
     OUTPUT_NAMES,
+    SAMPLED_NAMES,
     PairScores,
     evaluate_pair,
     labelled_pairs,
@@ -109,8 +111,9 @@ def test_write_outputs_files_shapes_and_displacement_convention(tmp_path):
     labels = _box_labels(shape, 2)
     written = write_outputs(tmp_path, "S99", _output(disp, log_var=-4.0), torch.as_tensor(affine), labels)
 
-    assert set(written) == set(OUTPUT_NAMES)
-    assert sorted(p.name for p in (tmp_path / "S99").iterdir()) == sorted(f"{n}.nii.gz" for n in OUTPUT_NAMES)
+    unsampled = [n for n in OUTPUT_NAMES if n not in SAMPLED_NAMES]  # no PosteriorMaps given: no sampled maps
+    assert set(written) == set(unsampled)
+    assert sorted(p.name for p in (tmp_path / "S99").iterdir()) == sorted(f"{n}.nii.gz" for n in unsampled)
     images = {name: nib.load(path) for name, path in written.items()}
     for name, image in images.items():
         np.testing.assert_allclose(image.affine, affine, atol=1e-6, err_msg=name)  # float32 header: 1e-6
@@ -128,6 +131,19 @@ def test_write_outputs_files_shapes_and_displacement_convention(tmp_path):
     np.testing.assert_allclose(images["entropy"].get_fdata(), 1.5 * (math.log(2 * math.pi * math.e) - 4.0), atol=1e-5)
     warped_label = np.asarray(images["warped_label"].dataobj)
     assert warped_label.dtype == np.int16 and set(np.unique(warped_label)) <= {0, 21, 22}
+
+
+def test_write_outputs_takes_the_calibrated_maps(tmp_path):
+    shape = (12, 10, 8)
+    maps = PosteriorMaps(torch.full(shape, 2.5), torch.full(shape, 0.75), torch.full(shape, 0.5))
+    written = write_outputs(tmp_path, "S98", _output(torch.zeros(1, 3, *shape), log_var=-4.0), np.eye(4),
+                            _box_labels(shape, 2), OUTPUT_NAMES, maps)
+    assert set(written) == set(OUTPUT_NAMES)
+    for name, value in (("entropy", 2.5), ("displacement_std", 0.75), ("label_entropy", 0.5)):
+        np.testing.assert_array_equal(nib.load(written[name]).get_fdata(), value)
+    no_labels = write_outputs(tmp_path, "S97", _output(torch.zeros(1, 3, *shape), log_var=-4.0), np.eye(4),
+                              None, OUTPUT_NAMES, maps._replace(label_entropy=None))
+    assert "label_entropy" not in no_labels and "warped_label" not in no_labels
 
 
 def test_files_are_written_atomically(tmp_path, monkeypatch):

@@ -137,3 +137,34 @@ def test_displacement_uncertainty_needs_two_samples():
 def test_displacement_uncertainty_bad_shape_raises(shape):
     with pytest.raises(ValueError, match=r"\(K, B, spatial_dims, \*S\)"):
         displacement_uncertainty(torch.zeros(shape))
+
+
+def test_label_entropy_closed_forms():
+    from monai_probreg.uncertainty import label_entropy
+
+    agree = torch.full((4, 3, 3), 7)
+    assert torch.all(label_entropy(agree) == 0)
+    half = torch.tensor([1, 1, 2, 2]).view(4, 1)
+    assert label_entropy(half).item() == pytest.approx(math.log(2))
+    distinct = torch.tensor([0, 5, 9, 3]).view(4, 1)
+    assert label_entropy(distinct).item() == pytest.approx(math.log(4))
+
+
+def test_label_entropy_matches_counting():
+    from collections import Counter
+
+    from monai_probreg.uncertainty import label_entropy
+
+    samples = torch.randint(0, 3, (6, 5, 4), generator=torch.Generator().manual_seed(0))
+    out = label_entropy(samples)
+    for idx in [(0, 0), (2, 3), (4, 1)]:
+        counts = Counter(samples[(slice(None),) + idx].tolist())
+        expected = -sum(c / 6 * math.log(c / 6) for c in counts.values())
+        assert out[idx].item() == pytest.approx(expected, abs=1e-6)
+
+
+def test_label_entropy_rejects_float_labels():
+    from monai_probreg.uncertainty import label_entropy
+
+    with pytest.raises(ValueError, match="integer"):
+        label_entropy(torch.zeros(3, 4))

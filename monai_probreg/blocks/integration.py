@@ -8,7 +8,9 @@
   displacement shrinks towards the borders (a constant velocity is not integrated to a
   translation near the faces). We pad with ``"border"`` (nearest extrapolation, as the published
   VoxelMorph code does), which makes a constant field an exact fixed point of every squaring.
-- MONAI's grid cache never hits; :class:`~monai_probreg.blocks.warp.CachedWarp` fixes that.
+- MONAI's grid cache never hits; :class:`~monai_probreg.blocks.warp.CachedWarp` fixes that, and with
+  ``fast=True`` (default) also builds each squaring's sampling grid in one pass and spreads a single field over
+  the CPU threads (see :mod:`monai_probreg.blocks.warp`).
 
 Fields are (B, spatial_dims, *S), in voxels of their own grid, channel k along tensor axis 2 + k.
 """
@@ -33,18 +35,19 @@ class ScalingAndSquaring(DVF2DDF):
     Args:
         num_steps: number of squarings T (the velocity is divided by 2**T first). The paper uses 7.
         padding_mode: how the field is extrapolated outside the grid during composition.
+        fast: :class:`~monai_probreg.blocks.warp.CachedWarp`'s fast path (same result up to float32 rounding).
 
     ``forward(-v)`` gives the displacement of the inverse transform ``exp(-v) = exp(v)^-1``.
     """
 
-    def __init__(self, num_steps: int = 7, padding_mode: str = "border") -> None:
+    def __init__(self, num_steps: int = 7, padding_mode: str = "border", fast: bool = True) -> None:
         if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 1:
             raise ValueError(f"num_steps must be a positive integer; got {num_steps!r}")
         with warnings.catch_warnings():  # DVF2DDF builds a MONAI Warp we replace below; silence its notice
             warnings.filterwarnings("ignore", message=".*Using PyTorch native grid_sample.*")
             super().__init__(num_steps=num_steps, mode="bilinear", padding_mode=padding_mode)
         # Deviation from DVF2DDF: border padding and a working grid cache (see the module docstring).
-        self.warp_layer = CachedWarp(mode="bilinear", padding_mode=padding_mode)
+        self.warp_layer = CachedWarp(mode="bilinear", padding_mode=padding_mode, fast=fast)
 
     def forward(self, dvf: Tensor) -> Tensor:
         spatial_dims = dvf.ndim - 2
@@ -79,10 +82,10 @@ def resize_displacement(ddf: Tensor, spatial_size: Sequence[int]) -> Tensor:
     if min(ddf.shape[2:]) < 2 or min(size) < 2:
         raise ValueError(f"both grids need at least 2 voxels per axis; got {tuple(ddf.shape[2:])} -> {size}")
     mode = "bilinear" if spatial_dims == 2 else "trilinear"
-    resized = F.interpolate(ddf, size=size, mode=mode, align_corners=True)
     scale = [(m - 1) / (n - 1) for m, n in zip(size, ddf.shape[2:])]
-    scale_t = resized.new_tensor(scale).view(1, spatial_dims, *([1] * spatial_dims))
-    return resized * scale_t
+    scale_t = ddf.new_tensor(scale).view(1, spatial_dims, *([1] * spatial_dims))
+    # interpolation is linear: scaling the small field first saves a pass over the large one
+    return F.interpolate(ddf * scale_t, size=size, mode=mode, align_corners=True)
 
 
 class DisplacementResize(nn.Module):

@@ -8,13 +8,24 @@ Conventions (the package-wide ones, see ``monai_probreg/__init__.py``):
   (voxel centres at integer indices);
 - composition: ``compose_displacements(a, b)`` is the displacement of ``phi_a o phi_b``, i.e.
   ``x -> x + b(x) + a(x + b(x))``.
+
+Speed (``fast=True``, the default; ``fast=False`` runs MONAI's ``Warp.forward`` unchanged, for comparison):
+
+- :func:`sampling_grid` writes ``grid_sample``'s normalised xyz grid straight from the field in one pass, from
+  1-D broadcast axes, where MONAI adds a cached identity grid, permutes, normalises each axis in place and flips
+  (five passes over a full-size field);
+- :func:`split_grid_sample` spreads a single 3-d item over the CPU threads: ATen's CPU ``grid_sample`` for 5-d
+  inputs parallelises over the batch only, so one pair ran on one core whatever ``torch.get_num_threads()``.
+Both give MONAI's result up to float32 rounding of the sampling coordinates (``tests/blocks/test_warp.py``).
 """
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import torch
+import torch.nn.functional as F
 from monai.networks.blocks import Warp
 from monai.networks.utils import meshgrid_ij
 from torch import Tensor, nn
@@ -26,14 +37,79 @@ __all__ = [
     "warp_one_hot",
     "compose_displacements",
     "identity_grid",
+    "sampling_grid",
+    "split_grid_sample",
     "SpatialTransformer",
 ]
+
+# Fewest sampled points worth a thread of their own in split_grid_sample: below this (a 40^3 grid) the extra
+# grid_sample calls cost more than they save.
+MIN_POINTS_PER_THREAD = 65_536
 
 
 def identity_grid(spatial_shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
     """Voxel coordinates of a grid, shape ``(1, len(spatial_shape), *spatial_shape)``, channel k = index along axis k."""
     axes = [torch.arange(n, dtype=dtype, device=device) for n in spatial_shape]
     return torch.stack(meshgrid_ij(*axes), dim=0).unsqueeze(0)
+
+
+def sampling_grid(ddf: Tensor) -> Tensor:
+    """``grid_sample``'s grid for the pull-back ``x -> x + ddf(x)``: (B, *S, D), last axis in its reversed (xyz)
+    order, coordinates normalised to [-1, 1] with ``align_corners=True`` (voxel i of n -> 2 i / (n - 1) - 1).
+
+    One pass over the field: each grid component is a broadcast 1-D axis plus the scaled field component, written
+    into place (``out=``) when no gradient is needed, stacked otherwise (differentiable in ``ddf``).
+    """
+    spatial = tuple(ddf.shape[2:])
+    dims = len(spatial)
+    differentiable = torch.is_grad_enabled() and ddf.requires_grad
+    grid = None if differentiable else ddf.new_empty((ddf.shape[0], *spatial, dims))
+    components = []
+    for k in range(dims):
+        axis = dims - 1 - k  # grid channel k (x, y, z) samples tensor axis 2 + axis
+        denominator = max(spatial[axis] - 1, 1)  # a singleton axis maps to -1, as in MONAI
+        scale = 2.0 / denominator
+        shape = [1] * (dims + 1)
+        shape[1 + axis] = spatial[axis]
+        # i * 2 / (n - 1) - 1 in MONAI's order of operations: the identity grid is bit-identical to MONAI's
+        line = (torch.arange(spatial[axis], dtype=ddf.dtype, device=ddf.device) * 2 / denominator - 1).view(shape)
+        if grid is None:
+            components.append(line + ddf[:, axis] * scale)
+        else:
+            torch.add(line, ddf[:, axis], alpha=scale, out=grid[..., k])
+    return torch.stack(components, dim=-1) if grid is None else grid
+
+
+def _num_splits(image: Tensor, grid: Tensor) -> int:
+    """How many pieces :func:`split_grid_sample` cuts a single CPU 3-d item into (1: no split)."""
+    if image.device.type != "cpu" or image.ndim != 5 or image.shape[0] != 1:
+        return 1
+    rows = grid.shape[1] * grid.shape[2]  # pieces are whole rows of the last spatial axis
+    most = min(torch.get_num_threads(), math.prod(grid.shape[1:-1]) // MIN_POINTS_PER_THREAD)
+    return max([n for n in range(1, max(most, 1) + 1) if rows % n == 0])
+
+
+def split_grid_sample(image: Tensor, grid: Tensor, mode: str = "bilinear", padding_mode: str = "border",
+                      num_splits: int | None = None) -> Tensor:
+    """``F.grid_sample(image, grid, mode, padding_mode, align_corners=True)``, a single 3-d CPU item run on all threads.
+
+    ATen's CPU kernel for 5-d inputs loops over the batch in parallel and over the points serially, so batch 1 uses
+    one thread. The grid's points are cut into ``n`` batch items (whole rows, a view) against the image expanded
+    ``n`` times (stride 0, no copy); each point is sampled exactly as before, so the result is identical.
+    ``num_splits``: ``n``, which must divide ``S0 * S1``; None: the torch thread count, at most one piece per
+    :data:`MIN_POINTS_PER_THREAD` points, and 1 (a direct call) for batch > 1, 2-d grids or CUDA. Differentiable.
+    """
+    n = _num_splits(image, grid) if num_splits is None else int(num_splits)
+    if n > 1 and (image.ndim != 5 or image.shape[0] != 1 or (grid.shape[1] * grid.shape[2]) % n):
+        raise ValueError(f"num_splits={n} needs one 3-d item whose grid rows S0 * S1 it divides; got image "
+                         f"{tuple(image.shape)}, grid {tuple(grid.shape)}")
+    if n == 1:
+        return F.grid_sample(image, grid, mode=mode, padding_mode=padding_mode, align_corners=True)
+    spatial = grid.shape[1:-1]
+    pieces = grid.reshape(n, 1, spatial[0] * spatial[1] // n, spatial[2], grid.shape[-1])
+    out = F.grid_sample(image.expand(n, *image.shape[1:]), pieces, mode=mode, padding_mode=padding_mode,
+                        align_corners=True)  # (n, C, 1, rows / n, S2)
+    return out.transpose(0, 1).reshape(1, image.shape[1], *spatial)
 
 
 class CachedWarp(Warp):
@@ -48,17 +124,20 @@ class CachedWarp(Warp):
     Args:
         mode: ``"bilinear"`` (linear in 2D and 3D) or ``"nearest"`` (label maps).
         padding_mode: ``"border"``, ``"zeros"`` or ``"reflection"`` for samples outside the grid.
+        fast: build the sampling grid with :func:`sampling_grid` and sample with :func:`split_grid_sample`
+            (module docstring); False: MONAI's ``Warp.forward`` as it is. Same result up to float32 rounding.
 
     Shapes: ``image`` (B, C, *S), ``ddf`` (B, spatial_dims, *S) in voxels -> (B, C, *S).
     """
 
-    def __init__(self, mode: str = "bilinear", padding_mode: str = "border") -> None:
+    def __init__(self, mode: str = "bilinear", padding_mode: str = "border", fast: bool = True) -> None:
         with warnings.catch_warnings():
             # MONAI warns on every construction that it falls back to torch's grid_sample; that is the
             # path we want (CPU, differentiable, float64 for gradcheck), so the warning is noise here.
             warnings.filterwarnings("ignore", message=".*Using PyTorch native grid_sample.*")
             super().__init__(mode=mode, padding_mode=padding_mode)
         self._grid_key: tuple | None = None
+        self.fast = fast
 
     def get_reference_grid(self, ddf: Tensor, jitter: bool = False, seed: int = 0) -> Tensor:
         if jitter:
@@ -77,22 +156,25 @@ class CachedWarp(Warp):
         if tuple(ddf.shape) != expected:
             raise ValueError(f"ddf must have shape {expected} to warp an image of shape {tuple(image.shape)}; "
                              f"got {tuple(ddf.shape)}")
-        return super().forward(image, ddf)
+        if not self.fast or self.jitter or torch.jit.is_tracing():  # a trace must not record this machine's threads
+            return super().forward(image, ddf)
+        return split_grid_sample(image, sampling_grid(ddf), self._interp_mode_native, self._padding_mode_native)
 
 
-_WARPS: dict[tuple[str, str], CachedWarp] = {}
+_WARPS: dict[tuple[str, str, bool], CachedWarp] = {}
 
 
-def _warp_layer(mode: str, padding_mode: str) -> CachedWarp:
-    key = (mode, padding_mode)
+def _warp_layer(mode: str, padding_mode: str, fast: bool = True) -> CachedWarp:
+    key = (mode, padding_mode, fast)
     if key not in _WARPS:
-        _WARPS[key] = CachedWarp(mode=mode, padding_mode=padding_mode)
+        _WARPS[key] = CachedWarp(mode=mode, padding_mode=padding_mode, fast=fast)
     return _WARPS[key]
 
 
-def warp_image(image: Tensor, ddf: Tensor, padding_mode: str = "border") -> Tensor:
-    """Linearly resample ``image`` (B, C, *S) at ``x + ddf(x)``; differentiable in both arguments."""
-    return _warp_layer("bilinear", padding_mode)(image, ddf)
+def warp_image(image: Tensor, ddf: Tensor, padding_mode: str = "border", fast: bool = True) -> Tensor:
+    """Linearly resample ``image`` (B, C, *S) at ``x + ddf(x)``; differentiable in both arguments.
+    ``fast``: see :class:`CachedWarp`."""
+    return _warp_layer("bilinear", padding_mode, fast)(image, ddf)
 
 
 def warp_labels(labels: Tensor, ddf: Tensor) -> Tensor:

@@ -5,6 +5,10 @@ Pipeline: ``VelocityUNet`` -> posterior (mean, log_var) on the velocity grid (in
 (``num_steps`` squarings) on the velocity grid -> displacement resized to the image grid
 (align-corners scaling) -> MONAI ``Warp`` of the moving image.
 
+Inference speed levers (on by default, each switchable; off while gradients are recorded or under tracing):
+``unet_precision`` and ``channels_last`` (:mod:`monai_probreg.networks.acceleration`), ``fast_sampling``
+(:mod:`monai_probreg.blocks.warp`: one-pass sampling grids, a single pair spread over the CPU threads).
+
 Which image goes where (MONAI's convention, the published code's, and ours): the **moving** image is
 resampled into the **fixed** image's grid, ``warped[x] = moving[x + displacement[x]]``. In the paper's
 generative model ``x ~ N(y o phi_z, sigma^2 I)`` the warped image is ``y`` = our ``moving`` and ``x`` = our
@@ -23,6 +27,7 @@ from torch import Tensor, nn
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.sampling import VelocitySampler, sample_velocity
 from monai_probreg.blocks.warp import warp_image
+from monai_probreg.networks.acceleration import accelerated_posterior, unet_autocast_dtype
 from monai_probreg.networks.velocity_unet import VelocityPosterior, VelocityUNet
 
 __all__ = ["RegistrationOutput", "PosteriorSamples", "ProbRegNet"]
@@ -69,6 +74,11 @@ class ProbRegNet(nn.Module):
         network_size: if given, the UNet sees moving and fixed resized (linear, align corners) to this grid, and
             the displacement is resized back to the input grid, so a model trained at reduced resolution
             registers images of any size on their own grid. None: the UNet runs on the input grid.
+        unet_precision: ``"auto"`` (bf16 autocast for the UNet on CPUs with native bf16, float32 elsewhere),
+            ``"bf16"`` or ``"fp32"``; integration and warp always run in float32. Inference only.
+        channels_last: run the 3-d UNet in ``channels_last_3d`` memory format. Inference only.
+        fast_sampling: one-pass sampling grids and threaded ``grid_sample`` in the integration and the warps
+            (float32 rounding away from MONAI's ``Warp``); False: MONAI's ``Warp.forward`` as it is.
     """
 
     def __init__(
@@ -82,8 +92,14 @@ class ProbRegNet(nn.Module):
         bidirectional: bool = False,
         padding_mode: str = "border",
         network_size: Sequence[int] | None = None,
+        unet_precision: str = "auto",
+        channels_last: bool = True,
+        fast_sampling: bool = True,
     ) -> None:
         super().__init__()
+        unet_autocast_dtype(unet_precision, "cpu")  # validates the name
+        self.unet_precision = unet_precision
+        self.channels_last = channels_last
         self.spatial_dims = spatial_dims
         self.bidirectional = bidirectional
         self.padding_mode = padding_mode
@@ -98,7 +114,16 @@ class ProbRegNet(nn.Module):
             int_downsize=int_downsize,
         )
         self.sampler = VelocitySampler()
-        self.integrate = ScalingAndSquaring(num_steps=num_steps)
+        self.integrate = ScalingAndSquaring(num_steps=num_steps, fast=fast_sampling)
+
+    @property
+    def fast_sampling(self) -> bool:
+        """Whether the integration and the warps take the fast sampling path (settable)."""
+        return self.integrate.warp_layer.fast
+
+    @fast_sampling.setter
+    def fast_sampling(self, value: bool) -> None:
+        self.integrate.warp_layer.fast = bool(value)
 
     def velocity_to_displacement(self, velocity: Tensor, spatial_size: Sequence[int]) -> Tensor:
         """Integrate a velocity (B, D, *V) on its grid and resize the displacement to ``spatial_size``."""
@@ -112,18 +137,20 @@ class ProbRegNet(nn.Module):
             mode = "trilinear" if self.spatial_dims == 3 else "bilinear"
             moving = F.interpolate(moving, size=self.network_size, mode=mode, align_corners=True)
             fixed = F.interpolate(fixed, size=self.network_size, mode=mode, align_corners=True)
-        return self.unet(moving, fixed)
+        if torch.is_grad_enabled() or torch.jit.is_tracing():  # training, export: the plain float32 path
+            return self.unet(moving, fixed)
+        return accelerated_posterior(self.unet, moving, fixed, self.unet_precision, self.channels_last)
 
     def forward(self, moving: Tensor, fixed: Tensor) -> RegistrationOutput:
         posterior = self.posterior(moving, fixed)
         velocity = self.sampler(posterior.mean, posterior.log_var)
         size = moving.shape[2:]
         displacement = self.velocity_to_displacement(velocity, size)
-        warped = warp_image(moving, displacement, padding_mode=self.padding_mode)
+        warped = warp_image(moving, displacement, padding_mode=self.padding_mode, fast=self.fast_sampling)
         inverse = warped_fixed = None
         if self.bidirectional:
             inverse = self.velocity_to_displacement(-velocity, size)
-            warped_fixed = warp_image(fixed, inverse, padding_mode=self.padding_mode)
+            warped_fixed = warp_image(fixed, inverse, padding_mode=self.padding_mode, fast=self.fast_sampling)
         return RegistrationOutput(
             warped=warped,
             displacement=displacement,

@@ -9,7 +9,11 @@ Architecture (the published VoxelMorph-diff code, defaults shown):
   ``dec_channels`` as plain convs there. With ``int_downsize = 2`` that is 3 stages and one 16-filter conv;
 - LeakyReLU(0.2) after every conv (MONAI ``Convolution`` blocks);
 - two 3x3(x3) heads (written here, MONAI has no variational head): mean (weights N(0, 1e-5), bias 0) and
-  log-variance (weights N(0, 1e-10), bias -10), both on the velocity grid of size ``S / int_downsize``.
+  log-variance (weights N(0, 1e-10), bias -10), both on the velocity grid of size ``S / int_downsize``;
+- the log-variance is softly bounded to (:data:`LOG_VAR_MIN`, :data:`LOG_VAR_MAX`) = (-30, 10) by
+  :func:`bound_log_var`, so ``exp(log_var)`` (KL, sampling) cannot overflow (e^10 ~ 2.2e4, under float16's 6.5e4)
+  and ``-log_var`` in the KL stays finite. It is exactly the identity on [-25, 5] (the initial -10 and trained values,
+  about -7 to -3 on LPBA40, are untouched) and saturates smoothly outside, with a positive gradient.
 
 Shapes: moving, fixed (B, 1, *S) -> VelocityPosterior(mean, log_var), each (B, spatial_dims, *S / int_downsize).
 """
@@ -25,7 +29,13 @@ import torch.nn.functional as F
 from monai.networks.blocks import Convolution
 from torch import Tensor, nn
 
-__all__ = ["VelocityPosterior", "VelocityUNet"]
+__all__ = ["VelocityPosterior", "VelocityUNet", "LOG_VAR_MIN", "LOG_VAR_MAX", "LOG_VAR_MARGIN", "bound_log_var"]
+
+# Bounds of the log-variance (velocity-grid voxels^2): sigma from 3e-7 to 150 voxels, far beyond both ends of what a
+# registration posterior needs; exp(LOG_VAR_MAX) ~ 2.2e4 is finite even in float16 (max 6.5e4).
+LOG_VAR_MIN = -30.0
+LOG_VAR_MAX = 10.0
+LOG_VAR_MARGIN = 5.0  # width of the smooth saturation inside each bound; identity between them
 
 
 class VelocityPosterior(NamedTuple):
@@ -33,6 +43,20 @@ class VelocityPosterior(NamedTuple):
 
     mean: Tensor
     log_var: Tensor  # log sigma^2, not log sigma
+
+
+def bound_log_var(raw: Tensor, low: float = LOG_VAR_MIN, high: float = LOG_VAR_MAX,
+                  margin: float = LOG_VAR_MARGIN) -> Tensor:
+    """Soft clamp of ``raw`` into (low, high): the identity on [low + margin, high - margin]; beyond, a tanh of width
+    ``margin`` that continues it with value and slope 1 at the joint and tends to the bound (+-inf map onto it).
+    The gradient is 1 inside and sech^2 > 0 outside: never a hard clamp's exact 0 for finite values nearby."""
+    if not (margin > 0 and low + 2 * margin <= high):
+        raise ValueError(f"expected margin > 0 and low + 2 * margin <= high, got low={low}, high={high}, "
+                         f"margin={margin}")
+    top, bottom = high - margin, low + margin
+    upper = top + margin * torch.tanh((raw - top) / margin)
+    lower = bottom + margin * torch.tanh((raw - bottom) / margin)
+    return torch.where(raw > top, upper, torch.where(raw < bottom, lower, raw))
 
 
 class VelocityUNet(nn.Module):
@@ -133,4 +157,4 @@ class VelocityUNet(nn.Module):
             x = F.interpolate(x, scale_factor=2, mode="nearest")
             x = layer(torch.cat([x, skip], dim=1))
         x = self.extra_convs(x)
-        return VelocityPosterior(mean=self.mean_head(x), log_var=self.log_var_head(x))
+        return VelocityPosterior(mean=self.mean_head(x), log_var=bound_log_var(self.log_var_head(x)))

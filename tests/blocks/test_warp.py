@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from monai.networks.blocks import Warp
 
 from monai_probreg import CachedWarp, SpatialTransformer, compose_displacements, warp_image, warp_labels, warp_one_hot
+from monai_probreg.blocks.warp import MIN_POINTS_PER_THREAD, sampling_grid, split_grid_sample
 
 SHAPES = {2: (7, 9), 3: (5, 7, 9)}  # non-cubic, so that an axis flip cannot go unnoticed
 CASES = [(2, 0), (2, 1), (3, 0), (3, 1), (3, 2)]  # (spatial_dims, axis)
@@ -155,7 +156,7 @@ def test_warp_one_hot_is_differentiable():
 
 
 def test_cached_warp_reuses_grid_across_calls():
-    warp = CachedWarp()
+    warp = CachedWarp(fast=False)  # the reference-grid cache belongs to MONAI's path
     image, ddf = torch.rand(2, 1, 6, 7), torch.randn(2, 2, 6, 7)
     warp(image, ddf)
     grid = warp.ref_grid
@@ -167,7 +168,7 @@ def test_cached_warp_reuses_grid_across_calls():
 
 
 def test_cached_warp_rebuilds_grid_on_shape_or_dtype_change():
-    warp = CachedWarp()
+    warp = CachedWarp(fast=False)
     warp(torch.rand(1, 1, 6, 7), torch.zeros(1, 2, 6, 7))
     grid_a = warp.ref_grid
     warp(torch.rand(1, 1, 6, 8), torch.zeros(1, 2, 6, 8))
@@ -182,20 +183,79 @@ def test_cached_warp_rebuilds_grid_on_shape_or_dtype_change():
     assert torch.equal(warp.ref_grid[0, 1, :, 3, :], torch.full((4, 6), 3.0))
 
 
+@pytest.mark.parametrize("fast", [False, True])
 @pytest.mark.parametrize("spatial_dims", [2, 3])
 @pytest.mark.parametrize("mode", ["bilinear", "nearest"])
 @pytest.mark.parametrize("padding_mode", ["border", "zeros", "reflection"])
-def test_cached_warp_matches_monai_warp(spatial_dims, mode, padding_mode):
+def test_cached_warp_matches_monai_warp(spatial_dims, mode, padding_mode, fast):
     g = torch.Generator().manual_seed(spatial_dims)
     shape = SHAPES[spatial_dims]
     image = torch.rand(2, 3, *shape, generator=g)
     ddf = 3.0 * torch.randn(2, spatial_dims, *shape, generator=g)  # reaches outside the grid: padding matters
-    ours = CachedWarp(mode=mode, padding_mode=padding_mode)
+    ours = CachedWarp(mode=mode, padding_mode=padding_mode, fast=fast)
     monai = Warp(mode=mode, padding_mode=padding_mode)
+    # fast=False, 1e-6: same arithmetic as MONAI (grid + ddf, same normalisation, same grid_sample), only the grid's
+    # construction differs (float arange vs int arange cast, both exact), so any gap is float noise.
+    # fast=True, 5e-6: the normalised coordinate i * s - 1 + u * s (s = 2 / (n - 1)) is summed in another order than
+    # MONAI's (i + u) * s - 1, a few ulps of a value <= 4 in size (~1e-6, measured max 1.3e-6 here), times the
+    # image's slope (< 1 per normalised unit for values in [0, 1] on these grids, measured gap 1.25e-6)
+    atol = 5e-6 if fast else 1e-6
     for _ in range(2):  # second call goes through our cache
-        # 1e-6: same arithmetic as MONAI (grid + ddf, same normalisation, same grid_sample), only the grid's
-        # construction differs (float arange vs int arange cast, both exact), so any gap is float noise
-        torch.testing.assert_close(ours(image, ddf), monai(image, ddf), atol=1e-6, rtol=0)
+        torch.testing.assert_close(ours(image, ddf), monai(image, ddf), atol=atol, rtol=0)
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+def test_sampling_grid_is_the_normalised_pull_back_in_xyz_order(spatial_dims):
+    shape = SHAPES[spatial_dims]
+    ddf = torch.randn(2, spatial_dims, *shape, generator=torch.Generator().manual_seed(0))
+    index = torch.stack(torch.meshgrid(*[torch.arange(n, dtype=torch.float32) for n in shape], indexing="ij"))
+    sizes = torch.tensor(shape, dtype=torch.float32).view(1, spatial_dims, *[1] * spatial_dims)
+    expected = ((index + ddf) * 2 / (sizes - 1) - 1).movedim(1, -1).flip(-1)  # grid_sample: last axis x, y, z
+    grid = sampling_grid(ddf)
+    assert grid.shape == (2, *shape, spatial_dims)
+    torch.testing.assert_close(grid, expected, atol=2e-6, rtol=0)  # ulps of values up to ~4 (see above)
+    with torch.enable_grad():  # the differentiable (stacked) branch builds the same grid
+        differentiable = sampling_grid(ddf.clone().requires_grad_())
+    assert differentiable.requires_grad
+    torch.testing.assert_close(differentiable, grid, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("num_splits", [2, 3, 7])
+@pytest.mark.parametrize("mode", ["bilinear", "nearest"])
+def test_split_grid_sample_is_bit_identical_to_one_call(num_splits, mode):
+    """The split only changes which thread samples which point: each point's arithmetic is the same."""
+    g = torch.Generator().manual_seed(num_splits)
+    image = torch.rand(1, 3, 6, 7, 8, generator=g)  # rows S0 * S1 = 42: divisible by 2, 3 and 7
+    grid = 1.2 * torch.rand(1, 6, 7, 8, 3, generator=g) - 0.6
+    expected = F.grid_sample(image, grid, mode=mode, padding_mode="border", align_corners=True)
+    assert torch.equal(split_grid_sample(image, grid, mode, "border", num_splits=num_splits), expected)
+
+
+def test_split_grid_sample_is_differentiable_and_checks_its_split():
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(1, 2, 4, 3, 5, dtype=torch.float64, generator=g, requires_grad=True)
+    grid = (1.6 * torch.rand(1, 4, 3, 5, 3, dtype=torch.float64, generator=g) - 0.8).requires_grad_()
+    assert torch.autograd.gradcheck(lambda i, x: split_grid_sample(i, x, num_splits=2), (image, grid))
+    with pytest.raises(ValueError, match="divides"):
+        split_grid_sample(image, grid, num_splits=5)  # 12 rows
+    with pytest.raises(ValueError, match="one 3-d item"):
+        split_grid_sample(image.expand(2, -1, -1, -1, -1), grid.expand(2, -1, -1, -1, -1), num_splits=2)
+
+
+def test_split_is_automatic_for_one_large_item(monkeypatch):
+    """With 2 threads a grid of 2 * MIN_POINTS_PER_THREAD points is cut in two, a small one is not."""
+    calls = []
+    real = F.grid_sample
+    monkeypatch.setattr(F, "grid_sample", lambda image, grid, **kw: calls.append(image.shape[0]) or real(image, grid, **kw))
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    shape = (64, 64, 2 * MIN_POINTS_PER_THREAD // 4096)
+    image, ddf = torch.rand(1, 1, *shape), torch.zeros(1, 3, *shape)
+    # zero displacement: the identity, up to the index normalisation round trip (module docstring): an ulp of 1
+    # (1.2e-7) times (n - 1) / 2 <= 32 voxels -> < 4e-6 voxels, times a slope < 1 per voxel
+    torch.testing.assert_close(warp_image(image, ddf), image, atol=1e-5, rtol=0)
+    small = torch.rand(1, 1, 8, 8, 8)
+    warp_image(small, torch.zeros(1, 3, 8, 8, 8))
+    assert calls == [2, 1]
 
 
 def test_spatial_transformer_matches_functional():

@@ -6,6 +6,7 @@ the wiring and the geometry of what is written (files, shapes, affines, label id
 
 from __future__ import annotations
 
+import math
 
 import nibabel as nib
 import numpy as np
@@ -47,6 +48,10 @@ def test_inference_writes_every_subject_on_the_atlas_grid(tmp_path, tiny_dataset
         # random initial weights: |u| < 1e-4 voxels, |J - 1| ~ 1e-5 measured; 1e-3 leaves a 100x margin
         np.testing.assert_allclose(images["jacobian"].get_fdata(), 1.0, atol=1e-3)
         assert np.isfinite(images["entropy"].get_fdata()).all()
+        std = images["displacement_std"].get_fdata()
+        assert np.isfinite(std).all() and std.min() >= 0 and std.max() > 0  # sampled: a spread, however small
+        label_entropy = images["label_entropy"].get_fdata()  # K = num_samples of inference.yaml
+        assert label_entropy.min() >= 0 and label_entropy.max() <= math.log(10) + 1e-5
         warped = images["warped"].get_fdata()
         assert 0.0 <= warped.min() and warped.max() <= 1.0  # percentile-scaled intensities
 
@@ -56,4 +61,4 @@ def test_inference_without_labels_writes_no_label_maps(tmp_path, bundle):
     wf = infer_workflow("inference.yaml", bundle, dataset, tmp_path / "out")
     wf.run()
     assert sorted(p.name for p in (tmp_path / "out" / "T01").iterdir()) == sorted(
-        f"{name}.nii.gz" for name in OUTPUT_NAMES if name != "warped_label")
+        f"{name}.nii.gz" for name in OUTPUT_NAMES if name not in ("warped_label", "label_entropy"))

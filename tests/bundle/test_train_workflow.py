@@ -152,9 +152,12 @@ def test_multi_gpu_config_parses_and_overrides_single_process_pieces():
     # the indices multi_gpu_train.yaml disables on ranks > 0 must still point at the handlers named there
     train_targets = [h["_target_"] for h in config["train"]["handlers"]]
     val_targets = [h["_target_"] for h in config["validate"]["handlers"]]
-    assert train_targets == ["ValidationHandler", "StatsHandler", "TensorBoardStatsHandler"]
-    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "CheckpointSaver"]
-    assert all("_disabled_" in h for h in config["train"]["handlers"] + config["validate"]["handlers"])
+    assert train_targets == ["ValidationHandler", "StatsHandler", "TensorBoardStatsHandler",
+                             "monai_probreg.engine.NonFiniteGuard"]
+    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "monai_probreg.engine.AtomicCheckpointSaver"]
+    # every rank keeps its NaN guard (its own weights); the other handlers run on rank 0 only
+    assert all("_disabled_" in h for h in config["train"]["handlers"][:3] + config["validate"]["handlers"])
+    assert "_disabled_" not in config["train"]["handlers"][3]
     assert "finalize" in config and "run" in config
 
 
@@ -165,8 +168,12 @@ def test_two_process_ddp_training_on_gloo(tmp_path, tiny_dataset):
         import torch.distributed.run  # noqa: F401  (what the torchrun script runs)
     except ImportError as err:
         pytest.skip(f"torchrun (torch.distributed.run) is unavailable: {err}")
+    # test probe: ranks other than 0 save into their own folder, so a file there would show a second writer
+    probe = tmp_path / "probe.yaml"
+    other = "$@ckpt_dir if dist.get_rank() == 0 else @ckpt_dir + '/other_ranks'"
+    probe.write_text(f'checkpoint#saver#save_dir: "{other}"\nvalidate#handlers#2#save_dir: "{other}"\n')
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-           "-m", "monai.bundle", "run", "--config_file", f"['{TRAIN}','{MULTI_GPU}']",
+           "-m", "monai.bundle", "run", "--config_file", f"['{TRAIN}','{MULTI_GPU}','{probe}']",
            "--bundle_root", str(BUNDLE), "--dataset_dir", str(tiny_dataset),
            "--ckpt_dir", str(tmp_path / "ckpt"), "--output_dir", str(tmp_path / "runs"),
            "--network_size", "[32,32,32]", "--val_ids", "['T01']", "--val_interval", "1",
@@ -177,14 +184,40 @@ def test_two_process_ddp_training_on_gloo(tmp_path, tiny_dataset):
     assert proc.returncode == 0, log[-4000:]
 
     ckpt = tmp_path / "ckpt"
-    assert sorted(p.name for p in ckpt.iterdir()) == ["model.pt", "train_state_checkpoint_epoch=1.pt"]
+    assert sorted(p.name for p in ckpt.iterdir() if p.name != "other_ranks") == ["model.pt",
+                                                                                 "train_state_checkpoint_epoch=1.pt"]
+    # one checkpoint writer: rank 1 builds the (unattached) saver, which may create its folder, but writes nothing
+    assert not [p for p in (ckpt / "other_ranks").rglob("*")] if (ckpt / "other_ranks").exists() else True
     ProbRegNet(network_size=[32, 32, 32]).load_state_dict(torch.load(ckpt / "model.pt", weights_only=True))
     state = torch.load(ckpt / "train_state_checkpoint_epoch=1.pt", weights_only=True)
     assert not any(k.startswith("module.") for k in state["model"]), "DDP wrapper leaked into the checkpoint"
     # 2 training subjects over 2 ranks: one iteration per rank per epoch (disjoint shards, not the whole set each)
     assert state["trainer"]["iteration"] == 1
-    assert re.search(r"Epoch: 1/1, Iter: 1/1", log), log[-4000:]
+    assert len(re.findall(r"Epoch: 1/1, Iter: 1/1", log)) == 1, "one logger (rank 0): " + log[-4000:]
     # TensorBoard files are named events.out.tfevents.<time>.<host>.<pid>.<n>: all from one process (rank 0)
     writers = {p.name.split(".")[-2] for p in (tmp_path / "runs").glob("events.out.tfevents.*")}
     assert len(writers) == 1, f"TensorBoard events written by several processes: {writers}"
     assert len(re.findall(r"Key metric: val_dice", log)) == 1, "validation must run on rank 0 only"
+
+
+def test_multi_gpu_sampler_gives_each_rank_its_own_subjects(tmp_path, tiny_dataset):
+    """The DistributedSampler of multi_gpu_train.yaml, for both ranks of 2 (given explicitly: no process group):
+    disjoint shards that together cover the training subjects, every epoch (reshuffled alike on every rank)."""
+    from monai.bundle import ConfigParser
+
+    shards = {}
+    for rank in (0, 1):
+        parser = ConfigParser()  # parsed, not initialised: no init_process_group
+        parser.read_config([str(TRAIN), str(MULTI_GPU)])
+        settings = {**TINY, "bundle_root": str(BUNDLE), "dataset_dir": str(tiny_dataset),
+                    "train#sampler#num_replicas": 2, "train#sampler#rank": rank}
+        for key, value in settings.items():
+            parser[key] = value
+        sampler, dataset = parser.get_parsed_content("train#sampler"), parser.get_parsed_content("train#dataset")
+        assert parser.get_parsed_content("train#dataloader").sampler is sampler
+        for epoch in (0, 1):
+            sampler.set_epoch(epoch)  # MONAI's Workflow does this at every epoch start
+            shards[rank, epoch] = [dataset.data[i]["id"] for i in sampler]
+    for epoch in (0, 1):
+        assert sorted(shards[0, epoch] + shards[1, epoch]) == ["T02", "T03"]  # val_ids: T01
+

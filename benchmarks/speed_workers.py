@@ -1,0 +1,189 @@
+"""The measurements of ``benchmarks/speed_compare.py``, each run in a process of its own.
+
+One process per method, so that its peak resident memory (``ru_maxrss``) is its own and not the maximum of
+everything measured before it. Started by speed_compare.py as
+
+    python benchmarks/speed_workers.py METHOD --pairs PAIRS.pt --out RESULT.json --threads N --repeats R
+
+PAIRS.pt holds the prepared pairs (moving, fixed, labels; already padded/cropped to the benchmark size); RESULT.json
+gets the wall times per pair (warm-up excluded), the scores of the trained methods and the memory figures.
+Methods: see :data:`METHODS`; ``levers`` measures the speed levers one by one, the stages and the hardware peaks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+METHODS = ("ours_mean", "ours_samples", "ours_trained", "voxelmorph", "ants", "levers")
+KIB_PER_MB = 1024  # ru_maxrss is in KiB on Linux
+
+
+def rss_mb() -> float:
+    """Current resident set size of this process, MB (VmRSS)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / KIB_PER_MB
+    return float("nan")
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / KIB_PER_MB
+
+
+def timed(fn: Callable[[], Any], repeats: int) -> tuple[list[float], Any]:
+    """Wall times of ``repeats`` calls of ``fn`` and the last result."""
+    times, result = [], None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - start)
+    return times, result
+
+
+def _scores(displacement: torch.Tensor, pair: dict) -> dict[str, Any]:
+    from monai_probreg.inference import score_pair
+
+    s = score_pair(displacement, pair["moving_label"], pair["fixed_label"])
+    return {"mean_dice": s.mean_dice, "num_folding": s.num_folding, "std_log_jacobian": s.std_log_jacobian}
+
+
+def _network(kind: str, size: list[int], native: list[int], bundle_root: Path,
+             overrides: dict[str, Any]) -> torch.nn.Module:
+    """``paper``: an untrained ProbRegNet whose UNet runs on the input grid (the paper's setting); ``trained``: the
+    configs' network (evaluate.yaml, with ``overrides``) and weights, its network grid scaled with the input."""
+    from monai.bundle import ConfigParser
+
+    from monai_probreg import ProbRegNet
+    from monai_probreg.inference import load_weights
+
+    if kind == "paper":
+        torch.manual_seed(0)
+        return ProbRegNet().eval()
+    parser = ConfigParser()
+    parser.read_config(str(bundle_root / "configs" / "evaluate.yaml"))
+    parser["bundle_root"] = str(bundle_root)
+    for key, value in overrides.items():
+        parser[key] = value
+    trained_on, divisor = parser["network_size"], parser["divisor"]  # network grid for the native grid
+    # the same voxel size as in training, rounded to a multiple of the network's divisor
+    parser["network_size"] = [max(divisor, round(s * t / n / divisor) * divisor) for s, t, n in zip(size, trained_on, native)]
+    return load_weights(parser.get_parsed_content("network_def"), parser.get_parsed_content("model_file"))
+
+
+def run_torch_method(method: str, pairs: list[dict], meta: dict, args: argparse.Namespace) -> dict[str, Any]:
+    """Ours (mean, K samples, trained) or MONAI's VoxelMorph: warm-up on the first pair, then ``repeats`` per pair."""
+    from monai_probreg.inference import register_pair
+
+    if method == "voxelmorph":
+        import monai
+
+        torch.manual_seed(0)
+        net = monai.networks.nets.VoxelMorph().eval()
+        call = lambda p: net(p["moving"], p["fixed"])  # noqa: E731 - (warped, ddf), full-resolution integration
+    else:
+        net = _network("trained" if method == "ours_trained" else "paper", meta["size"], meta["native"],
+                       Path(meta["bundle_root"]), meta["overrides"])
+        if method == "ours_samples":
+            call = lambda p: net.sample(p["moving"], p["fixed"], args.samples)  # noqa: E731
+        else:
+            call = lambda p: register_pair(net, p["moving"], p["fixed"])  # noqa: E731
+    result: dict[str, Any] = {"rss_before_mb": rss_mb(), "times_s": {}, "scores": {}}
+    with torch.inference_mode():
+        call(pairs[0])  # warm-up: first-call allocations, oneDNN primitive creation
+        for pair in pairs:
+            times, out = timed(lambda: call(pair), args.repeats)
+            result["times_s"][pair["id"]] = times
+            if method == "ours_trained" and pair.get("moving_label") is not None:
+                result["scores"][pair["id"]] = _scores(out.displacement, pair)
+                # the bf16 check on real pairs: the same model in float32, untimed
+                unet_precision, net.unet_precision = net.unet_precision, "fp32"
+                reference = register_pair(net, pair["moving"], pair["fixed"]).displacement
+                net.unet_precision = unet_precision
+                result["scores"][pair["id"]]["fp32"] = _scores(reference, pair)
+                result["scores"][pair["id"]]["max_abs_diff_vs_fp32_voxels"] = float(
+                    (out.displacement - reference).abs().max())
+    if method == "ours_trained":
+        result["network_size"] = list(net.network_size)
+        result["unet_precision"] = net.unet_precision
+    return result
+
+
+def run_ants(pairs: list[dict], meta: dict, args: argparse.Namespace) -> dict[str, Any]:
+    """ANTs SyN (antspyx defaults) as benchmarks/accuracy_table.py runs it; warm-up on a 4x smaller pair."""
+    import torch.nn.functional as F
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from accuracy_table import ants_register
+
+    from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
+    from monai_probreg.inference import score_pair
+
+    warm = {k: F.interpolate(pairs[0][k].float(), scale_factor=1 / meta["ants_warmup_shrink"], mode="nearest")
+            for k in ("moving", "fixed", "moving_label")}
+    result: dict[str, Any] = {"rss_before_mb": rss_mb(), "times_s": {}, "scores": {}}
+    ants_register(warm["moving"], warm["fixed"], warm["moving_label"])  # loads ITK/ANTs code, not timed
+    for pair in pairs:
+        times = []
+        for _ in range(args.repeats):
+            warped_label, displacement, runtime = ants_register(pair["moving"], pair["fixed"], pair["moving_label"])
+            times.append(runtime)
+        result["times_s"][pair["id"]] = times
+        if pair.get("fixed_label") is not None:
+            s = score_pair(None, warped_label, pair["fixed_label"])
+            stats = jacobian_stats(jacobian_determinant(displacement))
+            result["scores"][pair["id"]] = {"mean_dice": s.mean_dice, "num_folding": stats.num_folding,
+                                            "std_log_jacobian": stats.std_log_jacobian}
+    import ants
+
+    result["antspyx"] = getattr(ants, "__version__", "unknown")
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("method", choices=METHODS)
+    ap.add_argument("--pairs", type=Path, required=True, help="the prepared pairs (torch.save by speed_compare.py)")
+    ap.add_argument("--out", type=Path, required=True, help="where to write the result JSON")
+    ap.add_argument("--threads", type=int, required=True)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--samples", type=int, default=10)
+    ap.add_argument("--no-compile", action="store_true", help="levers: skip torch.compile")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    data = torch.load(args.pairs, weights_only=True)
+    meta, pairs = data["meta"], data["pairs"]
+    if args.method == "levers":
+        from speed_levers import run_levers
+
+        result = run_levers(pairs[0], meta, args)
+    elif args.method == "ants":
+        result = run_ants(pairs, meta, args)
+    else:
+        result = run_torch_method(args.method, pairs, meta, args)
+    result.update(method=args.method, threads=torch.get_num_threads(), peak_rss_mb=peak_rss_mb())
+    all_times = [t for times in result.get("times_s", {}).values() for t in times]
+    if all_times:
+        result["median_s"] = statistics.median(all_times)
+    tmp = Path(tempfile.mkstemp(dir=args.out.parent, suffix=".tmp")[1])
+    tmp.write_text(json.dumps(result, indent=2))
+    os.replace(tmp, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
+    sys.exit(main())

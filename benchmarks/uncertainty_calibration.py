@@ -1,0 +1,259 @@
+"""Does the posterior's uncertainty mean anything? Calibration against known deformations, label uncertainty.
+
+1. Ground truth where it exists. For each subject S (default: ``val_ids`` of configs/train.yaml), ``--deformations``
+   random smooth velocity fields v are drawn (white noise on the velocity grid, Gaussian-smoothed, scaled so the
+   displacement RMS in the brain equals the RMS of the model's own displacement for S -> atlas: a realistic
+   magnitude). With our own integration (``TRUTH_STEPS`` squarings at full resolution): moving = S warped by
+   exp(v), fixed = S; the true displacement of moving onto fixed is exp(-v). K posterior samples give a mean and a
+   per-component std, compared with exp(-v) inside the brain (fixed > 0): coverage of the nominal 68% / 95%
+   intervals, Spearman(std, |error|), UCE (15 equal-count bins), reliability diagram.
+2. Label uncertainty on real pairs: S -> atlas; the atlas labels are propagated into S by the K sampled inverse
+   warps exp(-z_k); the per-voxel label entropy is scored (AUROC) as a detector of voxels where the atlas labels
+   propagated by the mean, exp(-mean), disagree with S's manual labels (voxels where either is non-background).
+3. Calibration: one scale of the velocity std (:mod:`monai_probreg.calibration`), fitted by coverage matching on
+   the errors of part 1. Cross-fitted: the subjects are split in ``--folds`` folds; each fold is scored with the
+   scale fitted on the others, with fresh samples drawn from the calibrated posterior. Raw (scale 1) rows use
+   the same subjects. ``--write-calibration`` fits on all subjects and writes the sidecar next to the weights.
+
+    python benchmarks/uncertainty_calibration.py --write-calibration   # table, JSON and two PNGs in results/
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from monai.data import Dataset
+from monai.networks.layers import GaussianFilter
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser  # noqa: E402
+from uncertainty_figures import figure4, reliability_diagram  # noqa: E402
+
+from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement  # noqa: E402
+from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
+from monai_probreg.calibration import calibrate_log_var, fit_std_scale, save_calibration  # noqa: E402
+from monai_probreg.data import index_dataset  # noqa: E402
+from monai_probreg.inference import labelled_pairs, load_weights, write_text  # noqa: E402
+from monai_probreg.metrics.calibration import auroc, interval_coverage, spearman, uncertainty_calibration_error  # noqa: E402
+from monai_probreg.blocks.sampling import sample_velocity  # noqa: E402
+from monai_probreg.uncertainty import label_entropy, sampled_displacement_moments, velocity_entropy  # noqa: E402
+
+TRUTH_STEPS = 10          # squarings for the true fields (full resolution; the model uses 7 at half resolution)
+SMOOTHING_VOXELS = 6.0    # Gaussian sigma of the random velocity, in velocity-grid voxels (12 mm at 1 mm, /2)
+VOXELS_PER_CASE = 400_000  # brain voxels subsampled per case for the displacement metrics (x 3 components)
+FIT_ITERATIONS = 3         # re-sample at the fitted scale and refit: the displacement std grows sub-linearly with it
+
+
+def _plain(t: torch.Tensor) -> torch.Tensor:
+    return t.as_tensor() if hasattr(t, "as_tensor") else t
+
+
+def random_deformation(fixed: torch.Tensor, rms: float, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """A random smooth diffeomorphism on ``fixed``'s grid: (forward displacement exp(v), inverse exp(-v)), both
+    (1, 3, *S) voxels, with the forward displacement's RMS in the brain scaled to ``rms``."""
+    size = fixed.shape[2:]
+    noise = torch.randn((1, 3, *(s // 2 for s in size)), generator=generator)
+    velocity = GaussianFilter(3, SMOOTHING_VOXELS)(noise)
+    integrate = ScalingAndSquaring(num_steps=TRUTH_STEPS)
+    brain = fixed[0, 0] > 0
+    for _ in range(2):  # rescale twice: integration is only approximately linear in the velocity
+        full = resize_displacement(velocity, size)
+        current = integrate(full)[0][:, brain].pow(2).sum(0).mean().sqrt()
+        velocity = velocity * (rms / float(current))
+    full = resize_displacement(velocity, size)
+    return integrate(full), integrate(-full)
+
+
+def sample_displacements(network, mean, log_var, size, num_samples, generator):
+    """Mean and variance (1, 3, *size) of ``num_samples`` displacements drawn from N(mean, exp(log_var))."""
+    with torch.inference_mode():
+        return sampled_displacement_moments(mean, log_var, lambda z: network.velocity_to_displacement(z, size),
+                                            num_samples, generator)
+
+
+def _subsample(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    index = mask.reshape(-1).nonzero()[:, 0]
+    keep = torch.randperm(index.numel(), generator=generator)[:VOXELS_PER_CASE]
+    return index[keep]
+
+
+def displacement_case(network, fixed, rms, num_samples, seed) -> dict[str, Any]:
+    """One synthetic case: the posterior (kept, to re-sample when calibrated), the truth on subsampled voxels."""
+    generator = torch.Generator().manual_seed(seed)
+    forward, truth = random_deformation(fixed, rms, generator)
+    moving = warp_image(fixed, forward)
+    with torch.inference_mode():
+        posterior = network.posterior(moving, fixed)
+    voxels = _subsample(fixed[0, 0] > 0, generator)
+    return {"mean": posterior.mean, "log_var": posterior.log_var, "truth": truth[0].flatten(1)[:, voxels],
+            "voxels": voxels, "size": tuple(fixed.shape[2:]), "seed": seed}
+
+
+def case_errors(network, case, std_scale, num_samples) -> tuple[np.ndarray, np.ndarray]:
+    """(std, error) per subsampled voxel and component, from ``num_samples`` calibrated posterior samples."""
+    log_var = calibrate_log_var(case["log_var"], std_scale)
+    generator = torch.Generator().manual_seed(case["seed"] + 1)
+    mean, variance = sample_displacements(network, case["mean"], log_var, case["size"], num_samples, generator)
+    pick = case["voxels"]
+    error = mean[0].flatten(1)[:, pick] - case["truth"]
+    return variance[0].flatten(1)[:, pick].sqrt().numpy(), error.numpy()
+
+
+def _pool(errors: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    return tuple(np.concatenate([e[i].ravel() for e in errors]) for i in (0, 1))  # type: ignore[return-value]
+
+
+def displacement_metrics(std: np.ndarray, error: np.ndarray) -> dict[str, float]:
+    return {"coverage_68": interval_coverage(std, error, 0.68), "coverage_95": interval_coverage(std, error, 0.95),
+            "spearman_std_abs_error": spearman(std, np.abs(error)), "uce_voxels": uncertainty_calibration_error(std, error),
+            "rms_error_voxels": float(np.sqrt(np.mean(error**2))), "rms_std_voxels": float(np.sqrt(np.mean(std**2)))}
+
+
+def label_case(network, pair, std_scale, num_samples, seed) -> dict[str, Any]:
+    """Atlas labels into the subject by K sampled inverse warps; label entropy vs wrongly labelled voxels."""
+    moving, fixed = pair["moving"], pair["fixed"]
+    size = tuple(moving.shape[2:])
+    with torch.inference_mode():
+        posterior = network.posterior(moving, fixed)
+        log_var = calibrate_log_var(posterior.log_var, std_scale)
+        atlas_label = pair["fixed_label"].to(torch.int16)
+        predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
+        generator = torch.Generator().manual_seed(seed)
+        samples = []
+        for start in range(0, num_samples, 4):
+            z = sample_velocity(posterior.mean, log_var, min(4, num_samples - start), generator=generator)
+            for inverse in network.velocity_to_displacement(-z.flatten(0, 1), size):
+                samples.append(warp_labels(atlas_label, inverse[None])[0, 0])
+        entropy = label_entropy(torch.stack(samples))
+    truth = pair["moving_label"][0, 0].to(torch.int16)
+    region = (predicted > 0) | (truth > 0)
+    wrong = (predicted != truth)[region]
+    return {"auroc": auroc(entropy[region].numpy(), wrong.numpy()), "wrong_fraction": float(wrong.float().mean()),
+            "entropy": entropy, "predicted": predicted, "truth": truth, "log_var": log_var, "mean": posterior.mean}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET)
+    ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
+    ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
+    ap.add_argument("--subjects", nargs="+", default=None, help="default: val_ids of configs/train.yaml")
+    ap.add_argument("--deformations", type=int, default=2, help="random deformations per subject")
+    ap.add_argument("--samples", type=int, default=16, help="posterior samples K")
+    ap.add_argument("--folds", type=int, default=2, help="cross-fitting folds over the subjects")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--write-calibration", action="store_true", help="fit on all subjects, write the sidecar")
+    args = ap.parse_args(argv)
+    if not args.dataset_dir.is_dir():
+        print(f"skipped: dataset not found at {args.dataset_dir}")
+        return 0
+    torch.set_num_threads(args.threads)
+    start_time = time.time()
+    bundle_root = args.bundle_root.resolve()
+    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
+    model_file = args.model_file or Path(evaluate.get_parsed_content("model_file"))
+    network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
+    subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    if len(subjects) < args.folds or args.folds < 2:
+        raise SystemExit(f"--folds must be >= 2 and <= the number of subjects ({len(subjects)}); got {args.folds}")
+    pairs = labelled_pairs(index_dataset(args.dataset_dir), subjects)
+    dataset = Dataset(pairs, transform=evaluate.get_parsed_content("preprocessing"))
+    folds = {sid: i % args.folds for i, sid in enumerate(p["id"] for p in pairs)}
+
+    cases, items = {}, {}
+    for n, item in enumerate(dataset):
+        pair = {k: _plain(v)[None] if isinstance(v, torch.Tensor) else v for k, v in item.items()}
+        sid, items[pair["id"]] = pair["id"], pair
+        with torch.inference_mode():
+            real = network(pair["moving"], pair["fixed"]).displacement  # eval mode: the mean registration
+        brain = pair["moving"][0, 0] > 0
+        rms = float(real[0][:, brain].pow(2).sum(0).mean().sqrt())
+        cases[sid] = [displacement_case(network, pair["moving"], rms, args.samples, args.seed + 100 * n + r)
+                      for r in range(args.deformations)]
+        print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} deformations, displacement RMS {rms:.2f} voxels "
+              f"(the model's own for {sid} -> atlas)", flush=True)
+
+    raw = {sid: [case_errors(network, c, 1.0, args.samples) for c in cs] for sid, cs in cases.items()}
+
+    def fit(sids: list[str]) -> float:
+        """Coverage-matching scale on ``sids``, refined with samples drawn at the current scale."""
+        scale = fit_std_scale(*_pool([e for s in sids for e in raw[s]]))
+        for _ in range(FIT_ITERATIONS):
+            scale *= fit_std_scale(*_pool([case_errors(network, c, scale, args.samples) for s in sids
+                                           for c in cases[s]]))
+        return scale
+
+    scales = {f: fit([s for s in raw if folds[s] != f]) for f in range(args.folds)}
+    print("held-out scales per fold: " + ", ".join(f"{v:.3f}" for v in scales.values()), flush=True)
+    rows: dict[str, Any] = {"raw": {"std": [], "error": [], "auroc": []}, "calibrated": {"std": [], "error": [], "auroc": []}}
+    per_subject, figure_case = {}, None
+    for sid in cases:
+        scale = scales[folds[sid]]
+        record = {"fold": folds[sid], "std_scale": scale}
+        for name, s in (("raw", 1.0), ("calibrated", scale)):
+            errors = raw[sid] if name == "raw" else [case_errors(network, c, s, args.samples) for c in cases[sid]]
+            std, error = _pool(errors)
+            labels = label_case(network, items[sid], s, args.samples, args.seed + 7)
+            rows[name]["std"].append(std)
+            rows[name]["error"].append(error)
+            rows[name]["auroc"].append(labels["auroc"])
+            record[name] = {**displacement_metrics(std, error), "label_entropy_auroc": labels["auroc"],
+                            "wrong_label_fraction": labels["wrong_fraction"]}
+            if name == "calibrated" and figure_case is None:
+                figure_case = (sid, items[sid], labels)
+        per_subject[sid] = record
+        print(f"{sid} (fold {folds[sid]}, scale {scale:.2f}): " + "; ".join(
+            f"{n} cov68 {record[n]['coverage_68']:.3f} cov95 {record[n]['coverage_95']:.3f} "
+            f"rho {record[n]['spearman_std_abs_error']:.3f} AUROC {record[n]['label_entropy_auroc']:.3f}"
+            for n in ("raw", "calibrated")), flush=True)
+
+    summary = {}
+    for name, row in rows.items():
+        std, error = np.concatenate(row["std"]), np.concatenate(row["error"])
+        summary[name] = {**displacement_metrics(std, error), "label_entropy_auroc": float(np.mean(row["auroc"]))}
+    table = ["| posterior | coverage 68% | coverage 95% | Spearman(std, abs error) | UCE (voxels) | "
+             "RMS error / RMS std (voxels) | label-entropy AUROC |", "|---|---|---|---|---|---|---|"]
+    for name, m in summary.items():
+        table.append(f"| {name} | {m['coverage_68']:.3f} | {m['coverage_95']:.3f} | {m['spearman_std_abs_error']:.3f} | "
+                     f"{m['uce_voxels']:.3f} | {m['rms_error_voxels']:.2f} / {m['rms_std_voxels']:.2f} | "
+                     f"{m['label_entropy_auroc']:.3f} |")
+    markdown = "\n".join(table)
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    reliability_diagram({n: (np.concatenate(r["std"]), np.concatenate(r["error"])) for n, r in rows.items()},
+                        args.out_dir / "uncertainty_reliability.png")
+    sid, pair, labels = figure_case
+    figure4(pair, labels, velocity_entropy(labels["log_var"], pair["fixed"].shape[2:])[0, 0],
+            sample_displacements(network, labels["mean"], labels["log_var"], tuple(pair["fixed"].shape[2:]),
+                                 args.samples, torch.Generator().manual_seed(args.seed))[1][0].sum(0).sqrt(),
+            args.out_dir / "uncertainty_figure4.png", sid)
+    result = {"model_file": str(model_file), "subjects": list(cases), "folds": folds, "fold_scales": scales,
+              "settings": {"deformations": args.deformations, "samples": args.samples, "truth_steps": TRUTH_STEPS,
+                           "smoothing_voxels": SMOOTHING_VOXELS, "voxels_per_case": VOXELS_PER_CASE,
+                           "threads": args.threads, "seed": args.seed, "fit_iterations": FIT_ITERATIONS,
+                           "uce_bins": "15 equal-count bins of predicted std",
+                           "label_region": "voxels where the propagated or the manual label is non-background"},
+              "summary": summary, "per_subject": per_subject, "markdown": markdown,
+              "wall_time_s": time.time() - start_time}
+    if args.write_calibration:
+        scale = fit(list(raw))
+        record = save_calibration(model_file, scale, list(raw), args.samples)
+        result["written_calibration"] = {"path": str(model_file), "std_scale": record.std_scale}
+        print(f"wrote the calibration of {model_file.name}: std_scale {scale:.3f} (all {len(raw)} subjects)")
+    json_path = write_text(args.out_dir / "uncertainty_calibration.json", json.dumps(result, indent=2) + "\n")
+    print(f"\n{markdown}\n\nwrote "
+          f"{json_path}, uncertainty_reliability.png, uncertainty_figure4.png ({time.time() - start_time:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

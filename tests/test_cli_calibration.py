@@ -1,0 +1,69 @@
+"""The command line applies the calibration stored next to the weights by default; --raw-uncertainty turns it off;
+a sidecar fitted for other weights is refused with a one-line error."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
+
+from monai_probreg.calibration import calibration_path, save_calibration
+from monai_probreg.cli import main
+from monai_probreg.io import read_image
+
+BUNDLE = Path(__file__).resolve().parents[1] / "bundle"
+SCALE = 4.0
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli_calibration")
+    image, _ = asymmetric_phantom()
+    bundle = tiny_bundle(root / "bundle", BUNDLE)
+    weights = bundle / "models" / "model_semisupervised.pt"  # the configs' default model_file
+    save_calibration(weights, SCALE, ["synthetic"], 2)
+    fixed = save_lps(root / "fixed.nii.gz", image.astype(np.float32), FIXED_LPS)
+    moving = save_lps(root / "moving.nii.gz", (image * 400 + 20).astype(np.float32), FIXED_LPS)
+    return root, bundle, weights, fixed, moving
+
+
+def _register(scene, name: str, *extra: str) -> tuple[int, dict, np.ndarray]:
+    root, bundle, _, fixed, moving = scene
+    out = root / name
+    threads = torch.get_num_threads()
+    try:
+        rc = main(["register", "--moving", str(moving), "--fixed", str(fixed), "--bundle-root", str(bundle),
+                   "--out", str(out), "--no-affine", "--no-qc", "--samples", "4", "--threads", "1", "--quiet",
+                   *extra])
+    finally:
+        torch.set_num_threads(threads)
+    if rc != 0:
+        return rc, {}, np.zeros(0)
+    summary = json.loads((out / "summary.json").read_text())
+    return rc, summary, read_image(out / "displacement_std.nii.gz").array
+
+
+def test_calibrated_by_default_raw_on_request(scene):
+    rc, summary, calibrated = _register(scene, "calibrated")
+    assert rc == 0 and summary["model"]["posterior_std_scale"] == SCALE
+    rc, summary, raw = _register(scene, "raw", "--raw-uncertainty")
+    assert rc == 0 and summary["model"]["posterior_std_scale"] == 1.0
+    # same seeded samples, std scaled by 4 in velocity: the displacement spread grows by about 4
+    ratio = np.median(calibrated[raw > 0] / raw[raw > 0])
+    assert 3.0 < ratio < 4.5
+
+
+def test_sidecar_of_other_weights_is_refused(scene, capsys):
+    _, _, weights, _, _ = scene
+    record = calibration_path(weights).read_text()
+    try:
+        calibration_path(weights).write_text(record.replace('"weights_sha256": "', '"weights_sha256": "0'))
+        rc, _, _ = _register(scene, "mismatch")
+        assert rc != 0
+        assert "SHA-256" in capsys.readouterr().err
+    finally:
+        calibration_path(weights).write_text(record)

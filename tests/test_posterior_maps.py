@@ -1,0 +1,77 @@
+"""The inference uncertainty maps: calibration shifts/scales them as stated; sampling is seeded; bad K refused."""
+
+import math
+
+import pytest
+import torch
+
+from monai_probreg import ProbRegNet
+from monai_probreg.posterior_maps import posterior_maps
+
+SIZE = (12, 10, 8)
+
+
+@pytest.fixture
+def setup():
+    torch.manual_seed(0)
+    network = ProbRegNet(enc_channels=(4, 4, 4, 4), dec_channels=(4, 4, 4, 4, 4)).eval()
+    mean = 0.3 * torch.randn(1, 3, 6, 5, 4)
+    log_var = torch.full((1, 3, 6, 5, 4), -6.0) + 0.5 * torch.rand(1, 3, 6, 5, 4)
+    labels = torch.zeros(1, 1, *SIZE, dtype=torch.int16)
+    labels[..., :6, :, :] = 3
+    labels[..., 6:, :5, :] = 5
+    return network, mean, log_var, labels
+
+
+def test_velocity_entropy_shifts_by_dims_log_scale(setup):
+    network, mean, log_var, _ = setup
+    raw = posterior_maps(network, mean, log_var, SIZE).velocity_entropy
+    calibrated = posterior_maps(network, mean, log_var, SIZE, std_scale=3.0).velocity_entropy
+    torch.testing.assert_close(calibrated - raw, torch.full_like(raw, 3 * math.log(3.0)), atol=1e-5, rtol=0)
+
+
+def test_displacement_std_scales_with_std_scale_for_small_sigma(setup):
+    network, mean, _, _ = setup
+    log_var = torch.full_like(mean, -14.0)  # sigma ~ 1e-3 voxel: exp() is linear in the perturbation
+    raw = posterior_maps(network, mean, log_var, SIZE, num_samples=8).displacement_std
+    doubled = posterior_maps(network, mean, log_var, SIZE, num_samples=8, std_scale=2.0).displacement_std
+    assert raw.shape == SIZE and raw.min() > 0
+    # same seed -> same eps; linear regime -> twice the spread, to 1%
+    torch.testing.assert_close(doubled, 2.0 * raw, rtol=0.01, atol=1e-6)
+
+
+def test_label_entropy_zero_when_certain_positive_at_boundaries_when_not(setup):
+    network, mean, _, labels = setup
+    certain = posterior_maps(network, mean, torch.full_like(mean, -30.0), SIZE, 6, moving_label=labels)
+    assert certain.label_entropy is not None and certain.label_entropy.max() == 0
+    vague = posterior_maps(network, mean, torch.full_like(mean, 0.0), SIZE, 6, moving_label=labels)
+    assert vague.label_entropy.max() > 0.3
+    assert vague.label_entropy.max() <= math.log(6) + 1e-6
+
+
+def test_sampling_is_seeded(setup):
+    network, mean, log_var, labels = setup
+    a = posterior_maps(network, mean, log_var, SIZE, 4, moving_label=labels, seed=5)
+    b = posterior_maps(network, mean, log_var, SIZE, 4, moving_label=labels, seed=5)
+    c = posterior_maps(network, mean, log_var, SIZE, 4, moving_label=labels, seed=6)
+    torch.testing.assert_close(a.displacement_std, b.displacement_std, rtol=0, atol=0)
+    assert not torch.equal(a.displacement_std, c.displacement_std)
+
+
+def test_no_samples_gives_entropy_only(setup):
+    network, mean, log_var, labels = setup
+    maps = posterior_maps(network, mean, log_var, SIZE, 0, moving_label=labels)
+    assert maps.displacement_std is None and maps.label_entropy is None
+
+
+@pytest.mark.parametrize("num_samples", [1, -2])
+def test_bad_num_samples_is_refused(setup, num_samples):
+    network, mean, log_var, _ = setup
+    with pytest.raises(ValueError, match="num_samples"):
+        posterior_maps(network, mean, log_var, SIZE, num_samples)
+
+
+def test_batch_of_two_is_refused(setup):
+    network, mean, log_var, _ = setup
+    with pytest.raises(ValueError, match="one pair"):
+        posterior_maps(network, mean.repeat(2, 1, 1, 1, 1), log_var.repeat(2, 1, 1, 1, 1), SIZE)

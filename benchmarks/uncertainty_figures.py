@@ -39,7 +39,7 @@ def reliability_diagram(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], pat
         bins = reliability_bins(std, error, num_bins=15)
         ax.plot(bins.rms_std, bins.rms_error, "o-", color=f"C{i}", label=name)
         low, high = min(low, bins.rms_std.min(), bins.rms_error.min()), max(high, bins.rms_std.max(), bins.rms_error.max())
-    ax.plot([low, high], [low, high], "k--", lw=1, label="calibrated")
+    ax.plot([low, high], [low, high], "k--", lw=1, label="perfect calibration (y = x)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("predicted std per bin (RMS, voxels)")

@@ -1,0 +1,42 @@
+"""The calibration benchmark's ground truth: the random deformation has the asked RMS and its stated inverse."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from bench_helpers import load_benchmark
+
+from monai_probreg.blocks.warp import compose_displacements, warp_image
+
+bench = load_benchmark("uncertainty_calibration")
+
+
+@pytest.fixture
+def brain():
+    """A smooth positive 'brain' inside a zero background (linear interpolation barely blurs it)."""
+    x, y, z = torch.meshgrid(*(torch.arange(n, dtype=torch.float32) for n in (32, 36, 28)), indexing="ij")
+    image = torch.zeros(1, 1, 32, 36, 28)
+    inside = (slice(6, 26), slice(6, 30), slice(5, 23))
+    image[0, 0][inside] = (1.5 + torch.sin(x / 3) * torch.cos(y / 4) + 0.5 * torch.sin(z / 5))[inside]
+    return image
+
+
+def test_random_deformation_has_the_asked_rms_and_inverse(brain):
+    forward, inverse = bench.random_deformation(brain, 1.5, torch.Generator().manual_seed(1))
+    inside = brain[0, 0] > 0
+    rms = forward[0][:, inside].pow(2).sum(0).mean().sqrt()
+    assert rms.item() == pytest.approx(1.5, rel=0.05)
+    # exp(v) o exp(-v) = id: the truth the benchmark scores against is the inverse of what deformed the image
+    residual = compose_displacements(forward, inverse)[0][:, inside].abs().max()
+    assert residual < 0.05
+    # moving = fixed o exp(v); pulling moving back by exp(-v) restores fixed (up to interpolation blur)
+    restored = warp_image(warp_image(brain, forward), inverse)
+    assert (restored - brain)[0, 0][inside].abs().mean() < 0.1 * brain[0, 0][inside].mean()
+
+
+def test_recovered_fraction_closed_forms():
+    truth = np.random.default_rng(0).normal(size=1000)
+    assert bench.recovered_fraction(np.zeros(1000), truth) == pytest.approx(1.0)
+    assert bench.recovered_fraction(-truth, truth) == pytest.approx(0.0)
+    assert bench.recovered_fraction(-0.7 * truth, truth) == pytest.approx(0.3)

@@ -6,7 +6,7 @@ cropped (``ResizeWithPadOrCrop``, zeros) to the paper's 160 x 192 x 224 (LPBA40:
 each side of the last axis). Every method sees the same arrays. Rows:
   - ours, mean: ``ProbRegNet()`` (the paper's network; UNet on the input grid, half-resolution velocity), untrained:
     the speed target; network + integration + upsampling + warp (``register_pair``, inference levers on by default);
-  - ours, K posterior samples: ``ProbRegNet.sample(moving, fixed, K)`` (UNet once, K fields integrated in one batch);
+  - ours, K posterior samples: ``ProbRegNet.sample(moving, fixed, K)`` (UNet once, K fields integrated; on a CPU one at a time);
   - ours, shipped weights: configs' network and ``model_file`` (evaluate.yaml); its network grid is scaled with the
     input (trained at 80 x 96 x 80 for 160 x 192 x 160 -> 80 x 96 x 112 here: the same 2 mm the weights know), with
     Dice / |J| <= 0, and the same model in float32 (untimed) to show what the bf16 UNet changes on real pairs;

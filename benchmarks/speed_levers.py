@@ -3,7 +3,8 @@
 On the first benchmark pair, with the paper-size network (UNet on the input grid, untrained weights):
   - each inference lever alone and together (ProbRegNet's ``unet_precision``, ``channels_last``, ``fast_sampling``),
     ``torch.no_grad`` against ``torch.inference_mode``, and ``torch.compile`` of the UNet (compile time apart);
-  - K posterior samples fused in one batch (``ProbRegNet.sample``) against one integration per sample;
+  - K posterior samples fused in one batch against one integration at a time (``ProbRegNet.sample``'s
+    ``samples_per_batch``; its default is the faster one on the device);
   - the time by stage (UNet, integration, upsampling, warp), plain and with the default levers;
   - the network's multiply-accumulates (conv hooks) and the CPU's measured peaks: a large matmul and the UNet's
     largest convolution alone, float32 and bf16, to say how close to the FLOP limit the UNet runs.
@@ -110,18 +111,11 @@ def stage_times(net: ProbRegNet, moving: torch.Tensor, fixed: torch.Tensor, repe
 
 
 def sample_fusion(moving: torch.Tensor, fixed: torch.Tensor, k: int, repeats: int) -> dict[str, float]:
-    """K samples: ``ProbRegNet.sample`` (one batch of K fields) against K integrations one after the other."""
+    """K samples through ``ProbRegNet.sample``: one batch of K fields against one integration at a time."""
     net = _net()
-    size = moving.shape[2:]
-
-    def one_by_one() -> list[torch.Tensor]:
-        posterior = net.posterior(moving, fixed)
-        std = torch.exp(0.5 * posterior.log_var)
-        return [net.velocity_to_displacement(posterior.mean + std * torch.randn_like(std), size) for _ in range(k)]
-
     with torch.inference_mode():
-        return {"fused_s": median_time(lambda: net.sample(moving, fixed, k), repeats),
-                "one_by_one_s": median_time(one_by_one, repeats),
+        return {"fused_s": median_time(lambda: net.sample(moving, fixed, k, samples_per_batch=k), repeats),
+                "one_by_one_s": median_time(lambda: net.sample(moving, fixed, k, samples_per_batch=1), repeats),
                 "mean_only_s": median_time(lambda: register_pair(net, moving, fixed), repeats)}
 
 

@@ -3,8 +3,11 @@
 1. Ground truth where it exists. For each subject S (default: ``val_ids`` of configs/train.yaml), ``--deformations``
    random smooth velocity fields v are drawn (white noise on the velocity grid, Gaussian-smoothed, scaled so the
    displacement RMS in the brain equals the RMS of the model's own displacement for S -> atlas: a realistic
-   magnitude). With our own integration (``TRUTH_STEPS`` squarings at full resolution): moving = S warped by
-   exp(v), fixed = S; the true displacement of moving onto fixed is exp(-v). K posterior samples give a mean and a
+   magnitude). With our own integration (``TRUTH_STEPS`` squarings at full resolution): moving = R warped by
+   exp(v), fixed = R; the true displacement of moving onto fixed is exp(-v). The reference R is the atlas by
+   default (``--reference atlas``): the model is trained scan-to-atlas, so the atlas is the only fixed image it
+   knows, and the test registers a deformed scan onto it as in use; ``--reference subject`` takes R = S (the
+   subject as the fixed image: out of the training distribution, the model then recovers only a fraction of v). K posterior samples give a mean and a
    per-component std, compared with exp(-v) inside the brain (fixed > 0): coverage of the nominal 68% / 95%
    intervals, Spearman(std, |error|), UCE (15 equal-count bins), reliability diagram.
 2. Label uncertainty on real pairs: S -> atlas; the atlas labels are propagated into S by the K sampled inverse
@@ -152,6 +155,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
     ap.add_argument("--subjects", nargs="+", default=None, help="default: val_ids of configs/train.yaml")
     ap.add_argument("--deformations", type=int, default=2, help="random deformations per subject")
+    ap.add_argument("--reference", choices=["atlas", "subject"], default="atlas",
+                    help="the image that is deformed and registered back (see the module docstring)")
     ap.add_argument("--samples", type=int, default=16, help="posterior samples K")
     ap.add_argument("--folds", type=int, default=2, help="cross-fitting folds over the subjects")
     ap.add_argument("--threads", type=int, default=1)
@@ -183,9 +188,11 @@ def main(argv=None) -> int:
             real = network(pair["moving"], pair["fixed"]).displacement  # eval mode: the mean registration
         brain = pair["moving"][0, 0] > 0
         rms = float(real[0][:, brain].pow(2).sum(0).mean().sqrt())
-        cases[sid] = [displacement_case(network, pair["moving"], rms, args.samples, args.seed + 100 * n + r)
+        reference = pair["fixed"] if args.reference == "atlas" else pair["moving"]
+        cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + 100 * n + r)
                       for r in range(args.deformations)]
-        print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} deformations, displacement RMS {rms:.2f} voxels "
+        print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} deformations of the {args.reference}, displacement "
+              f"RMS {rms:.2f} voxels "
               f"(the model's own for {sid} -> atlas)", flush=True)
 
     raw = {sid: [case_errors(network, c, 1.0, args.samples) for c in cs] for sid, cs in cases.items()}
@@ -247,7 +254,7 @@ def main(argv=None) -> int:
                                  args.samples, torch.Generator().manual_seed(args.seed))[1][0].sum(0).sqrt(),
             args.out_dir / "uncertainty_figure4.png", sid)
     result = {"model_file": str(model_file), "subjects": list(cases), "folds": folds, "fold_scales": scales,
-              "settings": {"deformations": args.deformations, "samples": args.samples, "truth_steps": TRUTH_STEPS,
+              "settings": {"deformations": args.deformations, "reference": args.reference, "samples": args.samples, "truth_steps": TRUTH_STEPS,
                            "smoothing_voxels": SMOOTHING_VOXELS, "voxels_per_case": VOXELS_PER_CASE,
                            "threads": args.threads, "seed": args.seed, "fit_iterations": FIT_ITERATIONS,
                            "uce_bins": "15 equal-count bins of predicted std",

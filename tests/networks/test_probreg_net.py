@@ -269,3 +269,27 @@ def test_network_size_registers_any_input_size_on_its_own_grid():
     torch.testing.assert_close(out.displacement, expected, atol=1e-5, rtol=0)  # constant field: float32 rounding
     with pytest.raises(ValueError, match="network_size"):
         ProbRegNet(spatial_dims=3, network_size=(32, 32))
+
+
+@pytest.mark.parametrize("samples_per_batch", [1, 2, 3, 5])
+def test_sample_batching_does_not_change_the_samples(samples_per_batch):
+    torch.manual_seed(0)
+    net = ProbRegNet(spatial_dims=2).eval()
+    _set_heads(net, log_var_bias=-1.0)
+    moving, fixed = _pair(2)
+    fused = net.sample(moving, fixed, 3, generator=torch.Generator().manual_seed(5), samples_per_batch=3)
+    chunked = net.sample(moving, fixed, 3, generator=torch.Generator().manual_seed(5),
+                         samples_per_batch=samples_per_batch)
+    assert chunked.displacements.shape == fused.displacements.shape
+    # same draws, other batch layout: float32 rounding only
+    torch.testing.assert_close(chunked.displacements, fused.displacements, atol=1e-5, rtol=0)
+    default = net.sample(moving, fixed, 3, generator=torch.Generator().manual_seed(5))  # CPU: one at a time
+    torch.testing.assert_close(default.displacements, fused.displacements, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("bad", [0, -1, True, 1.5])
+def test_sample_rejects_bad_samples_per_batch(bad):
+    net = ProbRegNet(spatial_dims=2).eval()
+    moving, fixed = _pair(2)
+    with pytest.raises((ValueError, TypeError), match="samples_per_batch"):
+        net.sample(moving, fixed, 2, samples_per_batch=bad)

@@ -250,10 +250,13 @@ def _label_mean(scores: Sequence[PairScores], label: int) -> float | None:
 
 
 def write_scores(output_dir: str | os.PathLike, rows: Sequence[tuple[str, PairScores, PairScores]],
-                 config: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                 config: Mapping[str, Any] | None = None,
+                 failed: Sequence[tuple[str, str]] = ()) -> dict[str, Any]:
     """Write ``scores.csv`` (one row per subject), ``summary.json`` (mean and population std over subjects,
     registered and no-registration, per-label means, ``config``) and ``scores.json`` (every score of every subject,
-    :func:`read_scores` reads it back: how sharded runs are merged) into ``output_dir``; return the summary."""
+    :func:`read_scores` reads it back: how sharded runs are merged) into ``output_dir``; return the summary.
+    ``failed``: ``(id, reason)`` of the subjects skipped for bad input (:mod:`monai_probreg.screening`), listed in
+    summary.json."""
     if not rows:
         raise ValueError("no scored subjects to summarise")
     labels = sorted({lab for _, reg, _ in rows for lab in reg.dice})
@@ -271,6 +274,8 @@ def write_scores(output_dir: str | os.PathLike, rows: Sequence[tuple[str, PairSc
         "dice_per_label": {str(lab): {"registered": _label_mean([reg for _, reg, _ in rows], lab),
                                       "no_registration": _label_mean([base for _, _, base in rows], lab)}
                            for lab in labels},
+        "num_failed": len(failed),
+        "failed": [{"id": sid, "reason": reason} for sid, reason in failed],
         "config": {k: _jsonable(v) for k, v in (config or {}).items()},
     }
     out = Path(output_dir)
@@ -312,4 +317,6 @@ def summary_table(summary: Mapping[str, Any]) -> str:
     for name, key, digits in (("|J|<=0 voxels", "num_folding", 1), ("|J|<=0 %", "percent_folding", 4),
                               ("std log|J|", "std_log_jacobian", 3), ("runtime (s)", "runtime_s", 3)):
         lines.append(f"{name:<16}{fmt(reg[key], digits):>22}")
-    return "\n".join([f"{summary['num_subjects']} subjects", *lines])
+    failed = summary.get("num_failed", 0)
+    head = f"{summary['num_subjects']} subjects" + (f" ({failed} more failed and were skipped: failed.csv)" if failed else "")
+    return "\n".join([head, *lines])

@@ -37,6 +37,7 @@ from monai_probreg.inference import (
 )
 from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.posterior_maps import posterior_maps
+from monai_probreg.screening import InputFailures
 
 __all__ = ["RegistrationInferer", "RegistrationWriter", "RegistrationScorer"]
 
@@ -54,6 +55,11 @@ class RegistrationInferer(Inferer):
             raise ValueError(f"expected one extra argument, the fixed image; got {len(args)}, keywords {sorted(kwargs)}")
         output, self.last_runtime_s = timed_register_pair(network, inputs, args[0])  # type: ignore[arg-type]
         return output
+
+
+def _total(engine: Engine) -> int | str:
+    """Subjects in this run for progress logs: ignite's epoch length, else the wrapped loader's batch count."""
+    return engine.state.epoch_length or getattr(engine.state.dataloader, "num_batches", None) or "?"
 
 
 class _PerSubjectHandler:
@@ -118,17 +124,19 @@ class RegistrationWriter(_PerSubjectHandler):
             maps = posterior_maps(self.network, pair.velocity_mean, pair.velocity_log_var, pair.displacement.shape[2:],
                                   self.num_samples if sampled else 0, self.std_scale, label, self.seed)
         write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
-        _LOG.info(f"[{engine.state.iteration}/{engine.state.epoch_length}] {sid}: {runtime:.2f} s "
+        _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: {runtime:.2f} s "
                   f"-> {self.output_dir / sid}")
 
 
 class RegistrationScorer(_PerSubjectHandler):
     """Scores every subject with :func:`score_pair` (and the identity), then :func:`write_scores` and prints
-    the summary table. ``config`` is stored in summary.json; ``labels`` default to the atlas' non-zero ids."""
+    the summary table. ``config`` is stored in summary.json; ``labels`` default to the atlas' non-zero ids;
+    ``failures`` (subjects skipped for bad input) are listed in summary.json."""
 
     def __init__(self, output_dir: str | os.PathLike, config: Mapping[str, Any] | None = None,
-                 labels: Sequence[int] | None = None) -> None:
+                 labels: Sequence[int] | None = None, failures: InputFailures | None = None) -> None:
         self.output_dir, self.config, self.labels = Path(output_dir), dict(config or {}), labels
+        self.failures = failures
         self.rows: list[tuple[str, PairScores, PairScores]] = []
 
     def start(self, engine: Engine) -> None:
@@ -140,9 +148,13 @@ class RegistrationScorer(_PerSubjectHandler):
         reg = score_pair(pair.displacement, targets["moving_label"], targets["fixed_label"], runtime, self.labels)
         base = score_pair(None, targets["moving_label"], targets["fixed_label"], 0.0, self.labels)
         self.rows.append((sid, reg, base))
-        _LOG.info(f"[{engine.state.iteration}/{engine.state.epoch_length}] {sid}: Dice {reg.mean_dice:.3f} "
+        _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: Dice {reg.mean_dice:.3f} "
                   f"(no registration {base.mean_dice:.3f}), |J|<=0 {reg.num_folding}, {runtime:.2f} s")
 
     def done(self, engine: Engine) -> None:
-        summary = write_scores(self.output_dir, self.rows, self.config)
+        failed = self.failures.items if self.failures is not None else []
+        if not self.rows:
+            _LOG.error(f"no subject could be scored ({len(failed)} failed); no scores written")
+            return
+        summary = write_scores(self.output_dir, self.rows, self.config, failed)
         print(summary_table(summary) + f"\nper-subject scores: {self.output_dir / 'scores.csv'}", flush=True)

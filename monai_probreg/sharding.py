@@ -32,13 +32,14 @@ import torch.distributed as dist
 from monai.data import partition_dataset
 
 from monai_probreg.inference import OUTPUTS_README, read_scores, write_scores, write_text
+from monai_probreg.screening import FAILED_FILE, InputFailures, read_failures
 
 __all__ = ["SHARDS_DIR", "MANIFEST", "process_rank", "shard_items", "shard_dir", "merge_shards", "finish", "main"]
 
 SHARDS_DIR = "shards"
 MANIFEST = "shards.json"
 _SHARD_NAME = re.compile(r"^rank_(\d+)_of_(\d+)$")
-_SCORE_FILES = ("scores.csv", "summary.json", "scores.json", "README.txt")  # shard files that are merged, not moved
+_SCORE_FILES = ("scores.csv", "summary.json", "scores.json", "README.txt", FAILED_FILE)  # shard files that are merged, not moved
 
 
 def process_rank() -> tuple[int, int]:
@@ -108,9 +109,10 @@ def merge_shards(output_dir: str | os.PathLike) -> dict[str, Any]:
     out = Path(output_dir)
     world, shards = _shards(out)
     subjects: dict[str, list[str]] = {}
-    rows, config = [], {}
+    rows, config, failed = [], {}, InputFailures()
     for rank in range(world):
         folder = shards[rank]
+        failed.items += read_failures(folder / FAILED_FILE)
         subjects[str(rank)] = sorted(p.name for p in folder.iterdir() if p.is_dir())
         if (folder / "scores.json").is_file():
             shard_rows, shard_config = read_scores(folder / "scores.json")
@@ -121,10 +123,11 @@ def merge_shards(output_dir: str | os.PathLike) -> dict[str, Any]:
             _move_tree(shards[rank] / name, out / name)
     if subjects and any(subjects.values()):
         write_text(out / "README.txt", OUTPUTS_README)
-    summary = write_scores(out, sorted(rows, key=lambda row: row[0]), config) if rows else None
+    summary = write_scores(out, sorted(rows, key=lambda row: row[0]), config, failed.items) if rows else None
+    failed.finish(out, exit_on_failure=False)  # one failed.csv over all ranks (none if nothing failed)
     manifest = {"world_size": world, "subjects_per_rank": subjects,
                 "num_subjects": len(rows) if rows else sum(len(v) for v in subjects.values()),
-                "scored": bool(rows)}
+                "scored": bool(rows), "failed": failed.as_records()}
     write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     shutil.rmtree(out / SHARDS_DIR)
     return {**manifest, "summary": summary}

@@ -6,9 +6,11 @@ incomplete shards. End to end: two gloo processes under torchrun on the tiny dat
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -83,7 +85,7 @@ def test_merge_refuses_missing_or_mixed_shards(tmp_path):
         merge_shards(tmp_path)
 
 
-def _bundle_run(configs: list[Path], bundle: Path, dataset: Path, out: Path, nproc: int) -> str:
+def _bundle_run(configs: list[Path], bundle: Path, dataset: Path, out: Path, nproc: int, returncode: int = 0) -> str:
     """Run ``monai.bundle run`` on ``configs``: under torchrun with ``nproc`` gloo processes, or plain if 0."""
     launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}"] if nproc else []
     cmd = [sys.executable, *launcher, "-m", "monai.bundle", "run",
@@ -92,7 +94,7 @@ def _bundle_run(configs: list[Path], bundle: Path, dataset: Path, out: Path, npr
     env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}  # gloo on CPU even on a GPU host
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
     log = proc.stdout + proc.stderr
-    assert proc.returncode == 0, log[-4000:]
+    assert proc.returncode == returncode, log[-4000:]
     return log
 
 
@@ -129,6 +131,22 @@ def test_two_process_inference_writes_every_subject_once(tmp_path, tiny_dataset,
     assert sorted(p.name for p in out.iterdir()) == ["README.txt", "T01", "T02", "T03", MANIFEST]
     manifest = json.loads((out / MANIFEST).read_text())
     assert manifest == {"world_size": 2, "subjects_per_rank": {"0": ["T01", "T03"], "1": ["T02"]},
-                        "num_subjects": 3, "scored": False}
+                        "num_subjects": 3, "scored": False, "failed": []}
     for sid in ("T01", "T02", "T03"):
         assert (out / sid / "displacement.nii.gz").is_file() and (out / sid / "warped_label.nii.gz").is_file()
+
+
+@needs_gloo
+def test_two_process_evaluate_skips_a_damaged_subject_and_fails(tmp_path, tiny_dataset, bundle):
+    dataset = tmp_path / "data"
+    shutil.copytree(tiny_dataset, dataset)
+    damaged = dataset / "images" / "T02.nii.gz"  # rank 1's only subject
+    damaged.write_bytes(damaged.read_bytes()[: damaged.stat().st_size // 2])
+    out = tmp_path / "out"
+    log = _bundle_run([bundle / "configs" / "evaluate.yaml", SHARDED], bundle, dataset, out, nproc=2, returncode=1)
+    assert "merged 2 shards, 2 subjects" in log
+    failed = list(csv.DictReader((out / "failed.csv").open()))
+    assert [r["id"] for r in failed] == ["T02"] and str(damaged) in failed[0]["reason"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["num_subjects"] == 2 and summary["failed"][0]["id"] == "T02"
+    assert json.loads((out / MANIFEST).read_text())["failed"] == summary["failed"]

@@ -52,6 +52,7 @@ from monai_probreg.uncertainty import label_entropy, sampled_displacement_moment
 TRUTH_STEPS = 10          # squarings for the true fields (full resolution; the model uses 7 at half resolution)
 SMOOTHING_VOXELS = 6.0    # Gaussian sigma of the random velocity, in velocity-grid voxels (12 mm at 1 mm, /2)
 VOXELS_PER_CASE = 400_000  # brain voxels subsampled per case for the displacement metrics (x 3 components)
+PROBE_SHIFT_VOXELS = 3.0   # translation of the diagnostic probe (recovered fraction per axis)
 FIT_ITERATIONS = 3         # re-sample at the fitted scale and refit: the displacement std grows sub-linearly with it
 
 
@@ -80,6 +81,21 @@ def sample_displacements(network, mean, log_var, size, num_samples, generator):
     with torch.inference_mode():
         return sampled_displacement_moments(mean, log_var, lambda z: network.velocity_to_displacement(z, size),
                                             num_samples, generator)
+
+
+def translation_probe(network, fixed: torch.Tensor, shift: float = PROBE_SHIFT_VOXELS) -> list[float]:
+    """Fraction of a known ``shift``-voxel translation of ``fixed`` along each axis that the mean registration recovers
+    (mean over the brain of the predicted displacement component, divided by the true -shift): 1 = fully."""
+    brain = fixed[0, 0] > 0
+    fractions = []
+    for axis in range(3):
+        displacement = torch.zeros((1, 3, *fixed.shape[2:]))
+        displacement[:, axis] = shift
+        moving = warp_image(fixed, displacement)  # moving(x) = fixed(x + shift e_axis): the truth is -shift e_axis
+        with torch.inference_mode():
+            predicted = network(moving, fixed).displacement
+        fractions.append(float(predicted[0, axis][brain].mean()) / -shift)
+    return fractions
 
 
 def _subsample(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
@@ -180,7 +196,7 @@ def main(argv=None) -> int:
     dataset = Dataset(pairs, transform=evaluate.get_parsed_content("preprocessing"))
     folds = {sid: i % args.folds for i, sid in enumerate(p["id"] for p in pairs)}
 
-    cases, items = {}, {}
+    cases, items, probe = {}, {}, None
     for n, item in enumerate(dataset):
         pair = {k: _plain(v)[None] if isinstance(v, torch.Tensor) else v for k, v in item.items()}
         sid, items[pair["id"]] = pair["id"], pair
@@ -189,6 +205,10 @@ def main(argv=None) -> int:
         brain = pair["moving"][0, 0] > 0
         rms = float(real[0][:, brain].pow(2).sum(0).mean().sqrt())
         reference = pair["fixed"] if args.reference == "atlas" else pair["moving"]
+        if probe is None:  # the atlas (same for every subject): once
+            probe = translation_probe(network, pair["fixed"])
+            print("translation probe: recovered fraction of a 3-voxel shift of the atlas per axis: "
+                  + ", ".join(f"{f:.2f}" for f in probe), flush=True)
         cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + 100 * n + r)
                       for r in range(args.deformations)]
         print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} deformations of the {args.reference}, displacement "
@@ -259,7 +279,7 @@ def main(argv=None) -> int:
                            "threads": args.threads, "seed": args.seed, "fit_iterations": FIT_ITERATIONS,
                            "uce_bins": "15 equal-count bins of predicted std",
                            "label_region": "voxels where the propagated or the manual label is non-background"},
-              "summary": summary, "per_subject": per_subject, "markdown": markdown,
+              "summary": summary, "per_subject": per_subject, "translation_probe_recovered": probe, "markdown": markdown,
               "wall_time_s": time.time() - start_time}
     if args.write_calibration:
         scale = fit(list(raw))

@@ -40,3 +40,29 @@ def test_recovered_fraction_closed_forms():
     assert bench.recovered_fraction(np.zeros(1000), truth) == pytest.approx(1.0)
     assert bench.recovered_fraction(-truth, truth) == pytest.approx(0.0)
     assert bench.recovered_fraction(-0.7 * truth, truth) == pytest.approx(0.3)
+
+
+class _Oracle(torch.nn.Module):
+    """A 'registration' that returns ``gain`` times the true displacement of a pure translation (found by
+    matching the moving image against the fixed one shifted by whole voxels along each axis)."""
+
+    def __init__(self, fixed: torch.Tensor, gain: float) -> None:
+        super().__init__()
+        self.fixed, self.gain = fixed, gain
+
+    def forward(self, moving, fixed):
+        best = None
+        for axis in range(3):
+            for shift in (-3.0, 3.0):
+                d = torch.zeros((1, 3, *fixed.shape[2:]))
+                d[:, axis] = shift
+                err = (warp_image(self.fixed, d) - moving).abs().mean()
+                if best is None or err < best[0]:
+                    best = (err, d)
+        return type("Out", (), {"displacement": -self.gain * best[1]})()
+
+
+@pytest.mark.parametrize("gain", [1.0, 0.5, 0.0])
+def test_translation_probe_reports_the_recovered_fraction(brain, gain):
+    fractions = bench.translation_probe(_Oracle(brain, gain), brain, shift=3.0)
+    assert fractions == pytest.approx([gain] * 3, abs=1e-6)

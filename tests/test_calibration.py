@@ -90,3 +90,15 @@ def test_corrupt_sidecar_names_the_file(weights):
     calibration_path(weights).write_text(json.dumps({"std_scale": 2.0}))  # missing fields
     with pytest.raises(ValueError, match="not a calibration record"):
         load_calibration(weights)
+
+
+def test_the_shipped_default_weights_carry_their_own_calibration():
+    """New default weights need a refitted calibration (benchmarks/uncertainty_calibration.py --write-calibration):
+    a stale record would be refused at inference time; this catches it before release."""
+    from pathlib import Path
+
+    from monai_probreg.calibration import load_calibration
+
+    weights = Path(__file__).resolve().parents[1] / "bundle" / "models" / "model_semisupervised.pt"
+    record = load_calibration(weights)  # raises when the SHA-256 does not match the weights
+    assert record.std_scale > 1.0  # the raw variational posterior is over-confident (README "Uncertainty")

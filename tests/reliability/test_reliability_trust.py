@@ -10,6 +10,7 @@ import io
 import os
 import pickle
 import re
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -108,9 +109,15 @@ def test_bundle_inference_refuses_code(evil, tmp_path, tiny_dataset, bundle, sin
 
 
 def test_the_payload_is_live(evil):
-    """Guard against a test that passes because the payload does nothing: without weights_only it does run."""
-    path, _, marker = evil
-    torch.load(path, weights_only=False)  # noqa: S614 - deliberately, on the test's own file
+    """Guard against a test that passes because the payload does nothing: unpickled without restriction it runs.
+    (Shown with ``pickle.load`` on the plain-pickle twin, so the project never calls ``torch.load`` unsafely; the
+    torch zip holds the same ``os.system`` reduce in its pickle stream.)"""
+    zipped, plain, marker = evil
+    with zipfile.ZipFile(zipped) as archive:
+        stream = archive.read(next(n for n in archive.namelist() if n.endswith("data.pkl")))
+    assert b"system" in stream and str(marker).encode() in stream
+    with plain.open("rb") as f:
+        pickle.load(f)  # noqa: S301 - deliberately, on the test's own file
     assert marker.exists()
 
 

@@ -28,6 +28,7 @@ from typing import Any
 
 from monai.data import Dataset
 
+from monai_probreg.inference import write_text
 from monai_probreg.validation import InputError
 
 __all__ = ["FAILED_KEY", "FAILED_FILE", "InputFailures", "SkipBadInputs", "SkipFailedBatches", "input_error_in",
@@ -80,17 +81,12 @@ class InputFailures:
         self.items.append((str(subject_id), str(reason)))
         _LOG.error(f"{subject_id}: skipped: {reason}")
 
-    def __len__(self) -> int:
-        return len(self.items)
-
     def as_records(self) -> list[dict[str, str]]:
         return [{"id": sid, "reason": reason} for sid, reason in self.items]
 
     def finish(self, output_dir: str | os.PathLike, exit_on_failure: bool = True) -> None:
         """Write ``failed.csv`` into ``output_dir`` (none when nothing failed; an old one is removed), print the
         failures and, with ``exit_on_failure``, end the process with status 1 if any subject failed."""
-        from monai_probreg.inference import write_text
-
         path = Path(output_dir) / FAILED_FILE
         if not self.items:
             path.unlink(missing_ok=True)

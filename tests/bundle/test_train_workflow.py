@@ -140,6 +140,23 @@ def test_semi_supervised_training_uses_the_label_term(tmp_path, tiny_dataset):
     torch.testing.assert_close(terms.total, terms.image + terms.kl + weight * terms.label, rtol=1e-5, atol=1e-5)
 
 
+def test_augmented_semi_supervised_training_runs_after_the_cache(tmp_path, tiny_dataset):
+    from monai.transforms import RandAffined
+
+    semi = str(TRAIN.parent / "train_semisupervised.yaml")
+    wf = _workflow(tmp_path, tiny_dataset, config=[str(TRAIN), semi], max_epochs=1, init_model_file=None,
+                   augment_prob=1.0, augment_rotate=0.2, augment_translate=3.0)
+    dataset = wf.parser.get_parsed_content("train#dataset")
+    steps = dataset.transform.transforms
+    first_random = next(i for i, t in enumerate(steps) if isinstance(t, RandAffined))
+    assert first_random == len(wf.parser.get_parsed_content("train#preprocessing").transforms)
+    assert steps[first_random].keys == ("moving", "moving_label")  # the atlas (fixed) side is never augmented
+    wf.run()
+    wf.finalize()
+    terms = wf.parser.get_parsed_content("loss").last_terms
+    assert terms is not None and torch.isfinite(terms.total) and 0.0 < float(terms.label) < 1.0
+
+
 def test_multi_gpu_config_parses_and_overrides_single_process_pieces():
     from monai.bundle import ConfigParser
 

@@ -88,3 +88,74 @@ def test_after_the_cached_chain_only_the_augmentation_is_random():
 def test_bad_arguments_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         moving_augmentation(**kwargs)
+
+
+# --- RandDiffeomorphicd -------------------------------------------------------------------------------------------
+
+from monai_probreg.augmentation import RandDiffeomorphicd  # noqa: E402
+from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
+from monai_probreg.metrics.jacobian import jacobian_determinant  # noqa: E402
+
+
+def _deform(magnitude: float = 1.5, seed: int = 0, **kwargs) -> RandDiffeomorphicd:
+    t = RandDiffeomorphicd(keys=["moving"], label_keys=["moving_label"], magnitude=magnitude, **kwargs)
+    t.set_random_state(seed=seed)
+    return t
+
+
+@pytest.mark.parametrize("shape", [(40, 48, 36), (64, 56)])
+def test_random_deformation_is_smooth_invertible_and_of_the_asked_size(shape):
+    t = _deform(magnitude=1.5, control_spacing=8.0)
+    t.randomize(shape)
+    ddf = t.displacement(shape)
+    assert ddf.shape == (1, len(shape), *shape)
+    rms = float(ddf.pow(2).sum(1).mean().sqrt())
+    assert 1.2 < rms < 1.7  # the velocity's RMS is 1.5; exp(v) of a smooth field stays close to it
+    assert float(jacobian_determinant(ddf).min()) > 0  # a diffeomorphism: no folding
+
+
+def test_the_images_are_pulled_back_through_the_drawn_displacement():
+    pair = _blob_pair((32, 36, 28))
+    t = _deform(seed=3)
+    out = t(dict(pair))
+    ddf = t.displacement((32, 36, 28))  # the same draw: displacement() re-reads the last noise
+    torch.testing.assert_close(out["moving"][None].as_tensor(), warp_image(pair["moving"][None].as_tensor(), ddf))
+    assert torch.equal(out["moving_label"][None].as_tensor(),
+                       warp_labels(pair["moving_label"][None].as_tensor(), ddf))
+    assert out["moving_label"].dtype == torch.int16 and torch.equal(out["fixed"], pair["fixed"])
+    assert not torch.allclose(out["moving"], pair["moving"], atol=1e-3)
+
+
+def test_zero_magnitude_or_probability_leaves_the_pair_alone():
+    pair = _blob_pair((16, 20, 16))
+    for t in (_deform(magnitude=0.0), RandDiffeomorphicd(keys=["moving"], prob=0.0)):
+        out = t(dict(pair))
+        assert torch.equal(out["moving"], pair["moving"]) and torch.equal(out["moving_label"], pair["moving_label"])
+
+
+def test_deformation_draws_repeat_with_a_seed():
+    pair = _blob_pair((20, 20, 20))
+    a, b, c = (_deform(seed=s)(dict(pair))["moving"] for s in (5, 5, 6))
+    assert torch.equal(a, b) and not torch.allclose(a, c)
+
+
+def test_a_key_on_another_grid_is_refused_by_name():
+    pair = _blob_pair((16, 16, 16))
+    pair["moving_label"] = MetaTensor(torch.zeros((1, 8, 16, 16), dtype=torch.int16))
+    with pytest.raises(ValueError, match=r"moving_label must be on the grid of moving.*\(16, 16, 16\).*\(8, 16, 16\)"):
+        _deform()(pair)
+
+
+@pytest.mark.parametrize("kwargs", [{"magnitude": -1.0}, {"control_spacing": 0.5}])
+def test_bad_deformation_arguments_are_refused(kwargs):
+    with pytest.raises(ValueError, match="magnitude must be >= 0 and control_spacing >= 1"):
+        RandDiffeomorphicd(keys=["moving"], **kwargs)
+
+
+def test_moving_augmentation_adds_the_deformation_only_when_asked():
+    assert not any(isinstance(t, RandDiffeomorphicd) for t in moving_augmentation(prob=1.0).transforms)
+    chain = moving_augmentation(prob=1.0, with_labels=True, deform_magnitude=1.0, deform_spacing=6.0)
+    deform = [t for t in chain.transforms if isinstance(t, RandDiffeomorphicd)]
+    assert len(deform) == 1 and deform[0].label_keys == ("moving_label",) and deform[0].control_spacing == 6.0
+    with pytest.raises(ValueError, match="deform_magnitude"):
+        moving_augmentation(deform_magnitude=-0.5)

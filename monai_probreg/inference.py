@@ -38,6 +38,7 @@ from torch import Tensor, nn
 
 from monai_probreg.blocks.warp import warp_labels
 from monai_probreg.data import DatasetIndex, pair_dicts
+from monai_probreg.network_settings import check_network_settings
 from monai_probreg.metrics.dice import label_dice
 from monai_probreg.metrics.jacobian import JacobianStats, jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import RegistrationOutput
@@ -80,11 +81,13 @@ def load_weights(network: nn.Module, model_file: str | os.PathLike, device: str 
     """Load a plain state_dict (``torch.load(weights_only=True)``, strict) into ``network``; move it to ``device``
     and put it in eval mode. A missing file is a one-line ``FileNotFoundError`` naming the path; a file holding more
     than tensors (a pickle that could run code) an ``UntrustedFileError`` (:func:`~monai_probreg.validation.
-    safe_torch_load`: nothing in it is run); a truncated or corrupt one an ``InputError``."""
+    safe_torch_load`: nothing in it is run); a truncated or corrupt one an ``InputError``, and so is a network whose
+    settings differ from those recorded next to the file (:mod:`monai_probreg.network_settings`)."""
     path = Path(model_file)
     if not path.is_file():
         raise FileNotFoundError(f"model file {str(path)!r} does not exist (train.yaml writes models/model.pt; "
                                 "or pass --model_file PATH)")
+    check_network_settings(path, network)  # network_size etc. leave no trace in the tensors: their JSON sidecar
     network.load_state_dict(safe_torch_load(path, "model file", map_location=device))
     return network.to(device).eval()
 

@@ -106,6 +106,8 @@ class ProbRegNet(nn.Module):
         self.network_size = tuple(int(n) for n in network_size) if network_size is not None else None
         if self.network_size is not None and len(self.network_size) != spatial_dims:
             raise ValueError(f"network_size must have {spatial_dims} entries; got {network_size}")
+        self.enc_channels = tuple(int(c) for c in enc_channels)
+        self.dec_channels = tuple(int(c) for c in dec_channels)
         self.unet = VelocityUNet(
             spatial_dims=spatial_dims,
             in_channels=2 * in_channels,

@@ -62,6 +62,10 @@ def test_train_writes_best_weights_and_training_state(tmp_path, tiny_dataset):
     ckpt = tmp_path / "ckpt"
     weights = torch.load(ckpt / "model.pt", weights_only=True)
     _net_from_config(wf).load_state_dict(weights)  # strict: the same architecture, plain (unwrapped) names
+    # the settings the tensors cannot show travel beside them, and the training config's network fits them
+    from monai_probreg.network_settings import check_network_settings
+    recorded = check_network_settings(ckpt / "model.pt", _net_from_config(wf))
+    assert recorded is not None and recorded["network_size"] == TINY["network_size"]
     states = _train_states(ckpt)
     assert len(states) == 1, f"n_saved=1 keeps one training state; found {[p.name for p in states]}"
     state = torch.load(states[0], weights_only=True)
@@ -171,7 +175,8 @@ def test_multi_gpu_config_parses_and_overrides_single_process_pieces():
     val_targets = [h["_target_"] for h in config["validate"]["handlers"]]
     assert train_targets == ["ValidationHandler", "StatsHandler", "TensorBoardStatsHandler",
                              "monai_probreg.engine.NonFiniteGuard"]
-    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "monai_probreg.engine.AtomicCheckpointSaver"]
+    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "monai_probreg.engine.AtomicCheckpointSaver",
+                           "monai_probreg.network_settings.NetworkSettingsWriter"]
     # every rank keeps its NaN guard (its own weights); the other handlers run on rank 0 only
     assert all("_disabled_" in h for h in config["train"]["handlers"][:3] + config["validate"]["handlers"])
     assert "_disabled_" not in config["train"]["handlers"][3]
@@ -201,8 +206,8 @@ def test_two_process_ddp_training_on_gloo(tmp_path, tiny_dataset):
     assert proc.returncode == 0, log[-4000:]
 
     ckpt = tmp_path / "ckpt"
-    assert sorted(p.name for p in ckpt.iterdir() if p.name != "other_ranks") == ["model.pt",
-                                                                                 "train_state_checkpoint_epoch=1.pt"]
+    assert sorted(p.name for p in ckpt.iterdir() if p.name != "other_ranks") == [
+        "model.network.json", "model.pt", "train_state_checkpoint_epoch=1.pt"]
     # one checkpoint writer: rank 1 builds the (unattached) saver, which may create its folder, but writes nothing
     assert not [p for p in (ckpt / "other_ranks").rglob("*")] if (ckpt / "other_ranks").exists() else True
     ProbRegNet(network_size=[32, 32, 32]).load_state_dict(torch.load(ckpt / "model.pt", weights_only=True))

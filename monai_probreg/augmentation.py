@@ -15,7 +15,9 @@ more moving anatomy to match without changing what it has to learn. The ranges a
 :class:`RandDiffeomorphicd` is written here because MONAI's ``Rand3DElasticd`` smooths full-resolution noise with
 a Gaussian filter (1.9 s per 80x96x80 call at sigma 6, one thread: a third of a training iteration) and gives no
 diffeomorphism guarantee. Ours draws the velocity on a coarse control grid, upsamples it (smooth by construction)
-and integrates it with the package's own scaling and squaring: a smooth invertible warp in ~0.2 s.
+and integrates it with the package's own scaling and squaring at half resolution: a smooth invertible warp in
+0.65 s per 80x96x80 call, measured on one thread of a 2-core machine that was running two trainings (a training
+iteration took 5.7 s there).
 """
 
 from __future__ import annotations
@@ -34,8 +36,6 @@ __all__ = ["RandDiffeomorphicd", "moving_augmentation"]
 
 _MOVING_IMAGE = IMAGE_KEYS[0]
 _MOVING_LABEL = LABEL_KEYS[0]
-
-
 _MAX_AXES = 3  # rotation and shift parameters MONAI reads per axis; a 2-d grid uses the first one (rotation) or two
 
 
@@ -54,7 +54,8 @@ class RandDiffeomorphicd(RandomizableTransform, MapTransform):
     The velocity ``v`` is standard normal noise on a control grid of one point per ``control_spacing`` voxels (plus
     one, so the corners are control points), upsampled linearly to the image grid, scaled so that its RMS over the
     grid is ``magnitude`` voxels (the RMS displacement of a field this smooth is within a few per cent of it), and
-    integrated with ``num_steps`` squarings on a grid of half the size (then upsampled, as the model's own field). Pull-back, as everywhere in the package: ``out[x] = in[x + u(x)]``.
+    integrated with ``num_steps`` squarings on a grid of half the size (then upsampled, as the model's own field).
+    Pull-back, as everywhere in the package: ``out[x] = in[x + u(x)]``.
 
     Shapes: every key (C, *S), 2-d or 3-d, all on the same grid; shapes and dtypes are kept (labels rounded back).
 
@@ -144,7 +145,7 @@ def moving_augmentation(
     Shapes: ``moving`` (C, *S) and ``moving_label`` (1, *S) keep their shape; out-of-field voxels become 0.
 
     Raises:
-        ValueError: ``prob`` outside [0, 1], or a negative range.
+        ValueError: ``prob`` outside [0, 1], a negative range or a negative ``deform_magnitude``.
     """
     if not 0.0 <= float(prob) <= 1.0:
         raise ValueError(f"prob must be in [0, 1], got {prob!r}")

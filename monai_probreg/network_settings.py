@@ -45,11 +45,16 @@ def network_settings(network: nn.Module) -> dict[str, Any]:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in values.items()}
 
 
-def write_network_settings(model_file: str | os.PathLike, network: nn.Module) -> Path:
-    """Write :func:`network_settings` of ``network`` next to ``model_file``, atomically; returns the JSON's path."""
+def _settings_text(network: nn.Module) -> str:
+    return json.dumps(network_settings(network), indent=2) + "\n"
+
+
+def write_network_settings(model_file: str | os.PathLike, network: nn.Module, text: str | None = None) -> Path:
+    """Write :func:`network_settings` of ``network`` (or its already serialised ``text``) next to ``model_file``,
+    atomically; returns the JSON's path."""
     from monai_probreg.inference import write_text  # late: inference imports this module
 
-    return write_text(settings_path(model_file), json.dumps(network_settings(network), indent=2) + "\n")
+    return write_text(settings_path(model_file), text if text is not None else _settings_text(network))
 
 
 def check_network_settings(model_file: str | os.PathLike, network: nn.Module) -> dict[str, Any] | None:
@@ -95,6 +100,6 @@ class NetworkSettingsWriter:
         if not self.model_file.is_file():
             return
         path = settings_path(self.model_file)
-        text = json.dumps(network_settings(self.network), indent=2) + "\n"
+        text = _settings_text(self.network)
         if not path.is_file() or path.read_text() != text:
-            write_network_settings(self.model_file, self.network)
+            write_network_settings(self.model_file, self.network, text)

@@ -54,12 +54,6 @@ def test_prob_zero_is_the_identity():
     assert torch.equal(out["moving"], pair["moving"]) and torch.equal(out["moving_label"], pair["moving_label"])
 
 
-def test_a_seed_makes_the_draw_repeatable_and_seeds_differ():
-    pair = _blob_pair((16, 20, 16))
-    a, b, c = (_strong(seed=s)(dict(pair))["moving"] for s in (1, 1, 2))
-    assert torch.equal(a, b) and not torch.allclose(a, c)
-
-
 def test_labels_are_left_alone_without_with_labels():
     pair = _blob_pair((16, 16, 16))
     out = _strong(with_labels=False)(pair)
@@ -133,9 +127,10 @@ def test_zero_magnitude_or_probability_leaves_the_pair_alone():
         assert torch.equal(out["moving"], pair["moving"]) and torch.equal(out["moving_label"], pair["moving_label"])
 
 
-def test_deformation_draws_repeat_with_a_seed():
+@pytest.mark.parametrize("make", [_strong, _deform], ids=["affine", "deformation"])
+def test_a_seed_makes_the_draw_repeatable_and_seeds_differ(make):
     pair = _blob_pair((20, 20, 20))
-    a, b, c = (_deform(seed=s)(dict(pair))["moving"] for s in (5, 5, 6))
+    a, b, c = (make(seed=s)(dict(pair))["moving"] for s in (5, 5, 6))
     assert torch.equal(a, b) and not torch.allclose(a, c)
 
 

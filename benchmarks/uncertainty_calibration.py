@@ -1,9 +1,17 @@
 """Does the posterior's uncertainty mean anything? Calibration against known deformations, label uncertainty.
 
 1. Ground truth where it exists. For each subject S (default: ``val_ids`` of configs/train.yaml), ``--deformations``
-   random smooth velocity fields v are drawn (white noise on the velocity grid, Gaussian-smoothed, scaled so the
-   displacement RMS in the brain equals the RMS of the model's own displacement for S -> atlas: a realistic
-   magnitude). With our own integration (``TRUTH_STEPS`` squarings at full resolution): moving = R warped by
+   random smooth velocity fields v are drawn, by one of two ``--probe`` models:
+   - ``population`` (default): a statistical deformation model of real anatomy. The model's mean velocities of the
+     training subjects (never S) -> atlas give a mean and deviations; v = -(mean + sum_i w_i deviation_i) with
+     w_i ~ N(0, 1/(n-1)), a draw from their empirical Gaussian. Realistic magnitude (about the RMS of real
+     subject -> atlas fields) and realistic shape: the deformed atlas looks like a new subject. Optimistic: the
+     fields lie in the span of what the model itself predicts.
+   - ``noise``: white noise on the velocity grid, Gaussian-smoothed (``SMOOTHING_VOXELS``), scaled so the
+     displacement RMS in the brain equals the RMS of the model's own displacement for S -> atlas. Same magnitude,
+     random shape: out of the training distribution, the mean registration recovers only a fraction of it
+     (``recovered_fraction`` in the JSON): the pessimistic bound.
+   With our own integration (``TRUTH_STEPS`` squarings at full resolution): moving = R warped by
    exp(v), fixed = R; the true displacement of moving onto fixed is exp(-v). The reference R is the atlas by
    default (``--reference atlas``): the model is trained scan-to-atlas, so the atlas is the only fixed image it
    knows, and the test registers a deformed scan onto it as in use; ``--reference subject`` takes R = S (the
@@ -76,6 +84,34 @@ def random_deformation(fixed: torch.Tensor, rms: float, generator: torch.Generat
     return integrate(full), integrate(-full)
 
 
+def population_velocities(network, dataset) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mean (3, *V), deviations (n, 3, *V)) of the model's mean velocities over ``dataset``'s pairs (the training
+    subjects -> atlas): the statistical deformation model of the ``population`` probe."""
+    velocities = []
+    for item in dataset:
+        pair = {k: _plain(v)[None] for k, v in item.items() if isinstance(v, torch.Tensor)}
+        with torch.inference_mode():
+            velocities.append(network.posterior(pair["moving"], pair["fixed"]).mean[0])
+    if len(velocities) < 2:
+        raise SystemExit(f"the population probe needs >= 2 training subjects; got {len(velocities)}")
+    stacked = torch.stack(velocities)
+    mean = stacked.mean(0)
+    return mean, stacked - mean
+
+
+def population_deformation(fixed: torch.Tensor, population: tuple[torch.Tensor, torch.Tensor],
+                           generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """A draw from the population model on ``fixed``'s grid: (forward exp(v), inverse exp(-v)), both (1, 3, *S)
+    voxels, with -v = mean + sum_i w_i deviation_i, w_i ~ N(0, 1/(n - 1)): the moving image, ``fixed`` warped by
+    exp(v), takes the shape of a new subject, and the truth exp(-v) is a subject -> atlas field."""
+    mean, deviations = population
+    weights = torch.randn(len(deviations), generator=generator) / math.sqrt(len(deviations) - 1)
+    subject_to_atlas = mean + torch.einsum("n,n...->...", weights, deviations)
+    full = resize_displacement(-subject_to_atlas[None], fixed.shape[2:])  # velocity grid -> image voxels
+    integrate = ScalingAndSquaring(num_steps=TRUTH_STEPS)
+    return integrate(full), integrate(-full)
+
+
 def sample_displacements(network, mean, log_var, size, num_samples, generator):
     """Mean and variance (1, 3, *size) of ``num_samples`` displacements drawn from N(mean, exp(log_var))."""
     with torch.inference_mode():
@@ -104,10 +140,14 @@ def _subsample(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     return index[keep]
 
 
-def displacement_case(network, fixed, rms, num_samples, seed) -> dict[str, Any]:
-    """One synthetic case: the posterior (kept, to re-sample when calibrated), the truth on subsampled voxels."""
+def displacement_case(network, fixed, rms, num_samples, seed, population=None) -> dict[str, Any]:
+    """One synthetic case: the posterior (kept, to re-sample when calibrated), the truth on subsampled voxels.
+    ``population`` (from :func:`population_velocities`) draws the field from it; None: smoothed noise of RMS ``rms``."""
     generator = torch.Generator().manual_seed(seed)
-    forward, truth = random_deformation(fixed, rms, generator)
+    if population is not None:
+        forward, truth = population_deformation(fixed, population, generator)
+    else:
+        forward, truth = random_deformation(fixed, rms, generator)
     moving = warp_image(fixed, forward)
     with torch.inference_mode():
         posterior = network.posterior(moving, fixed)
@@ -171,6 +211,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
     ap.add_argument("--subjects", nargs="+", default=None, help="default: val_ids of configs/train.yaml")
     ap.add_argument("--deformations", type=int, default=2, help="random deformations per subject")
+    ap.add_argument("--probe", choices=["population", "noise"], default="population",
+                    help="how the known deformations are drawn (see the module docstring)")
     ap.add_argument("--reference", choices=["atlas", "subject"], default="atlas",
                     help="the image that is deformed and registered back (see the module docstring)")
     ap.add_argument("--samples", type=int, default=16, help="posterior samples K")
@@ -195,6 +237,13 @@ def main(argv=None) -> int:
     pairs = labelled_pairs(index_dataset(args.dataset_dir), subjects)
     dataset = Dataset(pairs, transform=evaluate.get_parsed_content("preprocessing"))
     folds = {sid: i % args.folds for i, sid in enumerate(p["id"] for p in pairs)}
+    population = None
+    if args.probe == "population":  # training subjects only: the scored subjects never shape the probe
+        train_ids = [i for i in index_dataset(args.dataset_dir).ids if i not in subjects]
+        population = population_velocities(network, Dataset(labelled_pairs(index_dataset(args.dataset_dir), train_ids),
+                                                            transform=evaluate.get_parsed_content("preprocessing")))
+        print(f"population probe: mean and {len(population[1])} deviations of the model's velocities of "
+              f"{', '.join(train_ids)} -> atlas", flush=True)
 
     cases, items, probe = {}, {}, None
     for n, item in enumerate(dataset):
@@ -209,11 +258,12 @@ def main(argv=None) -> int:
             probe = translation_probe(network, pair["fixed"])
             print("translation probe: recovered fraction of a 3-voxel shift of the atlas per axis: "
                   + ", ".join(f"{f:.2f}" for f in probe), flush=True)
-        cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + 100 * n + r)
+        cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + 100 * n + r, population)
                       for r in range(args.deformations)]
-        print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} deformations of the {args.reference}, displacement "
-              f"RMS {rms:.2f} voxels "
-              f"(the model's own for {sid} -> atlas)", flush=True)
+        truth_rms = [float(c["truth"].pow(2).sum(0).mean().sqrt()) for c in cases[sid]]
+        print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} {args.probe} deformations of the {args.reference}, "
+              f"true RMS {', '.join(f'{r:.2f}' for r in truth_rms)} voxels (the model's own for {sid} -> atlas: "
+              f"{rms:.2f})", flush=True)
 
     raw = {sid: [case_errors(network, c, 1.0, args.samples) for c in cs] for sid, cs in cases.items()}
 
@@ -274,7 +324,7 @@ def main(argv=None) -> int:
                                  args.samples, torch.Generator().manual_seed(args.seed))[1][0].sum(0).sqrt(),
             args.out_dir / "uncertainty_figure4.png", sid)
     result = {"model_file": str(model_file), "subjects": list(cases), "folds": folds, "fold_scales": scales,
-              "settings": {"deformations": args.deformations, "reference": args.reference, "samples": args.samples, "truth_steps": TRUTH_STEPS,
+              "settings": {"probe": args.probe, "deformations": args.deformations, "reference": args.reference, "samples": args.samples, "truth_steps": TRUTH_STEPS,
                            "smoothing_voxels": SMOOTHING_VOXELS, "voxels_per_case": VOXELS_PER_CASE,
                            "threads": args.threads, "seed": args.seed, "fit_iterations": FIT_ITERATIONS,
                            "uce_bins": "15 equal-count bins of predicted std",

@@ -113,15 +113,22 @@ class LossTermsLogger:
 
 
 class RegistrationMetrics(Metric):
-    """Mean Dice over ``label_values`` (default: non-zero labels of the fixed map) and mean |J| <= 0 count.
+    """Mean Dice over ``label_values`` (default: non-zero labels of the fixed map) and mean |J| <= 0 count per pair.
 
-    ``compute()`` returns ``{"dice": float, "folding": float}``; attach with a name and read
-    ``state.metrics[name]``; use :meth:`dice_only` as the key metric (a float) for checkpoint selection.
+    ``compute()`` returns ``{"dice": float, "folding": float}``. Attached as ``name`` (the evaluator's key metric),
+    it writes ``state.metrics[name]`` (Dice), ``state.metrics[name + "_folding"]`` and, when ``max_folding`` is set,
+    ``state.metrics[name + "_selection"]``: the Dice if fewer than ``max_folding`` voxels fold per pair on average,
+    else Dice - 1, so that an epoch which folds ranks below every epoch which does not (and folding epochs still
+    rank by Dice among themselves). Point a ``CheckpointSaver``'s ``key_metric_name`` at it to keep the best Dice
+    among the epochs that do not fold.
     """
 
-    def __init__(self, label_values: Sequence[int] | None = None,
+    def __init__(self, label_values: Sequence[int] | None = None, max_folding: float | None = None,
                  output_transform=lambda out: (out["pred"], out["label"])) -> None:
+        if max_folding is not None and not (isinstance(max_folding, (int, float)) and max_folding > 0):
+            raise ValueError(f"max_folding must be a positive number of voxels per pair or None; got {max_folding!r}")
         self.label_values = list(label_values) if label_values is not None else None
+        self.max_folding = None if max_folding is None else float(max_folding)
         super().__init__(output_transform=output_transform)
 
     def reset(self) -> None:
@@ -148,6 +155,9 @@ class RegistrationMetrics(Metric):
         result = self.compute()
         engine.state.metrics[name] = result["dice"]
         engine.state.metrics[f"{name}_folding"] = result["folding"]
+        if self.max_folding is not None:
+            eligible = result["folding"] < self.max_folding
+            engine.state.metrics[f"{name}_selection"] = result["dice"] - (0.0 if eligible else 1.0)
 
 
 class NonFiniteGuard:

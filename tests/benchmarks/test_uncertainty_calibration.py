@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -66,3 +68,42 @@ class _Oracle(torch.nn.Module):
 def test_translation_probe_reports_the_recovered_fraction(brain, gain):
     fractions = bench.translation_probe(_Oracle(brain, gain), brain, shift=3.0)
     assert fractions == pytest.approx([gain] * 3, abs=1e-6)
+
+
+class _ConstantPosterior(torch.nn.Module):
+    """posterior(moving, fixed).mean = the moving image's mean intensity, constant on a (3, 4, 5, 3) velocity grid."""
+
+    def posterior(self, moving, fixed):
+        return type("Posterior", (), {"mean": moving.mean() * torch.ones((1, 3, 4, 5, 3))})()
+
+
+def test_population_velocities_are_the_mean_and_the_deviations_from_it():
+    items = [{"moving": torch.full((1, 8, 8, 8), value), "fixed": torch.zeros((1, 8, 8, 8)), "id": f"T{value}"}
+             for value in (1.0, 2.0, 6.0)]
+    mean, deviations = bench.population_velocities(_ConstantPosterior(), items)
+    assert mean.shape == (3, 4, 5, 3) and deviations.shape == (3, 3, 4, 5, 3)
+    assert torch.allclose(mean, torch.full_like(mean, 3.0))
+    assert torch.allclose(deviations[:, 0, 0, 0, 0], torch.tensor([-2.0, -1.0, 3.0]))
+
+
+def test_population_velocities_need_two_subjects():
+    with pytest.raises(SystemExit, match=">= 2 training subjects"):
+        bench.population_velocities(_ConstantPosterior(), [{"moving": torch.ones((1, 8, 8, 8)),
+                                                             "fixed": torch.ones((1, 8, 8, 8))}])
+
+
+def test_population_deformation_is_the_drawn_subject_to_atlas_field_and_its_inverse(brain):
+    """Deviations (d, -d): the draw is -v = (w0 - w1) d with w = randn(2) of the same generator; the truth is
+    exp(-v) integrated at full resolution, the forward field its inverse."""
+    velocity_grid = tuple(n // 2 for n in brain.shape[2:])
+    d = torch.zeros((3, *velocity_grid))
+    x = torch.linspace(0, math.pi, velocity_grid[0])[:, None, None]
+    d[0] = 0.8 * torch.sin(x).expand(velocity_grid)  # a smooth bump along axis 0, velocity-grid voxels
+    forward, truth = bench.population_deformation(brain, (torch.zeros_like(d), torch.stack([d, -d])),
+                                                  torch.Generator().manual_seed(3))
+    w = torch.randn(2, generator=torch.Generator().manual_seed(3))
+    expected = bench.ScalingAndSquaring(num_steps=bench.TRUTH_STEPS)(
+        bench.resize_displacement(((w[0] - w[1]) * d)[None], brain.shape[2:]))
+    assert torch.allclose(truth, expected, atol=1e-5)
+    inside = brain[0, 0] > 0
+    assert compose_displacements(forward, truth)[0][:, inside].abs().max() < 0.05

@@ -56,6 +56,8 @@ def _net_from_config(wf: ConfigWorkflow) -> ProbRegNet:
 def test_train_writes_best_weights_and_training_state(tmp_path, tiny_dataset):
     wf = _workflow(tmp_path, tiny_dataset, max_epochs=2)
     assert wf.check_properties() == []  # every required TrainProperties/MetaProperties entry, optional IDs right
+    history: list[dict] = []
+    wf.evaluator.add_event_handler(Events.EPOCH_COMPLETED, lambda e: history.append(dict(e.state.metrics)))
     wf.run()
     wf.finalize()
 
@@ -74,7 +76,12 @@ def test_train_writes_best_weights_and_training_state(tmp_path, tiny_dataset):
     # the best-Dice bookkeeping travels with the training state, so a resume keeps comparing against it
     (best,) = state["best_model"]["_saved"]
     assert str(best[1]).startswith("model")  # ignite names it model_key_metric=<score>.pt; MONAI writes model.pt
-    assert best[0] == pytest.approx(wf.evaluator.state.best_metric)  # the priority is the best val Dice
+    # the priority is the folding-aware score (max_folding 1): Dice, minus 1 for an epoch folding >= 1 voxel per pair
+    assert len(history) == 2
+    for metrics in history:
+        penalty = 0.0 if metrics["val_dice_folding"] < 1.0 else 1.0
+        assert metrics["val_dice_selection"] == pytest.approx(metrics["val_dice"] - penalty)
+    assert best[0] == pytest.approx(max(m["val_dice_selection"] for m in history))
     assert any((tmp_path / "runs").glob("events.out.tfevents.*"))
 
 

@@ -234,13 +234,14 @@ def main(argv=None) -> int:
     subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     if len(subjects) < args.folds or args.folds < 2:
         raise SystemExit(f"--folds must be >= 2 and <= the number of subjects ({len(subjects)}); got {args.folds}")
-    pairs = labelled_pairs(index_dataset(args.dataset_dir), subjects)
+    index = index_dataset(args.dataset_dir)
+    pairs = labelled_pairs(index, subjects)
     dataset = Dataset(pairs, transform=evaluate.get_parsed_content("preprocessing"))
     folds = {sid: i % args.folds for i, sid in enumerate(p["id"] for p in pairs)}
     population = None
     if args.probe == "population":  # training subjects only: the scored subjects never shape the probe
-        train_ids = [i for i in index_dataset(args.dataset_dir).ids if i not in subjects]
-        population = population_velocities(network, Dataset(labelled_pairs(index_dataset(args.dataset_dir), train_ids),
+        train_ids = [i for i in index.ids if i not in subjects]
+        population = population_velocities(network, Dataset(labelled_pairs(index, train_ids),
                                                             transform=evaluate.get_parsed_content("preprocessing")))
         print(f"population probe: mean and {len(population[1])} deviations of the model's velocities of "
               f"{', '.join(train_ids)} -> atlas", flush=True)

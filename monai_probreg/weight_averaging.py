@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -28,7 +27,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from monai_probreg.inference import atomic_write
+from monai_probreg.inference import atomic_write, write_text
 from monai_probreg.network_settings import settings_path
 from monai_probreg.validation import InputError, safe_torch_load
 
@@ -102,7 +101,7 @@ def average_weight_files(inputs: Sequence[str | os.PathLike], out: str | os.Path
     out = Path(out)
     atomic_write(out, lambda tmp: torch.save(averaged, tmp))
     if settings is not None and settings.resolve() != settings_path(out).resolve():
-        atomic_write(settings_path(out), lambda tmp: shutil.copyfile(settings, tmp))
+        write_text(settings_path(out), settings.read_text())
     return out
 
 

@@ -15,8 +15,8 @@ each side of the last axis). Every method sees the same arrays. Rows:
     benchmarks/accuracy_table.py runs it, with Dice and |J| <= 0 of its composed field.
 Timing: wall time of the registration call, one untimed warm-up (ANTs: on a 4x smaller pair), then ``--repeats``
 runs per pair (ANTs: ``--ants-repeats``); the median over all pairs and runs; threads as given (torch, MKL, ITK).
-Memory: each method runs in a process of its own (benchmarks/speed_workers.py) and reports its peak resident set
-(``ru_maxrss``: Python, torch, the pairs and the method together). A ``levers`` process measures the inference levers
+Memory: each method runs in a process of its own (benchmarks/speed_workers.py) and reports the peak resident set
+of its timed runs (Python, torch, the pairs and the method together; the scoring afterwards is not counted). A ``levers`` process measures the inference levers
 one by one, the time by stage and the CPU's peaks (benchmarks/speed_levers.py).
 
     python benchmarks/speed_compare.py --threads 2         # table + benchmarks/results/speed_compare.{json,png}

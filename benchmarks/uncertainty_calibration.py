@@ -17,12 +17,16 @@
    knows, and the test registers a deformed scan onto it as in use; ``--reference subject`` takes R = S (the
    subject as the fixed image: out of the training distribution, the model then recovers only a fraction of v). K posterior samples give a mean and a
    per-component std, compared with exp(-v) inside the brain (fixed > 0): coverage of the nominal 68% / 95%
-   intervals, Spearman(std, |error|), UCE (15 equal-count bins), reliability diagram.
+   intervals, Spearman(std, |error|) per component and of the vectors (sqrt(sum_c std_c^2) against the length of
+   the error vector), each with its ceiling: the Spearman errors drawn from N(0, std^2) themselves would reach
+   (|error| of one Gaussian component varies so much at a given std that even a perfect std ranks it only
+   partly), UCE (15 equal-count bins), reliability diagram.
 2. Label uncertainty on real pairs: S -> atlas; the atlas labels are propagated into S by the K sampled inverse
    warps exp(-z_k); the per-voxel label entropy is scored (AUROC) as a detector of voxels where the atlas labels
    propagated by the mean, exp(-mean), disagree with S's manual labels (voxels where either is non-background).
-3. Calibration: one scale of the velocity std (:mod:`monai_probreg.calibration`), fitted by coverage matching on
-   the errors of part 1. Cross-fitted: the subjects are split in ``--folds`` folds; each fold is scored with the
+3. Calibration: a scale of the velocity std and a bias fraction (:mod:`monai_probreg.calibration`: the velocity
+   variance per component becomes std_scale^2 sigma^2 + (bias_fraction |mean|)^2), fitted together by coverage
+   matching on the displacement errors of part 1 (re-sampled at the fitted pair and refitted, ``FIT_ITERATIONS``). Cross-fitted: the subjects are split in ``--folds`` folds; each fold is scored with the
    scale fitted on the others, with fresh samples drawn from the calibrated posterior. Raw (scale 1) rows use
    the same subjects. ``--write-calibration`` fits on all subjects and writes the sidecar next to the weights.
 
@@ -50,7 +54,7 @@ from uncertainty_figures import figure4, reliability_diagram  # noqa: E402
 
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement  # noqa: E402
 from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
-from monai_probreg.calibration import calibrate_log_var, fit_std_scale, save_calibration  # noqa: E402
+from monai_probreg.calibration import Calibration, calibrate_log_var, fit_calibration, save_calibration  # noqa: E402
 from monai_probreg.data import index_dataset  # noqa: E402
 from monai_probreg.inference import labelled_pairs, load_weights, write_text  # noqa: E402
 from monai_probreg.metrics.calibration import auroc, interval_coverage, spearman, uncertainty_calibration_error  # noqa: E402
@@ -61,7 +65,8 @@ TRUTH_STEPS = 10          # squarings for the true fields (full resolution; the 
 SMOOTHING_VOXELS = 6.0    # Gaussian sigma of the random velocity, in velocity-grid voxels (12 mm at 1 mm, /2)
 VOXELS_PER_CASE = 400_000  # brain voxels subsampled per case for the displacement metrics (x 3 components)
 PROBE_SHIFT_VOXELS = 3.0   # translation of the diagnostic probe (recovered fraction per axis)
-FIT_ITERATIONS = 3         # re-sample at the fitted scale and refit: the displacement std grows sub-linearly with it
+FIT_ITERATIONS = 8         # at most this many re-samplings at the fitted pair and refits (the std is not linear in it)
+FIT_TOLERANCE = 0.02       # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
 
 
 def _plain(t: torch.Tensor) -> torch.Tensor:
@@ -152,22 +157,31 @@ def displacement_case(network, fixed, rms, num_samples, seed, population=None) -
     with torch.inference_mode():
         posterior = network.posterior(moving, fixed)
     voxels = _subsample(fixed[0, 0] > 0, generator)
+    with torch.inference_mode():
+        registration = network.velocity_to_displacement(posterior.mean, tuple(fixed.shape[2:]))
+        # the raw velocity std on the image grid, in its voxels: what sampling would give without any smoothing
+        velocity_std = resize_displacement((0.5 * posterior.log_var).exp(), tuple(fixed.shape[2:]))
     return {"mean": posterior.mean, "log_var": posterior.log_var, "truth": truth[0].flatten(1)[:, voxels],
-            "voxels": voxels, "size": tuple(fixed.shape[2:]), "seed": seed}
+            "voxels": voxels, "size": tuple(fixed.shape[2:]), "seed": seed,
+            "displacement_norm": registration[0].flatten(1)[:, voxels].norm(dim=0),
+            "velocity_std": velocity_std[0].flatten(1)[:, voxels]}
 
 
-def case_errors(network, case, std_scale, num_samples) -> tuple[np.ndarray, np.ndarray]:
-    """(std, error) per subsampled voxel and component, from ``num_samples`` calibrated posterior samples."""
-    log_var = calibrate_log_var(case["log_var"], std_scale)
+def case_errors(network, case, calibration: Calibration, num_samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(std, error, |mean displacement|), each (3, N): per subsampled voxel and component, from ``num_samples``
+    samples of the posterior calibrated by ``calibration``."""
+    log_var = calibrate_log_var(case["log_var"], calibration.std_scale, case["mean"], calibration.bias_fraction)
     generator = torch.Generator().manual_seed(case["seed"] + 1)
     mean, variance = sample_displacements(network, case["mean"], log_var, case["size"], num_samples, generator)
     pick = case["voxels"]
     error = mean[0].flatten(1)[:, pick] - case["truth"]
-    return variance[0].flatten(1)[:, pick].sqrt().numpy(), error.numpy()
+    norm = case["displacement_norm"].expand_as(error)
+    return variance[0].flatten(1)[:, pick].sqrt().numpy(), error.numpy(), norm.numpy()
 
 
-def _pool(errors: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    return tuple(np.concatenate([e[i].ravel() for e in errors]) for i in (0, 1))  # type: ignore[return-value]
+def _pool(errors: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """Concatenate the (3, N) arrays of several cases along N."""
+    return tuple(np.concatenate([e[i] for e in errors], axis=1) for i in range(len(errors[0])))
 
 
 def recovered_fraction(error: np.ndarray, truth: np.ndarray) -> float:
@@ -176,18 +190,25 @@ def recovered_fraction(error: np.ndarray, truth: np.ndarray) -> float:
 
 
 def displacement_metrics(std: np.ndarray, error: np.ndarray) -> dict[str, float]:
+    """Metrics of (3, N) std and error: per component, and of the vectors (std_c combined, error length)."""
+    perfect = std * np.random.default_rng(0).standard_normal(std.shape)  # errors a calibrated Gaussian would make
+    vector_std = np.sqrt((std**2).sum(0))
     return {"coverage_68": interval_coverage(std, error, 0.68), "coverage_95": interval_coverage(std, error, 0.95),
-            "spearman_std_abs_error": spearman(std, np.abs(error)), "uce_voxels": uncertainty_calibration_error(std, error),
+            "spearman_std_abs_error": spearman(std.ravel(), np.abs(error).ravel()),
+            "spearman_ceiling": spearman(std.ravel(), np.abs(perfect).ravel()),
+            "spearman_vector": spearman(vector_std, np.linalg.norm(error, axis=0)),
+            "spearman_vector_ceiling": spearman(vector_std, np.linalg.norm(perfect, axis=0)),
+            "uce_voxels": uncertainty_calibration_error(std.ravel(), error.ravel()),
             "rms_error_voxels": float(np.sqrt(np.mean(error**2))), "rms_std_voxels": float(np.sqrt(np.mean(std**2)))}
 
 
-def label_case(network, pair, std_scale, num_samples, seed) -> dict[str, Any]:
+def label_case(network, pair, calibration: Calibration, num_samples, seed) -> dict[str, Any]:
     """Atlas labels into the subject by K sampled inverse warps; label entropy vs wrongly labelled voxels."""
     moving, fixed = pair["moving"], pair["fixed"]
     size = tuple(moving.shape[2:])
     with torch.inference_mode():
         posterior = network.posterior(moving, fixed)
-        log_var = calibrate_log_var(posterior.log_var, std_scale)
+        log_var = calibrate_log_var(posterior.log_var, calibration.std_scale, posterior.mean, calibration.bias_fraction)
         atlas_label = pair["fixed_label"].to(torch.int16)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
         generator = torch.Generator().manual_seed(seed)
@@ -266,28 +287,47 @@ def main(argv=None) -> int:
               f"true RMS {', '.join(f'{r:.2f}' for r in truth_rms)} voxels (the model's own for {sid} -> atlas: "
               f"{rms:.2f})", flush=True)
 
-    raw = {sid: [case_errors(network, c, 1.0, args.samples) for c in cs] for sid, cs in cases.items()}
+    raw_calibration = Calibration(1.0, 0.0)
+    raw = {sid: [case_errors(network, c, raw_calibration, args.samples) for c in cs] for sid, cs in cases.items()}
 
-    def fit(sids: list[str]) -> float:
-        """Coverage-matching scale on ``sids``, refined with samples drawn at the current scale."""
-        scale = fit_std_scale(*_pool([e for s in sids for e in raw[s]]))
-        for _ in range(FIT_ITERATIONS):
-            scale *= fit_std_scale(*_pool([case_errors(network, c, scale, args.samples) for s in sids
-                                           for c in cases[s]]))
-        return scale
+    def fit(sids: list[str]) -> Calibration:
+        """Coverage-matching (scale, bias fraction) on ``sids``: fitted on the raw samples, then re-sampled at the
+        current pair and refitted. Independent velocity noise reaches the displacement damped by a factor kappa
+        (interpolation and integration average neighbours; kappa = sampled raw displacement variance / raw velocity
+        variance on the image grid), so a refit (c, a) of samples drawn at (s, b) means a variance of about
+        c^2 kappa (s^2 sigma^2 + b^2 |mu|^2) + a^2 |u|^2 (u ~ mu once integrated): the new pair is
+        (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
+        pooled = _pool([e for s in sids for e in raw[s]])
+        velocity_std = np.concatenate([c["velocity_std"].numpy() for s in sids for c in cases[s]], axis=1)
+        kappa = float(np.mean(pooled[0] ** 2) / np.mean(velocity_std**2))
+        first = fit_calibration(*pooled)
+        current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa))
+        for iteration in range(1, FIT_ITERATIONS + 1):
+            refit = fit_calibration(*_pool([case_errors(network, c, current, args.samples) for s in sids
+                                            for c in cases[s]]))
+            if abs(refit.std_scale - 1) < FIT_TOLERANCE and refit.bias_fraction < FIT_TOLERANCE:
+                break  # the samples at the current pair already cover as nominal as the fit can make them
+            current = Calibration(refit.std_scale * current.std_scale,
+                                  math.hypot(refit.std_scale * current.bias_fraction,
+                                             refit.bias_fraction / math.sqrt(kappa)))
+        print(f"  fit on {', '.join(sids)}: kappa {kappa:.3f}, refit {iteration} ({refit.std_scale:.3f}, "
+              f"{refit.bias_fraction:.3f}) -> std_scale {current.std_scale:.3f}, bias_fraction "
+              f"{current.bias_fraction:.3f}", flush=True)
+        return current
 
     scales = {f: fit([s for s in raw if folds[s] != f]) for f in range(args.folds)}
-    print("held-out scales per fold: " + ", ".join(f"{v:.3f}" for v in scales.values()), flush=True)
+    print("held-out calibrations per fold (std_scale, bias_fraction): "
+          + ", ".join(f"({v.std_scale:.3f}, {v.bias_fraction:.2f})" for v in scales.values()), flush=True)
     rows: dict[str, Any] = {"raw": {"std": [], "error": [], "auroc": []}, "calibrated": {"std": [], "error": [], "auroc": []}}
     per_subject, figure_case = {}, None
-    truth = {sid: np.concatenate([c["truth"].numpy().ravel() for c in cs]) for sid, cs in cases.items()}
+    truth = {sid: np.concatenate([c["truth"].numpy() for c in cs], axis=1) for sid, cs in cases.items()}
     for sid in cases:
-        scale = scales[folds[sid]]
-        record = {"fold": folds[sid], "std_scale": scale}
-        for name, s in (("raw", 1.0), ("calibrated", scale)):
-            errors = raw[sid] if name == "raw" else [case_errors(network, c, s, args.samples) for c in cases[sid]]
-            std, error = _pool(errors)
-            labels = label_case(network, items[sid], s, args.samples, args.seed + 7)
+        calibration = scales[folds[sid]]
+        record = {"fold": folds[sid], "std_scale": calibration.std_scale, "bias_fraction": calibration.bias_fraction}
+        for name, cal in (("raw", Calibration(1.0, 0.0)), ("calibrated", calibration)):
+            errors = raw[sid] if name == "raw" else [case_errors(network, c, cal, args.samples) for c in cases[sid]]
+            std, error, _ = _pool(errors)
+            labels = label_case(network, items[sid], cal, args.samples, args.seed + 7)
             rows[name]["std"].append(std)
             rows[name]["error"].append(error)
             rows[name]["auroc"].append(labels["auroc"])
@@ -297,46 +337,56 @@ def main(argv=None) -> int:
             if name == "calibrated" and figure_case is None:
                 figure_case = (sid, items[sid], labels)
         per_subject[sid] = record
-        print(f"{sid} (fold {folds[sid]}, scale {scale:.2f}): " + "; ".join(
+        print(f"{sid} (fold {folds[sid]}, scale {calibration.std_scale:.2f}, bias fraction "
+              f"{calibration.bias_fraction:.2f}): " + "; ".join(
             f"{n} cov68 {record[n]['coverage_68']:.3f} cov95 {record[n]['coverage_95']:.3f} "
             f"rho {record[n]['spearman_std_abs_error']:.3f} AUROC {record[n]['label_entropy_auroc']:.3f}"
             for n in ("raw", "calibrated")), flush=True)
 
     summary = {}
     for name, row in rows.items():
-        std, error = np.concatenate(row["std"]), np.concatenate(row["error"])
+        std, error = np.concatenate(row["std"], axis=1), np.concatenate(row["error"], axis=1)
         summary[name] = {**displacement_metrics(std, error), "label_entropy_auroc": float(np.mean(row["auroc"])),
-                         "recovered_fraction": recovered_fraction(error, np.concatenate(list(truth.values())))}
-    table = ["| posterior | coverage 68% | coverage 95% | Spearman(std, abs error) | UCE (voxels) | "
-             "RMS error / RMS std (voxels) | label-entropy AUROC |", "|---|---|---|---|---|---|---|"]
+                         "recovered_fraction": recovered_fraction(error, np.concatenate(list(truth.values()), axis=1))}
+    table = ["| posterior | coverage 68% | coverage 95% | Spearman per component (ceiling) | Spearman of vectors "
+             "(ceiling) | UCE (voxels) | RMS error / RMS std (voxels) | label-entropy AUROC |",
+             "|---|---|---|---|---|---|---|---|"]
     # (recovered_fraction, in the JSON: how much of the true displacement the mean registration recovers)
     for name, m in summary.items():
-        table.append(f"| {name} | {m['coverage_68']:.3f} | {m['coverage_95']:.3f} | {m['spearman_std_abs_error']:.3f} | "
+        table.append(f"| {name} | {m['coverage_68']:.3f} | {m['coverage_95']:.3f} | {m['spearman_std_abs_error']:.3f} "
+                     f"({m['spearman_ceiling']:.2f}) | {m['spearman_vector']:.3f} ({m['spearman_vector_ceiling']:.2f}) | "
                      f"{m['uce_voxels']:.3f} | {m['rms_error_voxels']:.2f} / {m['rms_std_voxels']:.2f} | "
                      f"{m['label_entropy_auroc']:.3f} |")
     markdown = "\n".join(table)
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    curve_names = {"raw": "raw posterior", "calibrated": "calibrated (scale fitted on the other fold)"}
-    reliability_diagram({curve_names[n]: (np.concatenate(r["std"]), np.concatenate(r["error"])) for n, r in rows.items()},
+    curve_names = {"raw": "raw posterior", "calibrated": "calibrated (fitted on the other fold)"}
+    reliability_diagram({curve_names[n]: (np.concatenate(r["std"], axis=1).ravel(),
+                                          np.concatenate(r["error"], axis=1).ravel()) for n, r in rows.items()},
                         args.out_dir / "uncertainty_reliability.png")
     sid, pair, labels = figure_case
-    figure4(pair, labels, velocity_entropy(labels["log_var"], pair["fixed"].shape[2:])[0, 0],
-            sample_displacements(network, labels["mean"], labels["log_var"], tuple(pair["fixed"].shape[2:]),
-                                 args.samples, torch.Generator().manual_seed(args.seed))[1][0].sum(0).sqrt(),
+    size = tuple(pair["fixed"].shape[2:])
+    variance = sample_displacements(network, labels["mean"], labels["log_var"], size, args.samples,
+                                    torch.Generator().manual_seed(args.seed))[1]
+    figure4(pair, labels, velocity_entropy(labels["log_var"], size)[0, 0], variance[0].sum(0).sqrt(),
             args.out_dir / "uncertainty_figure4.png", sid)
-    result = {"model_file": str(model_file), "subjects": list(cases), "folds": folds, "fold_scales": scales,
+    result = {"model_file": str(model_file), "subjects": list(cases), "folds": folds,
+              "fold_calibrations": {f: c._asdict() for f, c in scales.items()},
               "settings": {"probe": args.probe, "deformations": args.deformations, "reference": args.reference, "samples": args.samples, "truth_steps": TRUTH_STEPS,
                            "smoothing_voxels": SMOOTHING_VOXELS, "voxels_per_case": VOXELS_PER_CASE,
                            "threads": args.threads, "seed": args.seed, "fit_iterations": FIT_ITERATIONS,
+                           "fit_tolerance": FIT_TOLERANCE,
                            "uce_bins": "15 equal-count bins of predicted std",
                            "label_region": "voxels where the propagated or the manual label is non-background"},
               "summary": summary, "per_subject": per_subject, "translation_probe_recovered": probe, "markdown": markdown,
               "wall_time_s": time.time() - start_time}
     if args.write_calibration:
-        scale = fit(list(raw))
-        record = save_calibration(model_file, scale, list(raw), args.samples)
-        result["written_calibration"] = {"path": str(model_file), "std_scale": record.std_scale}
-        print(f"wrote the calibration of {model_file.name}: std_scale {scale:.3f} (all {len(raw)} subjects)")
+        fitted = fit(list(raw))
+        record = save_calibration(model_file, fitted.std_scale, list(raw), args.samples,
+                                  bias_fraction=fitted.bias_fraction)
+        result["written_calibration"] = {"path": str(model_file), "std_scale": record.std_scale,
+                                         "bias_fraction": record.bias_fraction}
+        print(f"wrote the calibration of {model_file.name}: std_scale {fitted.std_scale:.3f}, bias_fraction "
+              f"{fitted.bias_fraction:.2f} (all {len(raw)} subjects)")
     json_path = write_text(args.out_dir / "uncertainty_calibration.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{markdown}\n\nwrote "
           f"{json_path}, uncertainty_reliability.png, uncertainty_figure4.png ({time.time() - start_time:.0f} s)")

@@ -17,7 +17,7 @@ from monai.bundle import ConfigParser
 from torch import nn
 
 import monai_probreg
-from monai_probreg.calibration import std_scale_for
+from monai_probreg.calibration import calibration_for
 from monai_probreg.inference import load_weights
 from monai_probreg.io import InputError
 
@@ -39,6 +39,7 @@ class LoadedModel:
     model_file: Path
     config_file: Path
     std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.calibration
+    bias_fraction: float = 0.0  # the calibration's bias term in displacement_std (0 = raw)
 
 
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
@@ -75,7 +76,7 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
         raise InputError(f"--model-file {str(weights)!r}: does not fit the network of {str(config)!r} "
                          f"({str(err).splitlines()[0][:160]})") from None
     try:
-        std_scale = std_scale_for(weights, calibrate)
+        calibration = calibration_for(weights, calibrate)
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
-    return LoadedModel(network, divisor, torch.device(device), weights, config, std_scale)
+    return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration)

@@ -1,17 +1,28 @@
-"""Post-hoc calibration of the velocity posterior: one scalar that scales its standard deviation.
+"""Post-hoc calibration of the posterior: two scalars, a velocity std scale and a bias fraction.
 
 Variational posteriors are over-confident (the KL pulls sigma^2 towards 1/(lambda D), whatever the real error).
 We keep the network as trained and temper its posterior afterwards:
 
     sigma_calibrated = std_scale * sigma        i.e.   log_var_calibrated = log_var + 2 log(std_scale)
 
-Sampling, the velocity entropy and the displacement std all follow from the calibrated ``log_var``; for the small
-sigmas of a trained model the displacement std scales (to first order) by the same factor, which is how
-:func:`fit_std_scale` can fit the scale from one set of samples (the benchmark then checks coverage with samples
-drawn from the calibrated posterior). The scale is fitted on subjects with a known true displacement
-(``benchmarks/uncertainty_calibration.py``) and stored next to the weights it belongs to, as
-``<weights stem>.calibration.json``, with the weights' SHA-256 so that a retrained model is never paired with an
-old scale. Raw (uncalibrated) values: ``std_scale = 1``.
+The posterior's spread is not the whole error: the prior also pulls the mean registration short of large
+displacements (the translation and population probes of ``benchmarks/uncertainty_calibration.py`` recover 50-96%
+of a known displacement), a bias that grows with the displacement and that the raw posterior does not show. The
+calibrated posterior therefore gets a second, isotropic variance term per component (written by hand: no library
+offers it):
+
+    sigma^2_calibrated,c = std_scale^2 * sigma^2_c + (bias_fraction * |mu|)^2
+
+with mu the posterior mean velocity at that voxel (|mu| its length over the D components). It stays a diagonal
+Gaussian on the velocity grid, so sampling (diffeomorphic samples), the velocity entropy, the displacement std and
+the label entropy all follow from the calibrated ``log_var``. For the small sigmas of a trained model the sampled
+displacement variance is, to first order, std_scale^2 times the raw one plus (bias_fraction |u|)^2 (u the
+displacement, about mu once integrated), which is how :func:`fit_calibration` fits both scalars from one set of
+samples: the pair whose intervals cover closest to nominal at :data:`FIT_LEVELS` (the benchmark re-samples at the
+fitted pair, refits, and checks coverage on held-out subjects).
+They are stored next to the weights they belong to, as ``<weights stem>.calibration.json``, with the weights'
+SHA-256 so that a retrained model is never paired with an old calibration (a sidecar without ``bias_fraction``, from
+before it existed, reads as 0). Raw (uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``.
 """
 
 from __future__ import annotations
@@ -25,30 +36,46 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
+import torch
 from torch import Tensor
 
 from monai_probreg.metrics.calibration import gaussian_interval_z
 
 __all__ = [
     "FIT_LEVELS",
+    "Calibration",
     "CalibrationRecord",
     "calibrate_log_var",
+    "bias_variance",
+    "fit_calibration",
     "fit_std_scale",
     "calibration_path",
     "save_calibration",
     "load_calibration",
+    "calibration_for",
     "std_scale_for",
 ]
 
 FIT_LEVELS: tuple[float, ...] = (0.5, 0.68, 0.8, 0.9, 0.95)  # nominal interval levels whose coverage the fit matches
 _GRID_POINTS = 1024  # candidate scales searched between the per-level solutions (log-spaced)
+BIAS_FRACTIONS: tuple[float, ...] = tuple(i / 100 for i in range(101))  # bias fractions fit_calibration tries
+_SEARCH_POINTS = 200_000  # entries fit_calibration searches the bias fraction on
+_MIN_SCALE = 1e-6  # lower bound of a fitted scale (a bias term alone may cover a level: the scale must stay > 0)
+
+
+class Calibration(NamedTuple):
+    """The two numbers inference uses (raw posterior: 1 and 0)."""
+
+    std_scale: float
+    bias_fraction: float
 
 
 @dataclass(frozen=True)
 class CalibrationRecord:
-    """What is stored next to the weights. ``std_scale`` is the only number inference uses."""
+    """What is stored next to the weights. ``std_scale`` and ``bias_fraction`` are the numbers inference uses."""
 
     std_scale: float
     weights_file: str
@@ -56,35 +83,96 @@ class CalibrationRecord:
     fitted_on: list[str] = field(default_factory=list)
     num_samples: int = 0
     levels: list[float] = field(default_factory=lambda: list(FIT_LEVELS))
-    method: str = "coverage matching: std_scale minimises sum over levels of (coverage - level)^2"
+    method: str = ("coverage matching: (std_scale, bias_fraction) of sigma^2 = std_scale^2 sigma^2 + (bias_fraction "
+                   "|mean velocity|)^2 minimise sum over levels of (coverage - level)^2 of the sampled displacements")
+    bias_fraction: float = 0.0
 
 
-def calibrate_log_var(log_var: Tensor, std_scale: float) -> Tensor:
-    """log sigma^2 of the calibrated posterior: ``log_var + 2 log(std_scale)`` (any shape)."""
+def _check_scale(std_scale: float) -> None:
     if not (math.isfinite(std_scale) and std_scale > 0):
         raise ValueError(f"std_scale must be a positive finite number; got {std_scale}")
-    return log_var + 2.0 * math.log(std_scale)
+
+
+def _check_bias_fraction(bias_fraction: float) -> None:
+    if not (math.isfinite(bias_fraction) and bias_fraction >= 0):
+        raise ValueError(f"bias_fraction must be a finite number >= 0; got {bias_fraction}")
+
+
+def calibrate_log_var(log_var: Tensor, std_scale: float, mean: Tensor | None = None, bias_fraction: float = 0.0
+                      ) -> Tensor:
+    """log sigma^2 of the calibrated posterior: ``log(std_scale^2 exp(log_var) + (bias_fraction |mean|)^2)``, i.e.
+    ``log_var + 2 log(std_scale)`` without the bias term. ``log_var`` any shape; with ``bias_fraction`` > 0,
+    ``mean`` (B, D, *V) the posterior mean velocity, same shape as ``log_var``."""
+    _check_scale(std_scale)
+    _check_bias_fraction(bias_fraction)
+    if bias_fraction == 0:
+        return log_var + 2.0 * math.log(std_scale)
+    if mean is None or mean.shape != log_var.shape:
+        raise ValueError(f"bias_fraction > 0 needs the posterior mean of the log_var's shape {tuple(log_var.shape)}; "
+                         f"got {None if mean is None else tuple(mean.shape)}")
+    return torch.log(std_scale**2 * log_var.exp() + bias_variance(mean, bias_fraction))
+
+
+def bias_variance(mean: Tensor, bias_fraction: float) -> Tensor:
+    """(B, 1, *S) ``(bias_fraction * |mean|)^2`` for a field ``mean`` (B, D, *S) (the posterior mean velocity): the
+    variance the calibration adds to every component (units of ``mean``, squared)."""
+    _check_bias_fraction(bias_fraction)
+    if mean.dim() < 3:
+        raise ValueError(f"expected a field (B, D, *S); got shape {tuple(mean.shape)}")
+    return bias_fraction**2 * mean.float().pow(2).sum(1, keepdim=True)
+
+
+def _array(x: Tensor | np.ndarray) -> np.ndarray:
+    return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, np.float64)
+
+
+def _fit_scale(s: np.ndarray, e: np.ndarray, b: np.ndarray, z: np.ndarray, levels: np.ndarray
+               ) -> tuple[float, float]:
+    """(scale, cost) for one bias variance ``b``: ``|e| <= z_p sqrt(scale^2 s^2 + b)`` <=> ``r_p <= scale^2`` with
+    ``r_p = (e^2 / z_p^2 - b) / s^2``, so each level's coverage is a sorted search and each level alone has an exact
+    solution; the scale is searched between those."""
+    r = np.sort((e[None, :] ** 2 / z[:, None] ** 2 - b[None, :]) / s[None, :] ** 2, axis=1)  # (levels, N)
+    per_level = np.sqrt(np.maximum([np.quantile(r_p, p) for r_p, p in zip(r, levels)], _MIN_SCALE**2))
+    low, high = per_level.min(), per_level.max()
+    candidates = np.geomspace(low, high, _GRID_POINTS) if high > low else np.array([low])
+    coverage = np.stack([np.searchsorted(r_p, candidates**2, side="right") for r_p in r], 1) / e.size
+    cost = ((coverage - levels[None, :]) ** 2).sum(axis=1)
+    best = int(np.argmin(cost))
+    return float(candidates[best]), float(cost[best])
+
+
+def fit_calibration(std: Tensor | np.ndarray, error: Tensor | np.ndarray, displacement_norm: Tensor | np.ndarray,
+                    levels: Sequence[float] = FIT_LEVELS, bias_fractions: Sequence[float] = BIAS_FRACTIONS
+                    ) -> Calibration:
+    """(scale s, bias fraction a) for which the intervals ``|error| <= z_p sqrt(s^2 std^2 + a^2 n^2)`` cover closest
+    to p over ``levels`` (least squares in coverage; a searched over ``bias_fractions``, s for each a).
+
+    ``std`` > 0, ``error`` and ``displacement_norm`` n = |mean displacement| (>= 0): same shape, any shape, one
+    entry per voxel and component. ``s`` multiplies the std the samples were drawn with."""
+    s, e, n = _array(std).reshape(-1), _array(error).reshape(-1), _array(displacement_norm).reshape(-1)
+    if not (s.shape == e.shape == n.shape) or s.size == 0:
+        raise ValueError(f"std, error and displacement_norm must have the same non-empty shape; got "
+                         f"{_array(std).shape}, {_array(error).shape} and {_array(displacement_norm).shape}")
+    if not (np.isfinite(s).all() and np.isfinite(e).all() and (s > 0).all() and np.isfinite(n).all()
+            and (n >= 0).all()):
+        raise ValueError("std must be positive and finite, error finite, displacement_norm finite and >= 0")
+    if not levels or not bias_fractions:
+        raise ValueError(f"levels and bias_fractions must not be empty; got {list(levels)} and {list(bias_fractions)}")
+    for a in bias_fractions:
+        _check_bias_fraction(a)
+    z, p = np.array([gaussian_interval_z(level) for level in levels]), np.asarray(levels, np.float64)
+    bias_fraction = float(bias_fractions[0])
+    if len(bias_fractions) > 1:  # the search on a fixed random subset (millions of entries: seconds, not minutes)
+        pick = np.random.default_rng(0).permutation(s.size)[:_SEARCH_POINTS]
+        costs = [_fit_scale(s[pick], e[pick], (a * n[pick]) ** 2, z, p)[1] for a in bias_fractions]
+        bias_fraction = float(bias_fractions[int(np.argmin(costs))])
+    return Calibration(_fit_scale(s, e, (bias_fraction * n) ** 2, z, p)[0], bias_fraction)  # the scale on all
 
 
 def fit_std_scale(std: Tensor | np.ndarray, error: Tensor | np.ndarray, levels: Sequence[float] = FIT_LEVELS) -> float:
     """The scale s for which the intervals ``|error| <= z_p * s * std`` cover closest to p over ``levels``
-    (least squares in coverage). ``std`` > 0 and ``error`` same shape, any shape."""
-    s = std.detach().cpu().double().numpy() if isinstance(std, Tensor) else np.asarray(std, np.float64)
-    e = error.detach().cpu().double().numpy() if isinstance(error, Tensor) else np.asarray(error, np.float64)
-    if s.shape != e.shape or s.size == 0:
-        raise ValueError(f"std and error must have the same non-empty shape; got {s.shape} and {e.shape}")
-    if not (np.isfinite(s).all() and np.isfinite(e).all() and (s > 0).all()):
-        raise ValueError("std must be positive and finite, error finite")
-    if not levels:
-        raise ValueError("levels must not be empty")
-    ratio = np.sort((np.abs(e) / s).reshape(-1))
-    z = np.array([gaussian_interval_z(p) for p in levels])
-    per_level = np.array([np.quantile(ratio, p) for p in levels]) / z  # each one alone makes its coverage exact
-    low, high = max(per_level.min(), 1e-12), max(per_level.max(), 1e-12)
-    candidates = np.geomspace(low, high, _GRID_POINTS) if high > low else np.array([low])
-    coverage = np.searchsorted(ratio, z[None, :] * candidates[:, None], side="right") / ratio.size
-    cost = ((coverage - np.asarray(levels)[None, :]) ** 2).sum(axis=1)
-    return float(candidates[int(np.argmin(cost))])
+    (least squares in coverage): :func:`fit_calibration` without a bias term. ``std`` > 0 and ``error``, same shape."""
+    return fit_calibration(std, error, np.zeros(np.shape(_array(std))), levels, (0.0,)).std_scale
 
 
 def _sha256(path: str | os.PathLike) -> str:
@@ -102,11 +190,13 @@ def calibration_path(weights_file: str | os.PathLike) -> Path:
 
 
 def save_calibration(weights_file: str | os.PathLike, std_scale: float, fitted_on: Sequence[str] = (),
-                     num_samples: int = 0, levels: Sequence[float] = FIT_LEVELS) -> CalibrationRecord:
+                     num_samples: int = 0, levels: Sequence[float] = FIT_LEVELS,
+                     bias_fraction: float = 0.0) -> CalibrationRecord:
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it."""
-    calibrate_log_var(np.zeros(1), std_scale)  # validates the scale
+    _check_scale(std_scale)
+    _check_bias_fraction(bias_fraction)
     record = CalibrationRecord(float(std_scale), Path(weights_file).name, _sha256(weights_file), list(fitted_on),
-                               int(num_samples), [float(p) for p in levels])
+                               int(num_samples), [float(p) for p in levels], bias_fraction=float(bias_fraction))
     target = calibration_path(weights_file)
     fd, tmp = tempfile.mkstemp(dir=target.parent, suffix=".tmp")
     with os.fdopen(fd, "w") as f:
@@ -130,18 +220,28 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
         raise ValueError(f"{path} was fitted for weights with SHA-256 {record.weights_sha256[:12]}..., but "
                          f"{weights_file} has {actual[:12]}...; refit it (benchmarks/uncertainty_calibration.py) "
                          "or use std_scale 1 (raw)")
-    calibrate_log_var(np.zeros(1), record.std_scale)
+    try:
+        _check_scale(record.std_scale)
+        _check_bias_fraction(record.bias_fraction)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {err}") from None
     return record
 
 
-def std_scale_for(weights_file: str | os.PathLike, calibrate: bool = True) -> float:
-    """The std scale to use with ``weights_file``: its sidecar's, or 1 (raw) when ``calibrate`` is false or, with a
-    warning, when the weights have no calibration."""
+def calibration_for(weights_file: str | os.PathLike, calibrate: bool = True) -> Calibration:
+    """The calibration to use with ``weights_file``: its sidecar's, or the raw posterior's (1, 0) when ``calibrate``
+    is false or, with a warning, when the weights have no calibration."""
     if not calibrate:
-        return 1.0
+        return Calibration(1.0, 0.0)
     try:
-        return load_calibration(weights_file).std_scale
+        record = load_calibration(weights_file)
     except FileNotFoundError:
         warnings.warn(f"{weights_file} has no calibration ({calibration_path(weights_file).name}); "
                       "uncertainty maps are the raw, uncalibrated posterior", stacklevel=2)
-        return 1.0
+        return Calibration(1.0, 0.0)
+    return Calibration(record.std_scale, record.bias_fraction)
+
+
+def std_scale_for(weights_file: str | os.PathLike, calibrate: bool = True) -> float:
+    """:func:`calibration_for`'s ``std_scale`` alone."""
+    return calibration_for(weights_file, calibrate).std_scale

@@ -95,12 +95,12 @@ class RegistrationWriter(_PerSubjectHandler):
     :data:`~monai_probreg.inference.OUTPUT_NAMES`; the label maps only when the batch has labels).
 
     With ``network`` given, the uncertainty maps are :func:`~monai_probreg.posterior_maps.posterior_maps` of the
-    posterior calibrated by ``std_scale`` (1 = raw), from ``num_samples`` seeded samples (needed, >= 2, for
-    :data:`~monai_probreg.inference.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's."""
+    posterior calibrated by ``std_scale`` and ``bias_fraction`` (1 and 0 = raw), from ``num_samples`` seeded samples
+    (needed, >= 2, for :data:`~monai_probreg.inference.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's."""
 
     def __init__(self, output_dir: str | os.PathLike, names: Sequence[str] = OUTPUT_NAMES,
                  network: torch.nn.Module | None = None, num_samples: int = 0, std_scale: float = 1.0,
-                 seed: int = 0) -> None:
+                 seed: int = 0, bias_fraction: float = 0.0) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
             raise ValueError(f"unknown output names {sorted(unknown)}; choose from {list(OUTPUT_NAMES)}")
@@ -110,6 +110,7 @@ class RegistrationWriter(_PerSubjectHandler):
                              f"{'no network' if network is None else f'num_samples {num_samples}'}")
         self.output_dir, self.names = Path(output_dir), tuple(names)
         self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
+        self.bias_fraction = float(bias_fraction)
 
     def start(self, engine: Engine) -> None:
         write_text(self.output_dir / "README.txt", OUTPUTS_README)
@@ -122,7 +123,8 @@ class RegistrationWriter(_PerSubjectHandler):
             sampled = set(self.names) & set(SAMPLED_NAMES)
             label = targets.get("moving_label") if "label_entropy" in self.names else None
             maps = posterior_maps(self.network, pair.velocity_mean, pair.velocity_log_var, pair.displacement.shape[2:],
-                                  self.num_samples if sampled else 0, self.std_scale, label, self.seed)
+                                  self.num_samples if sampled else 0, self.std_scale, label, self.seed,
+                                  self.bias_fraction)
         write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
         _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: {runtime:.2f} s "
                   f"-> {self.output_dir / sid}")

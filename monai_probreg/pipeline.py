@@ -168,7 +168,8 @@ def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.nda
         output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
         with eval_mode(model.network), torch.inference_mode():
             inverse = model.network.velocity_to_displacement(-output.velocity_mean, shape)  # exp(-v)
-        log_var = calibrate_log_var(output.velocity_log_var, model.std_scale)  # std_scale 1 = raw
+        log_var = calibrate_log_var(output.velocity_log_var, model.std_scale, output.velocity_mean,
+                                    model.bias_fraction)  # 1 and 0 = raw
         maps = _ModelMaps(_numpy(output.displacement[0]), _numpy(inverse[0]),
                           _numpy(jacobian_determinant(output.displacement)[0]),
                           _numpy(velocity_entropy(log_var, shape)[0, 0]), _numpy(output.warped[0, 0]))
@@ -291,7 +292,8 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             "fixed_label": fixed.label.path if fixed.label is not None else None,
             "model": {"model_file": str(model.model_file), "config": str(model.config_file),
                       "device": str(model.device), "model_grid_shape": list(fixed.grid.shape),
-                      "divisor": model.divisor, "posterior_std_scale": model.std_scale},
+                      "divisor": model.divisor, "posterior_std_scale": model.std_scale,
+                      "posterior_bias_fraction": model.bias_fraction},
             "timings_s": timings,
             "affine": {**affine.summary(), "settings": options.affine.as_dict() if options.affine else None},
             "jacobian": {"num_nonpositive": stats.num_folding, "percent_nonpositive": stats.percent_folding,

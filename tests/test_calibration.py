@@ -1,4 +1,4 @@
-"""Post-hoc std scaling: the fit recovers a known scale, the sidecar is tied to its weights."""
+"""Post-hoc calibration: the fit recovers a known scale and bias fraction, the sidecar is tied to its weights."""
 
 import json
 import math
@@ -8,8 +8,11 @@ import pytest
 import torch
 
 from monai_probreg.calibration import (
+    bias_variance,
     calibrate_log_var,
+    calibration_for,
     calibration_path,
+    fit_calibration,
     fit_std_scale,
     load_calibration,
     save_calibration,
@@ -102,3 +105,85 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
     weights = Path(__file__).resolve().parents[1] / "bundle" / "models" / "model_semisupervised.pt"
     record = load_calibration(weights)  # raises when the SHA-256 does not match the weights
     assert record.std_scale > 1.0  # the raw variational posterior is over-confident (README "Uncertainty")
+
+
+# --- the bias term: (bias_fraction |u|)^2 added to every component's variance ---------------------------------------
+
+def _biased_toy(scale: float, bias_fraction: float, n: int = 400_000):
+    """Errors drawn exactly from N(0, scale^2 std^2 + (bias_fraction |u|)^2): the fit's known answer."""
+    rng = np.random.default_rng(1)
+    std, norm = np.exp(rng.normal(0.0, 0.4, n)), rng.gamma(2.0, 2.0, n)
+    error = rng.standard_normal(n) * np.sqrt((scale * std) ** 2 + (bias_fraction * norm) ** 2)
+    return std, error, norm
+
+
+@pytest.mark.parametrize("scale, bias_fraction", [(2.5, 0.2), (1.0, 0.5)])
+def test_fit_calibration_recovers_a_known_scale_and_bias_fraction(scale, bias_fraction):
+    std, error, norm = _biased_toy(scale, bias_fraction)
+    fitted = fit_calibration(std, error, norm)
+    assert fitted.std_scale == pytest.approx(scale, rel=0.05)
+    assert fitted.bias_fraction == pytest.approx(bias_fraction, abs=0.02)
+    total = np.sqrt((fitted.std_scale * std) ** 2 + (fitted.bias_fraction * norm) ** 2)
+    for level in (0.68, 0.95):
+        assert interval_coverage(total, error, level) == pytest.approx(level, abs=0.01)
+
+
+def test_fit_calibration_without_bias_matches_fit_std_scale():
+    std, error = _toy(3.0)
+    fitted = fit_calibration(std, error, np.ones_like(std), bias_fractions=(0.0,))
+    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0)
+
+
+@pytest.mark.parametrize("norm, fractions, match", [
+    (np.ones(4), (), "must not be empty"),
+    (np.ones(4), (-0.1,), "bias_fraction"),
+    (-np.ones(4), (0.1,), "displacement_norm finite and >= 0"),
+    (np.ones(3), (0.1,), "same non-empty shape"),
+])
+def test_fit_calibration_rejects_bad_input(norm, fractions, match):
+    with pytest.raises(ValueError, match=match):
+        fit_calibration(np.ones(4), np.ones(4), norm, bias_fractions=fractions)
+
+
+def test_calibrate_log_var_adds_the_bias_term_in_quadrature():
+    log_var = torch.log(torch.full((1, 3, 2, 2, 2), 4.0))  # sigma 2 per component
+    mean = torch.zeros(1, 3, 2, 2, 2)
+    mean[0, :, 0, 0, 0] = torch.tensor([3.0, 4.0, 0.0])  # |mu| = 5
+    out = calibrate_log_var(log_var, 1.5, mean, 0.8)  # (1.5 * 2)^2 + (0.8 * 5)^2 = 9 + 16 = 25
+    torch.testing.assert_close(out[0, :, 0, 0, 0].exp(), torch.full((3,), 25.0))
+    torch.testing.assert_close(out[0, :, 1, 1, 1].exp(), torch.full((3,), 9.0))  # mu = 0: the scaled std alone
+    torch.testing.assert_close(calibrate_log_var(log_var, 1.5, mean, 0.0), calibrate_log_var(log_var, 1.5))
+    with pytest.raises(ValueError, match="needs the posterior mean"):
+        calibrate_log_var(log_var, 1.5, None, 0.8)
+    with pytest.raises(ValueError, match="needs the posterior mean"):
+        calibrate_log_var(log_var, 1.5, mean[:, :2], 0.8)
+    with pytest.raises(ValueError, match="bias_fraction"):
+        calibrate_log_var(log_var, 1.5, mean, -0.1)
+
+
+def test_bias_variance_is_the_squared_fraction_of_the_length():
+    u = torch.zeros(1, 3, 2, 2, 2)
+    u[0, :, 0, 0, 0] = torch.tensor([3.0, 4.0, 0.0])  # |u| = 5
+    variance = bias_variance(u, 0.2)
+    assert variance.shape == (1, 1, 2, 2, 2)
+    assert variance[0, 0, 0, 0, 0].item() == pytest.approx(1.0) and variance.sum().item() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="bias_fraction"):
+        bias_variance(u, float("nan"))
+    with pytest.raises(ValueError, match=r"\(B, D, \*S\)"):
+        bias_variance(torch.zeros(3, 4), 0.1)
+
+
+def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
+    save_calibration(weights, 2.0, bias_fraction=0.15)
+    assert calibration_for(weights) == (2.0, 0.15) and load_calibration(weights).bias_fraction == 0.15
+    assert calibration_for(weights, calibrate=False) == (1.0, 0.0)
+    record = json.loads(calibration_path(weights).read_text())
+    del record["bias_fraction"]  # written before the bias term existed
+    calibration_path(weights).write_text(json.dumps(record))
+    assert calibration_for(weights) == (2.0, 0.0)
+    record["bias_fraction"] = -0.5
+    calibration_path(weights).write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="model.calibration.json: bias_fraction"):
+        load_calibration(weights)
+    with pytest.raises(ValueError, match="bias_fraction"):
+        save_calibration(weights, 2.0, bias_fraction=-1.0)

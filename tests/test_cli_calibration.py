@@ -17,6 +17,7 @@ from monai_probreg.io import read_image
 
 BUNDLE = Path(__file__).resolve().parents[1] / "bundle"
 SCALE = 4.0
+BIAS_FRACTION = 2000.0  # large: the random network's mean velocity is ~5e-4 of its posterior std
 
 
 @pytest.fixture(scope="module")
@@ -67,3 +68,21 @@ def test_sidecar_of_other_weights_is_refused(scene, capsys):
         assert "SHA-256" in capsys.readouterr().err
     finally:
         calibration_path(weights).write_text(record)
+
+
+def test_bias_fraction_reaches_the_written_maps(scene):
+    """A sidecar with a bias fraction (std_scale 1): the summary records it and the displacement std widens where
+    the random network's mean velocity is long (the same seeded samples otherwise)."""
+    _, _, weights, _, _ = scene
+    record = calibration_path(weights).read_text()
+    try:
+        save_calibration(weights, 1.0, ["synthetic"], 2, bias_fraction=BIAS_FRACTION)
+        rc, summary, biased = _register(scene, "biased")
+        assert rc == 0 and summary["model"]["posterior_bias_fraction"] == BIAS_FRACTION
+        assert summary["model"]["posterior_std_scale"] == 1.0
+    finally:
+        calibration_path(weights).write_text(record)
+    rc, _, raw = _register(scene, "raw_for_bias", "--raw-uncertainty")
+    assert rc == 0
+    inside = raw > 0
+    assert np.median(biased[inside] / raw[inside]) > 1.2

@@ -7,6 +7,7 @@ import torch
 
 from monai_probreg import ProbRegNet
 from monai_probreg.posterior_maps import posterior_maps
+from monai_probreg.uncertainty import velocity_entropy
 
 SIZE = (12, 10, 8)
 
@@ -38,6 +39,17 @@ def test_displacement_std_scales_with_std_scale_for_small_sigma(setup):
     assert raw.shape == SIZE and raw.min() > 0
     # same seed -> same eps; linear regime -> twice the spread, to 1%
     torch.testing.assert_close(doubled, 2.0 * raw, rtol=0.01, atol=1e-6)
+
+
+def test_bias_fraction_widens_the_velocity_posterior_where_the_mean_is_long(setup):
+    network, mean, log_var, _ = setup
+    raw = posterior_maps(network, mean, log_var, SIZE, num_samples=4)
+    biased = posterior_maps(network, mean, log_var, SIZE, num_samples=4, bias_fraction=0.3)
+    # sigma^2 -> sigma^2 + (0.3 |mu|)^2 per component: the entropy of that Gaussian, resized like the raw one
+    widened = torch.log(log_var.exp() + 0.09 * mean.pow(2).sum(1, keepdim=True))
+    torch.testing.assert_close(biased.velocity_entropy, velocity_entropy(widened, SIZE)[0, 0], atol=1e-5, rtol=0)
+    # |mu| ~ 0.5 voxel against sigma ~ 0.05: the sampled spread grows several times
+    assert (biased.displacement_std / raw.displacement_std).median() > 2.0
 
 
 def test_label_entropy_zero_when_certain_positive_at_boundaries_when_not(setup):

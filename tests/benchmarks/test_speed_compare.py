@@ -21,7 +21,14 @@ speed_compare = load_benchmark("speed_compare")
 def bundle(tmp_path_factory):
     from bench_helpers import REPO
 
-    return bundle_with_random_model(tmp_path_factory.mktemp("bundle"), REPO / "bundle", network_size=(16, 16, 16))
+    from monai_probreg import ProbRegNet
+    from monai_probreg.network_settings import write_network_settings
+
+    root = bundle_with_random_model(tmp_path_factory.mktemp("bundle"), REPO / "bundle", network_size=(16, 16, 16))
+    # as shipped: the settings sidecar next to the weights, so the trained row passes the settings check with the
+    # trained grid and only then scales it with the padded input
+    write_network_settings(root / "models" / "model_semisupervised.pt", ProbRegNet(network_size=(16, 16, 16)))
+    return root
 
 
 def test_runs_each_method_in_its_own_process_and_writes_json_and_png(tmp_path, tiny_dataset, bundle, monkeypatch):
@@ -40,6 +47,10 @@ def test_runs_each_method_in_its_own_process_and_writes_json_and_png(tmp_path, t
     assert rows["ours_mean"]["ratio_to_ours"] == 1.0
     for row in rows.values():
         assert row["median_s"] > 0 and row["peak_rss_gb"] > 0 and row["threads"] == 1
+    for key in rows:  # the timed runs' peak, the scoring after them excluded; the process's peak kept apart
+        result = report["results"][key]
+        assert result["peak_rss_scope"] == "timed runs only"
+        assert 0 < result["peak_rss_mb"] <= result["process_peak_rss_mb"]
     trained = report["results"]["ours_trained"]
     # network grid scaled with the input (16^3 for the native 32^3 -> 16 x 16 x 24 for 32 x 32 x 48), rounded to
     # a multiple of the divisor 16

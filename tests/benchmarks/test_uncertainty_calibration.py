@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -107,3 +108,41 @@ def test_population_deformation_is_the_drawn_subject_to_atlas_field_and_its_inve
     assert torch.allclose(truth, expected, atol=1e-5)
     inside = brain[0, 0] > 0
     assert compose_displacements(forward, truth)[0][:, inside].abs().max() < 0.05
+
+
+def test_displacement_metrics_on_a_perfectly_calibrated_gaussian_reach_their_ceiling():
+    rng = np.random.default_rng(3)
+    std = np.exp(rng.normal(0.0, 0.8, (3, 50_000)))
+    m = bench.displacement_metrics(std, std * rng.standard_normal(std.shape))
+    assert m["coverage_68"] == pytest.approx(0.68, abs=0.01) and m["coverage_95"] == pytest.approx(0.95, abs=0.01)
+    assert m["spearman_std_abs_error"] == pytest.approx(m["spearman_ceiling"], abs=0.02)
+    assert m["spearman_vector"] == pytest.approx(m["spearman_vector_ceiling"], abs=0.02)
+    # one component's |error| scatters more at a given std than a vector's length: the vector ceiling is higher
+    assert 0.3 < m["spearman_ceiling"] < m["spearman_vector_ceiling"] < 1.0
+    blind = bench.displacement_metrics(np.ones_like(std) + 1e-9 * rng.random(std.shape), std * rng.standard_normal(std.shape))
+    assert abs(blind["spearman_std_abs_error"]) < 0.02  # a std that knows nothing ranks nothing
+
+
+def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path, tiny_dataset, single_thread):
+    from conftest import bundle_with_random_model
+
+    from bench_helpers import REPO
+    from monai_probreg.calibration import load_calibration
+
+    bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")  # configs' network grid, random weights
+    out = tmp_path / "out"
+    code = bench.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
+                       "--deformations", "1", "--samples", "2", "--probe", "noise", "--out-dir", str(out), "--write-calibration"])
+    assert code == 0
+    report = json.loads((out / "uncertainty_calibration.json").read_text())
+    assert (out / "uncertainty_reliability.png").stat().st_size > 0 and (out / "uncertainty_figure4.png").stat().st_size > 0
+    for row in ("raw", "calibrated"):
+        m = report["summary"][row]
+        assert 0 <= m["coverage_68"] <= m["coverage_95"] <= 1
+        assert all(-1 <= m[k] <= 1 for k in ("spearman_std_abs_error", "spearman_ceiling", "spearman_vector",
+                                             "spearman_vector_ceiling"))
+    assert set(report["fold_calibrations"]) == {"0", "1"}
+    written = load_calibration(bundle / "models" / "model_semisupervised.pt")
+    assert written.std_scale == report["written_calibration"]["std_scale"] > 0
+    assert 0 <= written.bias_fraction == report["written_calibration"]["bias_fraction"] <= 1
+    assert "Spearman of vectors (ceiling)" in report["markdown"]

@@ -5,7 +5,9 @@ its atlas, each through evaluate.yaml's preprocessing (RAS, intensities to [0, 1
 cropped (``ResizeWithPadOrCrop``, zeros) to the paper's 160 x 192 x 224 (LPBA40: 160 x 192 x 160 -> 32 zero slices on
 each side of the last axis). Every method sees the same arrays. Rows:
   - ours, mean: ``ProbRegNet()`` (the paper's network; UNet on the input grid, half-resolution velocity), untrained:
-    the speed target; network + integration + upsampling + warp (``register_pair``, inference levers on by default);
+    the speed target; network + integration + upsampling + warp (``register_pair``, inference levers on by default,
+    and the process keeps freed memory for reuse as ``monai-probreg`` and the bundle do, :mod:`monai_probreg.memory`);
+  - ours, mean, memory reuse off: the same with glibc's default allocator settings (what that lever is worth);
   - ours, K posterior samples: ``ProbRegNet.sample(moving, fixed, K)`` (UNet once, K fields integrated; on a CPU one at a time);
   - ours, shipped weights: configs' network and ``model_file`` (evaluate.yaml); its network grid is scaled with the
     input (trained at 80 x 96 x 80 for 160 x 192 x 160 -> 80 x 96 x 112 here: the same 2 mm the weights know), with
@@ -49,6 +51,7 @@ ANTS_WARMUP_SHRINK = 4  # ANTs' warm-up pair is this many times smaller per axis
 WORKER_TIMEOUT_S = 3600
 ROWS = {  # method key -> row name (table order)
     "ours_mean": "ours, mean (paper network, untrained)",
+    "ours_mean_no_reuse": "ours, mean, memory reuse off",
     "ours_samples": "ours, K = {k} posterior samples",
     "ours_trained": "ours, shipped weights (model_semisupervised.pt)",
     "voxelmorph": "MONAI VoxelMorph() (untrained)",

@@ -35,7 +35,7 @@ def test_runs_each_method_in_its_own_process_and_writes_json_and_png(tmp_path, t
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     out = tmp_path / "out"
     code = speed_compare.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01",
-                               "T02", "--size", "32", "32", "48", "--methods", "ours_mean", "ours_trained",
+                               "T02", "--size", "32", "32", "48", "--methods", "ours_mean", "ours_mean_no_reuse", "ours_trained",
                                "--repeats", "1", "--threads", "1", "--override", "network_size=[16,16,16]",
                                "--out-dir", str(out)])
     assert code == 0
@@ -43,7 +43,11 @@ def test_runs_each_method_in_its_own_process_and_writes_json_and_png(tmp_path, t
     assert (out / "speed_compare.png").stat().st_size > 0
     assert report["settings"]["size"] == [32, 32, 48] and report["settings"]["native_grid"] == [32, 32, 32]
     rows = {row["key"]: row for row in report["rows"]}
-    assert set(rows) == {"ours_mean", "ours_trained"} and all(r["status"] == "ok" for r in rows.values())
+    assert set(rows) == {"ours_mean", "ours_mean_no_reuse", "ours_trained"}
+    assert all(r["status"] == "ok" for r in rows.values())
+    # ours as monai-probreg and the bundle run it (freed memory kept for reuse), and the same without that lever
+    reuse = {key: report["results"][key]["memory_reuse"] for key in rows}
+    assert reuse == {"ours_mean": True, "ours_mean_no_reuse": False, "ours_trained": True}
     assert rows["ours_mean"]["ratio_to_ours"] == 1.0
     for row in rows.values():
         assert row["median_s"] > 0 and row["peak_rss_gb"] > 0 and row["threads"] == 1

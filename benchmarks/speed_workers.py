@@ -156,7 +156,7 @@ def run_torch_method(method: str, pairs: list[dict], meta: dict, args: argparse.
         else:
             call = lambda p: register_pair(net, p["moving"], p["fixed"])  # noqa: E731
     result: dict[str, Any] = {"rss_before_mb": rss_mb(), "times_s": {}, "scores": {},
-                              "memory_reuse": method in REUSES_MEMORY and result_reuse}
+                              "memory_reuse": result_reuse}
     window = PeakWindows()
     displacements = {}
     with torch.inference_mode():

@@ -39,7 +39,7 @@ class LoadedModel:
     model_file: Path
     config_file: Path
     std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.calibration
-    bias_fraction: float = 0.0  # the calibration's bias term in displacement_std (0 = raw)
+    bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
 
 
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,

@@ -1,11 +1,11 @@
 """Keep freed CPU memory in the process, so large tensors reuse pages instead of faulting in fresh ones.
 
 glibc's ``malloc`` serves every allocation above its mmap threshold (at most 32 MB) with a new ``mmap`` and gives
-it back with ``munmap`` on ``free``. One registration at 160 x 192 x 224 allocates and frees about 0.6 GB of such
-buffers (the full-resolution UNet activations, sampling grids, fields), so each call faults in about 160,000 fresh,
-kernel-zeroed 4 kB pages again: on the 2-core machines of the README, about a fifth of the call
-(``benchmarks/speed_compare.py``: 0.88 s with the "memory reuse off" row, 0.71 s with reuse, in one run). :func:`reuse_freed_memory` sets ``mallopt(M_MMAP_MAX, 0)`` (every
-allocation from the heap) and ``mallopt(M_TRIM_THRESHOLD, INT_MAX)`` (freed heap memory stays in the process), so
+it back with ``munmap`` on ``free``. One registration at 160 x 192 x 224 allocates and frees many such buffers
+(the full-resolution UNet activations, sampling grids, fields), so each call faults in their pages afresh, each
+one zeroed by the kernel: on the 2-core machines of the README, about a fifth of the call
+(``benchmarks/speed_compare.py``: 0.88 s in the "memory reuse off" row, 0.71 s with reuse, in one run).
+:func:`reuse_freed_memory` sets ``mallopt(M_MMAP_MAX, 0)`` (every allocation from the heap) and ``mallopt(M_TRIM_THRESHOLD, INT_MAX)`` (freed heap memory stays in the process), so
 from the second pair on the same pages serve the same buffers. The arithmetic is untouched.
 
 The cost: the process keeps its peak resident memory until it exits (the peak itself is the same). It is a

@@ -16,11 +16,11 @@ weights file is ``ckpt_dir/model_filename`` of train.yaml + train_semisupervised
 
 Same grid for every method: each pair goes once through evaluate.yaml's preprocessing (RAS, intensities
 percentile-scaled to [0, 1], padded to the divisor) and every method is scored on that atlas grid with
-:func:`monai_probreg.inference.score_pair` (labels warped nearest neighbour, Dice per atlas label). ANTs gets
+:func:`monai_probreg.metrics.scores.score_pair` (labels warped nearest neighbour, Dice per atlas label). ANTs gets
 the same arrays as images of spacing 1 mm, origin 0, identity direction, so its physical space is our voxel
 space (no geometry mismatch).
 
-Wall time per pair: ours = :func:`~monai_probreg.inference.timed_register_pair` (network + integration + warp,
+Wall time per pair: ours = :func:`~monai_probreg.engines.registration.timed_register_pair` (network + integration + warp,
 after one untimed warm-up pass per model), as evaluate.yaml reports it; ANTs = the ``ants.registration`` call
 (affine + SyN stages, transform files included). Neither includes loading or scoring.
 
@@ -51,10 +51,12 @@ from monai.bundle import ConfigParser
 from monai.data import Dataset
 
 import monai_probreg
-from monai_probreg.data import index_dataset
-from monai_probreg.inference import PairScores, evaluate_pair, labelled_pairs, load_weights, register_pair, score_pair
-from monai_probreg.inference import write_text
+from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.engines.registration import evaluate_pair, register_pair
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
+from monai_probreg.metrics.scores import PairScores, score_pair
+from monai_probreg.utils.files import write_text
+from monai_probreg.weights.loading import load_weights
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"   # ../shared/data/lpba40 from the repository root
@@ -99,7 +101,7 @@ def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------ methods
-def _plain(t: torch.Tensor) -> torch.Tensor:
+def plain_tensor(t: torch.Tensor) -> torch.Tensor:
     return t.as_tensor() if isinstance(t, monai.data.MetaTensor) else t
 
 
@@ -115,7 +117,7 @@ def ants_register(moving: torch.Tensor, fixed: torch.Tensor, moving_label: torch
     import ants
 
     def image(t: torch.Tensor) -> ants.ANTsImage:
-        array = np.ascontiguousarray(_plain(t)[0, 0].detach().cpu().numpy(), dtype=np.float32)
+        array = np.ascontiguousarray(plain_tensor(t)[0, 0].detach().cpu().numpy(), dtype=np.float32)
         return ants.from_numpy(array, origin=(0.0, 0.0, 0.0), spacing=(1.0, 1.0, 1.0), direction=np.eye(3))
 
     fixed_img, moving_img = image(fixed), image(moving)

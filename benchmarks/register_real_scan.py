@@ -9,7 +9,7 @@ with intensities in a raw scanner range (int16, 50..3050). Then:
 1. **aligned, bundle path**: the original (aligned) subject through evaluate.yaml's preprocessing, ``register_pair``
    and ``score_pair`` (the number evaluate.yaml reports);
 2. **aligned, command**: the original subject through ``monai-probreg register`` (in-process; affine included);
-3. **misaligned, command**: the moved scan through ``python -m monai_probreg.cli register`` in a subprocess, timed
+3. **misaligned, command**: the moved scan through ``python -m monai_probreg.cli.main register`` in a subprocess, timed
    as a user would time it (Python start-up, imports and model loading included);
 
 and reports mean Dice to the atlas labels of each (target: 3 within 0.02 of 2; 3 also with the subject's original
@@ -52,9 +52,9 @@ def misalign(image, labels, atlas, rng: np.random.Generator, max_rotation: float
     """(moved image Volume int16, moved labels Volume, true fixed -> moving (4, 4), angles, translation)."""
     from scipy.spatial.transform import Rotation
 
-    from monai_probreg.io import Volume
-    from monai_probreg.physical import apply_affine, grid_points
-    from monai_probreg.resample import sample_linear, sample_nearest
+    from monai_probreg.spatial.physical import apply_affine, grid_points
+    from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
+    from monai_probreg.spatial.volume_io import Volume
 
     angles = rng.uniform(-max_rotation, max_rotation, 3)
     translation = rng.uniform(-max_translation, max_translation, 3)
@@ -79,8 +79,9 @@ def misalign(image, labels, atlas, rng: np.random.Generator, max_rotation: float
 
 def aligned_bundle_dice(model, subject: Path, label: Path, atlas: Path, atlas_label: Path, ids: list[int]) -> float:
     """evaluate.yaml's path: registration_transforms -> register_pair -> score_pair."""
-    from monai_probreg.data import registration_transforms
-    from monai_probreg.inference import register_pair, score_pair
+    from monai_probreg.data.transforms import registration_transforms
+    from monai_probreg.engines.registration import register_pair
+    from monai_probreg.metrics.scores import score_pair
 
     data = registration_transforms(with_labels=True, divisor=model.divisor)(
         {"moving": str(subject), "fixed": str(atlas), "moving_label": str(label), "fixed_label": str(atlas_label)})
@@ -94,9 +95,9 @@ def transform_dice(warp: Path, truth: np.ndarray, labels, atlas_labels, ids: lis
     the score measures the transform alone, without the label map's own trip through the 1.5 mm grid."""
     import itk
 
-    from monai_probreg.inference import score_pair
-    from monai_probreg.physical import apply_affine, field_from_itk, grid_points
-    from monai_probreg.resample import sample_nearest
+    from monai_probreg.metrics.scores import score_pair
+    from monai_probreg.spatial.physical import apply_affine, field_from_itk, grid_points
+    from monai_probreg.spatial.point_sampling import sample_nearest
 
     field = field_from_itk(itk.imread(str(warp)))
     points = grid_points(field.shape, field.index_to_lps) + field.array
@@ -109,7 +110,7 @@ def itk_reproduction(moving: Path, moving_label: Path, atlas: Path, out: Path, w
     """Max abs difference between our warped.nii.gz and ITK's (and ANTs') resampling with warp.nii.gz."""
     import itk
 
-    from monai_probreg.physical import displacement_transform, resample_with_itk
+    from monai_probreg.spatial.physical import displacement_transform, resample_with_itk
 
     transform = displacement_transform(itk.imread(str(out / "warp.nii.gz")))
     reference = itk.imread(str(atlas), itk.F)
@@ -163,11 +164,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     atlas_label = atlas.with_name(atlas.name.replace("_image", "_label"))
     subject, label = dataset / "images" / f"{args.subject}.nii.gz", dataset / "labels" / f"{args.subject}.nii.gz"
 
-    from monai_probreg.cli import main as cli_main
-    from monai_probreg.io import read_image, read_label
-    from monai_probreg.outputs import write_volume
-    from monai_probreg.physical import apply_affine, grid_points
-    from monai_probreg.bundle_model import load_model
+    from monai_probreg.cli.main import main as cli_main
+    from monai_probreg.cli.model import load_model
+    from monai_probreg.cli.output_dir import write_volume
+    from monai_probreg.spatial.physical import apply_affine, grid_points
+    from monai_probreg.spatial.volume_io import read_image, read_label
 
     threads = args.threads or torch.get_num_threads()
     torch.set_num_threads(threads)
@@ -199,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if cli_main(argv) != 0:
                 return 1
         else:
-            done = subprocess.run([sys.executable, "-m", "monai_probreg.cli", *argv], capture_output=True, text=True)
+            done = subprocess.run([sys.executable, "-m", "monai_probreg.cli.main", *argv], capture_output=True, text=True)
             if done.returncode != 0:
                 print(done.stderr[-3000:], file=sys.stderr)
                 return 1
@@ -242,7 +243,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "versions": {"python": platform.python_version(), "torch": torch.__version__},
     }
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    from monai_probreg.inference import write_text
+    from monai_probreg.utils.files import write_text
     write_text(args.out_dir / "register_real_scan.json", json.dumps(result, indent=2) + "\n")
     rows = [
         ("mean Dice, aligned subject, bundle path (evaluate.yaml)", f"{bundle_dice:.4f}"),

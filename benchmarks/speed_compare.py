@@ -6,7 +6,7 @@ cropped (``ResizeWithPadOrCrop``, zeros) to the paper's 160 x 192 x 224 (LPBA40:
 each side of the last axis). Every method sees the same arrays. Rows:
   - ours, mean: ``ProbRegNet()`` (the paper's network; UNet on the input grid, half-resolution velocity), untrained:
     the speed target; network + integration + upsampling + warp (``register_pair``, inference levers on by default,
-    and the process keeps freed memory for reuse as ``monai-probreg`` and the bundle do, :mod:`monai_probreg.memory`);
+    and the process keeps freed memory for reuse as ``monai-probreg`` and the bundle do, :mod:`monai_probreg.utils.memory`);
   - ours, mean, memory reuse off: the same with glibc's default allocator settings (what that lever is worth);
   - ours, K posterior samples: ``ProbRegNet.sample(moving, fixed, K)`` (UNet once, K fields integrated; on a CPU one at a time);
   - ours, shipped weights: configs' network and ``model_file`` (evaluate.yaml); its network grid is scaled with the
@@ -66,8 +66,7 @@ def prepare_pairs(dataset_dir: Path, subjects: Sequence[str] | None, num_pairs: 
     from monai.data import Dataset
     from monai.transforms import ResizeWithPadOrCrop
 
-    from monai_probreg.data import index_dataset
-    from monai_probreg.inference import labelled_pairs
+    from monai_probreg.data.dataset import index_dataset, labelled_pairs
 
     config = ConfigParser()
     config.read_config(str(bundle_root / "configs" / "evaluate.yaml"))

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from monai_probreg import ProbRegNet, resize_displacement, warp_image
-from monai_probreg.inference import register_pair
+from monai_probreg.engines.registration import register_pair
 
 MATMUL_SIZE = 4096  # square matmul for the peak: large enough to run at the library's best rate
 LEVER_SETTINGS = {  # row name -> ProbRegNet arguments

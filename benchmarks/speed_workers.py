@@ -100,7 +100,7 @@ def timed(fn: Callable[[], Any], repeats: int) -> tuple[list[float], Any]:
 
 
 def _scores(displacement: torch.Tensor, pair: dict) -> dict[str, Any]:
-    from monai_probreg.inference import score_pair
+    from monai_probreg.metrics.scores import score_pair
 
     s = score_pair(displacement, pair["moving_label"], pair["fixed_label"])
     return {"mean_dice": s.mean_dice, "num_folding": s.num_folding, "std_log_jacobian": s.std_log_jacobian}
@@ -113,7 +113,7 @@ def _network(kind: str, size: list[int], native: list[int], bundle_root: Path,
     from monai.bundle import ConfigParser
 
     from monai_probreg import ProbRegNet
-    from monai_probreg.inference import load_weights
+    from monai_probreg.weights.loading import load_weights
 
     if kind == "paper":
         torch.manual_seed(0)
@@ -135,7 +135,7 @@ def _network(kind: str, size: list[int], native: list[int], bundle_root: Path,
 
 def run_torch_method(method: str, pairs: list[dict], meta: dict, args: argparse.Namespace) -> dict[str, Any]:
     """Ours (mean, K samples, trained) or MONAI's VoxelMorph: warm-up on the first pair, then ``repeats`` per pair."""
-    from monai_probreg.inference import register_pair
+    from monai_probreg.engines.registration import register_pair
 
     result_reuse = False
     if method == "voxelmorph":
@@ -146,7 +146,7 @@ def run_torch_method(method: str, pairs: list[dict], meta: dict, args: argparse.
         call = lambda p: net(p["moving"], p["fixed"])  # noqa: E731 - (warped, ddf), full-resolution integration
     else:
         if method in REUSES_MEMORY:
-            from monai_probreg.memory import reuse_freed_memory
+            from monai_probreg.utils.memory import reuse_freed_memory
 
             result_reuse = reuse_freed_memory()
         net = _network("trained" if method == "ours_trained" else "paper", meta["size"], meta["native"],
@@ -195,7 +195,7 @@ def run_ants(pairs: list[dict], meta: dict, args: argparse.Namespace) -> dict[st
     from accuracy_table import ants_register
 
     from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
-    from monai_probreg.inference import score_pair
+    from monai_probreg.metrics.scores import score_pair
 
     warm = {k: F.interpolate(pairs[0][k].float(), scale_factor=1 / meta["ants_warmup_shrink"], mode="nearest")
             for k in ("moving", "fixed", "moving_label")}

@@ -24,7 +24,7 @@
 2. Label uncertainty on real pairs: S -> atlas; the atlas labels are propagated into S by the K sampled inverse
    warps exp(-z_k); the per-voxel label entropy is scored (AUROC) as a detector of voxels where the atlas labels
    propagated by the mean, exp(-mean), disagree with S's manual labels (voxels where either is non-background).
-3. Calibration: a scale of the velocity std and a bias fraction (:mod:`monai_probreg.calibration`: the velocity
+3. Calibration: a scale of the velocity std and a bias fraction (:mod:`monai_probreg.uncertainty.calibration`: the velocity
    variance per component becomes std_scale^2 sigma^2 + (bias_fraction |mean|)^2), fitted together by coverage
    matching on the displacement errors of part 1 (re-sampled at the fitted pair and refitted, ``FIT_ITERATIONS``). Cross-fitted: the subjects are split in ``--folds`` folds; each fold is scored with the
    scale fitted on the others, with fresh samples drawn from the calibrated posterior. Raw (scale 1) rows use
@@ -53,13 +53,31 @@ from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser  # noqa: 
 from uncertainty_figures import figure4, reliability_diagram  # noqa: E402
 
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement  # noqa: E402
-from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
-from monai_probreg.calibration import Calibration, calibrate_log_var, fit_calibration, save_calibration  # noqa: E402
-from monai_probreg.data import index_dataset  # noqa: E402
-from monai_probreg.inference import labelled_pairs, load_weights, write_text  # noqa: E402
-from monai_probreg.metrics.calibration import auroc, interval_coverage, spearman, uncertainty_calibration_error  # noqa: E402
 from monai_probreg.blocks.sampling import sample_velocity  # noqa: E402
-from monai_probreg.uncertainty import label_entropy, sampled_displacement_moments, velocity_entropy  # noqa: E402
+from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
+from monai_probreg.data.dataset import (
+    index_dataset,  # noqa: E402
+    labelled_pairs,
+)
+from monai_probreg.metrics.calibration import (  # noqa: E402
+    auroc,
+    interval_coverage,
+    spearman,
+    uncertainty_calibration_error,
+)
+from monai_probreg.uncertainty.calibration import (  # noqa: E402
+    Calibration,
+    calibrate_log_var,
+    fit_calibration,
+    save_calibration,
+)
+from monai_probreg.uncertainty.entropy import (  # noqa: E402
+    label_entropy,
+    sampled_displacement_moments,
+    velocity_entropy,
+)
+from monai_probreg.utils.files import write_text  # noqa: E402
+from monai_probreg.weights.loading import load_weights
 
 TRUTH_STEPS = 10          # squarings for the true fields (full resolution; the model uses 7 at half resolution)
 SMOOTHING_VOXELS = 6.0    # Gaussian sigma of the random velocity, in velocity-grid voxels (12 mm at 1 mm, /2)
@@ -71,7 +89,7 @@ FIT_ITERATIONS = 3         # at most this many re-samplings at the fitted pair a
 FIT_TOLERANCE = 0.02       # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
 
 
-def _plain(t: torch.Tensor) -> torch.Tensor:
+def plain_tensor(t: torch.Tensor) -> torch.Tensor:
     return t.as_tensor() if hasattr(t, "as_tensor") else t
 
 
@@ -96,7 +114,7 @@ def population_velocities(network, dataset) -> tuple[torch.Tensor, torch.Tensor]
     subjects -> atlas): the statistical deformation model of the ``population`` probe."""
     velocities = []
     for item in dataset:
-        pair = {k: _plain(v)[None] for k, v in item.items() if isinstance(v, torch.Tensor)}
+        pair = {k: plain_tensor(v)[None] for k, v in item.items() if isinstance(v, torch.Tensor)}
         with torch.inference_mode():
             velocities.append(network.posterior(pair["moving"], pair["fixed"]).mean[0])
     if len(velocities) < 2:
@@ -275,7 +293,7 @@ def main(argv=None) -> int:
 
     cases, items, probe = {}, {}, None
     for n, item in enumerate(dataset):
-        pair = {k: _plain(v)[None] if isinstance(v, torch.Tensor) else v for k, v in item.items()}
+        pair = {k: plain_tensor(v)[None] if isinstance(v, torch.Tensor) else v for k, v in item.items()}
         sid, items[pair["id"]] = pair["id"], pair
         with torch.inference_mode():
             real = network(pair["moving"], pair["fixed"]).displacement  # eval mode: the mean registration

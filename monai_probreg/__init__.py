@@ -15,7 +15,12 @@ Conventions, written once for the whole package (README "Conventions" repeats th
 5. ``log_var`` is always a log-variance, log sigma^2.
 """
 
-from monai_probreg.blocks.integration import DisplacementResize, ScalingAndSquaring, integrate_velocity, resize_displacement
+from monai_probreg.blocks.integration import (
+    DisplacementResize,
+    ScalingAndSquaring,
+    integrate_velocity,
+    resize_displacement,
+)
 from monai_probreg.blocks.sampling import VelocitySampler, sample_velocity
 from monai_probreg.blocks.warp import (
     CachedWarp,
@@ -32,8 +37,13 @@ from monai_probreg.metrics.dice import label_dice
 from monai_probreg.metrics.jacobian import JacobianStats, jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import PosteriorSamples, ProbRegNet, RegistrationOutput
 from monai_probreg.networks.velocity_unet import VelocityPosterior, VelocityUNet
-from monai_probreg.calibration import calibrate_log_var
-from monai_probreg.uncertainty import DisplacementUncertainty, displacement_uncertainty, label_entropy, velocity_entropy
+from monai_probreg.uncertainty.calibration import calibrate_log_var
+from monai_probreg.uncertainty.entropy import (
+    DisplacementUncertainty,
+    displacement_uncertainty,
+    label_entropy,
+    velocity_entropy,
+)
 
 __version__ = "0.1.0"
 

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 from collections.abc import Sequence
 from pathlib import Path
+from types import SimpleNamespace
 
 import nibabel as nib
 import numpy as np
@@ -149,9 +152,9 @@ def moved_scan(image: np.ndarray, labels: np.ndarray, fixed_to_moving: np.ndarra
     """The phantom as another scanner would see it: a grid of ``shape``/``spacing``/``direction`` centred on the
     moved object, with ``moving(q) = image(fixed_to_moving^-1 q)`` (linear; labels nearest).
     Returns (image, labels, index_to_lps of the new grid)."""
-    from monai_probreg.io import Volume
-    from monai_probreg.physical import apply_affine, grid_points
-    from monai_probreg.resample import sample_linear, sample_nearest
+    from monai_probreg.spatial.physical import apply_affine, grid_points
+    from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
+    from monai_probreg.spatial.volume_io import Volume
 
     fixed = Volume(image, FIXED_LPS)
     centre = grid_points(image.shape, FIXED_LPS).reshape(-1, 3).mean(0)
@@ -172,3 +175,37 @@ def tiny_bundle(root: Path, bundle_dir: Path, network_size: Sequence[int] = (16,
     assert "network_size: [80, 96, 80]" in text
     config.write_text(text.replace("network_size: [80, 96, 80]", f"network_size: {list(network_size)}"))
     return root
+
+
+# ---------------------------------------------------------------------------------------------- the command line
+BUNDLE_DIR = Path(__file__).resolve().parents[1] / "bundle"
+OBLIQUE_DIRECTION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])  # a moved scan's axes (AIL-like)
+FAST_AFFINE = ["--affine-levels", "2", "1", "--affine-iterations", "100", "50", "--affine-sampling", "0.25"]
+
+
+def run_cli(*argv: str) -> SimpleNamespace:
+    """``monai-probreg`` in-process with 1 thread; returns rc, stdout, stderr (torch's thread count restored)."""
+    import torch
+
+    from monai_probreg.cli.main import main
+
+    threads = torch.get_num_threads()
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc = main([*argv, "--threads", "1"])
+    finally:
+        torch.set_num_threads(threads)
+    return SimpleNamespace(rc=rc, out=out.getvalue(), err=err.getvalue())
+
+
+def moved_phantom(angles_deg: Sequence[float], translation_mm: Sequence[float]) -> SimpleNamespace:
+    """The asymmetric phantom (fixed, on FIXED_LPS) and a scan of it moved by a known rigid transform and resampled
+    onto an oblique anisotropic grid: image, labels, truth (fixed -> moving, LPS mm), moved, moved_labels, grid."""
+    from monai_probreg.spatial.physical import grid_points
+
+    image, labels = asymmetric_phantom()
+    centre = grid_points(image.shape, FIXED_LPS).reshape(-1, 3).mean(0)
+    truth = rigid_matrix(angles_deg, translation_mm, centre)
+    moved, moved_labels, grid = moved_scan(image, labels, truth, (1.4, 0.9, 1.1), OBLIQUE_DIRECTION, (34, 52, 40))
+    return SimpleNamespace(image=image, labels=labels, truth=truth, moved=moved, moved_labels=moved_labels, grid=grid)

@@ -7,12 +7,13 @@ two maps (``torch.bincount``), which is exact and needs no one-hot tensor.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor
 
-__all__ = ["label_dice"]
+__all__ = ["label_dice", "mean_dice"]
 
 
 def label_dice(pred: Tensor, target: Tensor, labels: Sequence[int] | None = None) -> dict[int, float]:
@@ -42,3 +43,11 @@ def label_dice(pred: Tensor, target: Tensor, labels: Sequence[int] | None = None
     sizes = joint.sum(1)[1:] + joint.sum(0)[1:]
     dice = torch.where(sizes > 0, 2 * inter / sizes.clamp(min=1), torch.full_like(sizes, float("nan")))
     return {lab: float(d) for lab, d in zip(labels, dice.tolist())}
+
+
+def mean_dice(dice: Mapping[int, float]) -> float:
+    """The mean Dice of one registration, the package's one rule: the mean over the scored labels whose Dice is
+    defined. A label absent from *both* maps (NaN in :func:`label_dice`) is left out; a label present in one map only
+    scores 0 and counts. NaN when no label is defined (nothing to score); writers store that NaN as null."""
+    values = [float(v) for v in dice.values() if not math.isnan(v)]
+    return sum(values) / len(values) if values else math.nan

@@ -16,10 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bench_helpers import load_benchmark
 import torch
+from bench_helpers import load_benchmark
 from conftest import TINY_LABELS, bundle_with_random_model, numpy_mean_dice
-
 
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "benchmarks" / "accuracy_table.py"
@@ -151,8 +150,9 @@ def test_ants_field_reproduces_ants_label_warp(tiny_dataset):
     from monai.data import Dataset
 
     from monai_probreg.blocks.warp import warp_labels
-    from monai_probreg.data import index_dataset, registration_transforms
-    from monai_probreg.inference import labelled_pairs, score_pair
+    from monai_probreg.data.dataset import index_dataset, labelled_pairs
+    from monai_probreg.data.transforms import registration_transforms
+    from monai_probreg.metrics.scores import score_pair
 
     item = Dataset(labelled_pairs(index_dataset(tiny_dataset), ["T01"]), registration_transforms())[0]
     pair = {k: v[None] for k, v in item.items() if isinstance(v, torch.Tensor)}

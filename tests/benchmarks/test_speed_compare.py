@@ -22,7 +22,7 @@ def bundle(tmp_path_factory):
     from bench_helpers import REPO
 
     from monai_probreg import ProbRegNet
-    from monai_probreg.network_settings import write_network_settings
+    from monai_probreg.weights.settings import write_network_settings
 
     root = bundle_with_random_model(tmp_path_factory.mktemp("bundle"), REPO / "bundle", network_size=(16, 16, 16))
     # as shipped: the settings sidecar next to the weights, so the trained row passes the settings check with the

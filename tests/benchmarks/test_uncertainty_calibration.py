@@ -124,10 +124,10 @@ def test_displacement_metrics_on_a_perfectly_calibrated_gaussian_reach_their_cei
 
 
 def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path, tiny_dataset, single_thread):
+    from bench_helpers import REPO
     from conftest import bundle_with_random_model
 
-    from bench_helpers import REPO
-    from monai_probreg.calibration import load_calibration
+    from monai_probreg.uncertainty.calibration import load_calibration
 
     bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")  # configs' network grid, random weights
     out = tmp_path / "out"

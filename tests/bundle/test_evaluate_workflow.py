@@ -15,12 +15,8 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import TINY_LABELS, make_tiny_dataset, numpy_mean_dice
-
 from bundle_fixtures import infer_workflow, root_cause
-
-
-
+from conftest import TINY_LABELS, make_tiny_dataset, numpy_mean_dice
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 

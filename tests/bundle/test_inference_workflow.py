@@ -11,13 +11,10 @@ import math
 import nibabel as nib
 import numpy as np
 import pytest
+from bundle_fixtures import infer_workflow
 from conftest import TINY_LABELS, make_tiny_dataset
 
-from bundle_fixtures import infer_workflow
-
-from monai_probreg.inference import OUTPUT_NAMES
-
-
+from monai_probreg.engines.outputs import OUTPUT_NAMES
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 

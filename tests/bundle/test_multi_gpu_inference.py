@@ -1,4 +1,4 @@
-"""Sharded batch inference: monai_probreg.sharding and bundle/configs/multi_gpu_inference.yaml.
+"""Sharded batch inference: monai_probreg.engines.sharding and bundle/configs/multi_gpu_inference.yaml.
 
 In process: the partition covers every subject once, the merge reproduces a single-process summary and refuses
 incomplete shards. End to end: two gloo processes under torchrun on the tiny dataset, compared with one process.
@@ -19,8 +19,9 @@ import pytest
 import torch
 from conftest import TINY_LABELS
 
-from monai_probreg.inference import PairScores, read_scores, write_scores
-from monai_probreg.sharding import MANIFEST, SHARDS_DIR, merge_shards, shard_dir, shard_items
+from monai_probreg.engines.score_files import read_scores, write_scores
+from monai_probreg.engines.sharding import MANIFEST, SHARDS_DIR, merge_shards, shard_dir, shard_items
+from monai_probreg.metrics.scores import PairScores
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARDED = ROOT / "bundle" / "configs" / "multi_gpu_inference.yaml"

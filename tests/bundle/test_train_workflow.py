@@ -65,7 +65,7 @@ def test_train_writes_best_weights_and_training_state(tmp_path, tiny_dataset):
     weights = torch.load(ckpt / "model.pt", weights_only=True)
     _net_from_config(wf).load_state_dict(weights)  # strict: the same architecture, plain (unwrapped) names
     # the settings the tensors cannot show travel beside them, and the training config's network fits them
-    from monai_probreg.network_settings import check_network_settings
+    from monai_probreg.weights.settings import check_network_settings
     recorded = check_network_settings(ckpt / "model.pt", _net_from_config(wf))
     assert recorded is not None and recorded["network_size"] == TINY["network_size"]
     states = _train_states(ckpt)
@@ -181,9 +181,9 @@ def test_multi_gpu_config_parses_and_overrides_single_process_pieces():
     train_targets = [h["_target_"] for h in config["train"]["handlers"]]
     val_targets = [h["_target_"] for h in config["validate"]["handlers"]]
     assert train_targets == ["ValidationHandler", "StatsHandler", "TensorBoardStatsHandler",
-                             "monai_probreg.engine.NonFiniteGuard"]
-    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "monai_probreg.engine.AtomicCheckpointSaver",
-                           "monai_probreg.network_settings.NetworkSettingsWriter"]
+                             "monai_probreg.engines.guards.NonFiniteGuard"]
+    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "monai_probreg.engines.checkpoints.AtomicCheckpointSaver",
+                           "monai_probreg.weights.settings.NetworkSettingsWriter"]
     # every rank keeps its NaN guard (its own weights); the other handlers run on rank 0 only
     assert all("_disabled_" in h for h in config["train"]["handlers"][:3] + config["validate"]["handlers"])
     assert "_disabled_" not in config["train"]["handlers"][3]

@@ -145,3 +145,46 @@ def test_negative_values_are_scored_correctly_or_rejected(pred, target, labels):
     except ValueError:
         return
     _assert_dice_equal(got, naive_dice(pred, target, labels))
+
+
+def test_mean_dice_skips_labels_absent_from_both_maps_and_counts_one_sided_ones_as_zero():
+    from monai_probreg.metrics.dice import mean_dice
+
+    pred = torch.tensor([[1, 1, 2, 0]])
+    target = torch.tensor([[1, 1, 0, 3]])
+    dice = label_dice(pred, target, [1, 2, 3, 4])  # 1 matches, 2 only in pred, 3 only in target, 4 in neither
+    assert dice[1] == 1.0 and dice[2] == 0.0 and dice[3] == 0.0 and math.isnan(dice[4])
+    assert mean_dice(dice) == pytest.approx(1 / 3)
+    assert math.isnan(mean_dice({}))
+    assert math.isnan(mean_dice({5: float("nan")}))
+
+
+def test_every_mean_dice_in_the_package_follows_the_one_rule():
+    """score_pair (bundle evaluation), the validation metric (training) and the command line's summary agree on a
+    pair where one scored label is absent from both maps."""
+    import numpy as np
+
+    from monai_probreg.cli.pipeline import _dice
+    from monai_probreg.engines.validation_metric import RegistrationMetrics
+    from monai_probreg.metrics.dice import mean_dice
+    from monai_probreg.metrics.scores import score_pair
+    from monai_probreg.networks.probreg_net import RegistrationOutput
+    from monai_probreg.spatial.volume_io import Volume
+
+    moving = torch.zeros(1, 1, 4, 5, 6, dtype=torch.long)
+    fixed = torch.zeros_like(moving)
+    moving[..., :2, :, :] = 1
+    fixed[..., :3, :, :] = 1
+    moving[..., 3, :, :] = 2  # label 2 in the moving map only; label 7 in neither
+    labels = [1, 2, 7]
+    expected = mean_dice(label_dice(moving, fixed, labels))
+    assert not math.isnan(expected)
+    assert score_pair(None, moving, fixed, labels=labels).mean_dice == pytest.approx(expected)
+    zero = torch.zeros(1, 3, 4, 5, 6)
+    metric = RegistrationMetrics(label_values=labels)
+    metric.reset()
+    pred = RegistrationOutput(*([None] * len(RegistrationOutput._fields)))._replace(displacement=zero)
+    metric.update((pred, {"moving_label": moving.float(), "fixed_label": fixed.float()}))
+    assert metric.compute()["dice"] == pytest.approx(expected)
+    fixed_volume = Volume(fixed[0, 0].numpy().astype(np.int32), np.eye(4))
+    assert _dice(moving[0, 0].numpy(), fixed_volume, labels)["mean"] == pytest.approx(expected)

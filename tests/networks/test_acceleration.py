@@ -137,7 +137,7 @@ def test_bf16_keeps_dice_and_folding_on_a_synthetic_pair_with_the_shipped_weight
 def test_bundle_configs_and_command_line_switch_the_precision(config):
     from monai.bundle import ConfigParser
 
-    from monai_probreg.cli import build_parser
+    from monai_probreg.cli.main import build_parser
 
     parser = ConfigParser()
     parser.read_config(str(ROOT / "bundle" / "configs" / config))

@@ -16,7 +16,7 @@ import pytest
 from monai.bundle import ConfigWorkflow
 from rel_helpers import flip_byte, save, truncate
 
-from monai_probreg.validation import InputError
+from monai_probreg.utils.errors import InputError
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 ROOT = Path(__file__).resolve().parents[2]

@@ -6,53 +6,46 @@ reports each bad scan with its reason, registers the others and exits 1.
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import io
 import os
-from pathlib import Path
 from types import SimpleNamespace
 
 import itk
 import nibabel as nib
 import numpy as np
 import pytest
-import torch
-from conftest import FIXED_LPS, asymmetric_phantom, moved_scan, rigid_matrix, save_lps, tiny_bundle
+from conftest import (
+    BUNDLE_DIR,
+    FAST_AFFINE,
+    FIXED_LPS,
+    OBLIQUE_DIRECTION,
+    moved_phantom,
+    moved_scan,
+    run_cli,
+    save_lps,
+    tiny_bundle,
+)
 from rel_helpers import rotation, set_header_dim, truncate
 from test_reliability_inputs import CASES
 
-from monai_probreg.cli import main
-from monai_probreg.physical import affine_from_itk, apply_affine, displacement_transform, grid_points
-from monai_probreg.physical import resample_with_itk
-from monai_probreg.validation import MAX_VOXELS_ENV
-
-BUNDLE = Path(__file__).resolve().parents[2] / "bundle"
-DIRECTION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
-FAST_AFFINE = ["--affine-levels", "2", "1", "--affine-iterations", "100", "50", "--affine-sampling", "0.25"]
-
-
-def run(*argv: str) -> SimpleNamespace:
-    """main(argv) in-process with 1 thread; returns rc, stdout, stderr."""
-    threads = torch.get_num_threads()
-    out, err = io.StringIO(), io.StringIO()
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            rc = main([*argv, "--threads", "1"])
-    finally:
-        torch.set_num_threads(threads)
-    return SimpleNamespace(rc=rc, out=out.getvalue(), err=err.getvalue())
+from monai_probreg.spatial.checks import MAX_VOXELS_ENV
+from monai_probreg.spatial.physical import (
+    affine_from_itk,
+    apply_affine,
+    displacement_transform,
+    grid_points,
+    resample_with_itk,
+)
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("reliability_cli")
-    image, labels = asymmetric_phantom()
-    centre = grid_points(image.shape, FIXED_LPS).reshape(-1, 3).mean(0)
-    truth = rigid_matrix([8.0, -6.0, 10.0], [3.0, -2.0, 2.0], centre)
-    moved, moved_labels, grid = moved_scan(image, labels, truth, (1.4, 0.9, 1.1), DIRECTION, (34, 52, 40))
+    case = moved_phantom([8.0, -6.0, 10.0], [3.0, -2.0, 2.0])
+    image, labels, truth, moved, moved_labels, grid = (case.image, case.labels, case.truth, case.moved,
+                                                       case.moved_labels, case.grid)
     s = SimpleNamespace(root=root, truth=truth, image=image, labels=labels, moved=moved, grid=grid,
-                        bundle=tiny_bundle(root / "bundle", BUNDLE),
+                        bundle=tiny_bundle(root / "bundle", BUNDLE_DIR),
                         fixed=save_lps(root / "fixed.nii.gz", image, FIXED_LPS),
                         fixed_label=save_lps(root / "fixed_label.nii.gz", labels, FIXED_LPS),
                         moving_label=save_lps(root / "moving_label.nii.gz", moved_labels.astype(np.uint8), grid))
@@ -73,7 +66,7 @@ def test_intensity_units_do_not_change_the_registration(scene, tmp_path, units):
     """Whatever the units, the recovered transform is the true one (mean error < 0.5 mm over the brain, well under
     the 0.9-1.4 mm voxels, as in test_cli) and Dice after registration > 0.85."""
     moving = save_lps(tmp_path / "moving.nii.gz", UNITS[units](scene.moved), scene.grid)
-    result = run("register", "--moving", str(moving), "--moving-label", str(scene.moving_label), "--fixed-label",
+    result = run_cli("register", "--moving", str(moving), "--moving-label", str(scene.moving_label), "--fixed-label",
                  str(scene.fixed_label), "--out", str(tmp_path / "out"), "--no-qc", *scene.common, *FAST_AFFINE)
     assert result.rc == 0, result.err
     brain = grid_points(scene.image.shape, FIXED_LPS)[scene.labels > 0]
@@ -87,11 +80,11 @@ def test_extremely_anisotropic_oblique_scan(scene, tmp_path):
     """A 0.35 x 0.35 x 4 mm grid (ratio 11), rotated 20-30 degrees off every axis, of the unmoved phantom, with
     --no-affine: ITK, applying our warp.nii.gz to the original scan, reproduces our warped.nii.gz, and that matches
     the phantom where the thick slices allow (correlation > 0.9 inside the brain)."""
-    direction = rotation((20.0, -25.0, 30.0)) @ DIRECTION
+    direction = rotation((20.0, -25.0, 30.0)) @ OBLIQUE_DIRECTION
     moved, _, grid = moved_scan(scene.image, scene.labels, np.eye(4), (0.35, 0.35, 4.0), direction, (130, 130, 14))
     moving = save_lps(tmp_path / "aniso.nii.gz", moved * 1000.0, grid)
     out = tmp_path / "out"
-    result = run("register", "--moving", str(moving), "--out", str(out), "--no-affine", "--no-qc", *scene.common)
+    result = run_cli("register", "--moving", str(moving), "--out", str(out), "--no-affine", "--no-qc", *scene.common)
     assert result.rc == 0, result.err
     transform = displacement_transform(itk.imread(str(out / "warp.nii.gz")))
     theirs = itk.array_from_image(resample_with_itk(itk.imread(str(moving), itk.F), itk.imread(str(scene.fixed),
@@ -116,7 +109,7 @@ def test_a_bad_scan_gives_one_line_and_writes_nothing(scene, tmp_path, name):
     (tmp_path / "in").mkdir()
     path, _, _ = case.make(tmp_path / "in")
     out = tmp_path / "out"
-    result = run("register", "--moving", str(path), "--out", str(out), *scene.common)
+    result = run_cli("register", "--moving", str(path), "--out", str(out), *scene.common)
     assert result.rc == 1 and "Traceback" not in result.err
     lines = [line for line in result.err.splitlines() if line.startswith("monai-probreg: error:")]
     assert len(lines) == 1 and "--moving" in lines[0] and path.name in lines[0] and case.io in lines[0], result.err
@@ -126,11 +119,11 @@ def test_a_bad_scan_gives_one_line_and_writes_nothing(scene, tmp_path, name):
 def test_max_voxels_option_refuses_a_large_scan_and_restores_the_environment(scene, tmp_path):
     before = os.environ.get(MAX_VOXELS_ENV)
     moving = save_lps(tmp_path / "big.nii.gz", scene.moved, scene.grid)  # 70,720 voxels; the fixed image: 63,360
-    result = run("register", "--moving", str(moving), "--out", str(tmp_path / "out"), "--max-voxels", "65000",
+    result = run_cli("register", "--moving", str(moving), "--out", str(tmp_path / "out"), "--max-voxels", "65000",
                  *scene.common)
     assert result.rc == 1 and "expected at most 65,000 voxels, got 70,720" in result.err, result.err
     assert os.environ.get(MAX_VOXELS_ENV) == before
-    assert run("register", "--moving", str(moving), "--out", str(tmp_path / "o"), "--max-voxels", "0",
+    assert run_cli("register", "--moving", str(moving), "--out", str(tmp_path / "o"), "--max-voxels", "0",
                *scene.common).rc == 1
 
 
@@ -149,7 +142,7 @@ def test_batch_reports_every_bad_scan_and_registers_the_rest(scene, tmp_path):
     (scans / "notes.nii.gz").write_text("not an image")
     paths = sorted(str(p) for p in scans.iterdir()) + [str(scans / "gone.nii.gz")]  # a missing scan, named
     out = tmp_path / "out"
-    result = run("register-batch", "--moving", *paths, "--out", str(out), "--no-affine", "--no-qc", *scene.common)
+    result = run_cli("register-batch", "--moving", *paths, "--out", str(out), "--no-affine", "--no-qc", *scene.common)
     assert result.rc == 1 and "Traceback" not in result.err
     assert "6 of 8 scans failed" in result.err
     rows = {row["scan"]: row for row in csv.DictReader((out / "batch_summary.csv").open())}
@@ -164,7 +157,7 @@ def test_batch_reports_every_bad_scan_and_registers_the_rest(scene, tmp_path):
 
 
 def test_interrupted_batch_still_has_a_summary(scene, tmp_path, monkeypatch):
-    import monai_probreg.batch as batch
+    import monai_probreg.cli.batch as batch
 
     scans = tmp_path / "scans"
     scans.mkdir()
@@ -180,7 +173,7 @@ def test_interrupted_batch_still_has_a_summary(scene, tmp_path, monkeypatch):
 
     monkeypatch.setattr(batch, "register_scan", interrupt_second)
     out = tmp_path / "out"
-    result = run("register-batch", "--moving", str(scans), "--out", str(out), "--no-affine", "--no-qc", *scene.common)
+    result = run_cli("register-batch", "--moving", str(scans), "--out", str(out), "--no-affine", "--no-qc", *scene.common)
     assert result.rc == 130 and "interrupted" in result.err
     rows = list(csv.DictReader((out / "batch_summary.csv").open()))
     assert [(r["scan"], r["status"]) for r in rows] == [("a", "ok"), ("b", "not run"), ("c", "not run")]

@@ -1,5 +1,5 @@
-"""Damaged and odd input files through both loading paths: the command line's reader (monai_probreg.io) and the
-bundle's (monai_probreg.data.LoadCheckedd, used by inference.yaml, evaluate.yaml and training).
+"""Damaged and odd input files through both loading paths: the command line's reader (monai_probreg.spatial.volume_io) and the
+bundle's (monai_probreg.data.transforms.LoadCheckedd, used by inference.yaml, evaluate.yaml and training).
 
 Each case is one file and what must happen: either a one-line InputError that names the file and contains the
 expected words, or a correct load (voxels equal to what was written, geometry equal to the header's). A raw
@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 from rel_helpers import affine_of, flip_byte, rotation, save, set_header_dim, smooth, truncate
 
-from monai_probreg.data import LoadCheckedd
-from monai_probreg.io import LPS_TO_RAS, read_image, read_label
-from monai_probreg.validation import MAX_VOXELS_ENV, InputError
+from monai_probreg.data.transforms import LoadCheckedd
+from monai_probreg.spatial.checks import MAX_VOXELS_ENV
+from monai_probreg.spatial.volume_io import LPS_TO_RAS, read_image, read_label
+from monai_probreg.utils.errors import InputError
 
 SHAPE = (9, 10, 11)
 DATA = smooth(SHAPE)  # float64 in ~[0.2, 0.9]

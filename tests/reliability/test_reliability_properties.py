@@ -16,12 +16,12 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from rel_helpers import rotation
 
-from monai_probreg.data import registration_transforms
-from monai_probreg.grid import ModelGrid
-from monai_probreg.io import read_image
+from monai_probreg.cli.pipeline import normalise_intensity
+from monai_probreg.data.transforms import registration_transforms
 from monai_probreg.networks.velocity_unet import LOG_VAR_MAX, LOG_VAR_MIN, bound_log_var
-from monai_probreg.pipeline import normalise_intensity
-from monai_probreg.resample import sample_linear
+from monai_probreg.spatial.model_grid import ModelGrid
+from monai_probreg.spatial.point_sampling import sample_linear
+from monai_probreg.spatial.volume_io import read_image
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 SIGNED_PERMUTATIONS = [np.eye(3)[list(p)] * s for p in itertools.permutations(range(3))

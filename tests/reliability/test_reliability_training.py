@@ -19,10 +19,11 @@ from ignite.engine import Engine, Events
 from monai.bundle import ConfigWorkflow
 
 from monai_probreg import ProbRegNet
-from monai_probreg.engine import NonFiniteGuard, PARTIAL_FILE, latest_checkpoint, remove_partial_files
-from monai_probreg.inference import atomic_write
+from monai_probreg.engines.checkpoints import latest_checkpoint
+from monai_probreg.engines.guards import NonFiniteGuard
 from monai_probreg.losses.elbo import ProbRegLoss
 from monai_probreg.networks.velocity_unet import LOG_VAR_MAX, bound_log_var
+from monai_probreg.utils.files import PARTIAL_FILE, atomic_write, remove_partial_files
 
 ROOT = Path(__file__).resolve().parents[2]
 TRAIN = ROOT / "bundle" / "configs" / "train.yaml"

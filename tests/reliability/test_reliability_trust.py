@@ -13,17 +13,16 @@ import re
 import zipfile
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
 
 from monai_probreg import ProbRegNet
-from monai_probreg.bundle_model import load_model
-from monai_probreg.cli import main
-from monai_probreg.engine import attach_resume
-from monai_probreg.inference import load_weights
-from monai_probreg.validation import UntrustedFileError
+from monai_probreg.cli.main import main
+from monai_probreg.cli.model import load_model
+from monai_probreg.engines.checkpoints import attach_resume
+from monai_probreg.utils.errors import UntrustedFileError
+from monai_probreg.weights.loading import load_weights
 
 ROOT = Path(__file__).resolve().parents[2]
 

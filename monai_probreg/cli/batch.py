@@ -1,0 +1,118 @@
+"""``monai-probreg register-batch``: many scans, one model and fixed image; one bad scan never stops the batch.
+
+Each scan is registered by :func:`monai_probreg.cli.pipeline.register_scan` into ``out/<name>/`` (all or nothing). A scan
+that fails for any reason (a missing, damaged or odd file: :mod:`monai_probreg.spatial.checks`; or an error while
+registering) becomes a ``failed`` row with its one-line reason, and the next scan starts. ``out/batch_summary.csv``
+is rewritten atomically after every scan, so an interrupted batch (Ctrl-C: the scans not reached are listed as
+``not run``; or a hard kill) still has an up-to-date summary. Columns: :data:`BATCH_COLUMNS`.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import sys
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+from monai_probreg.cli.model import LoadedModel
+from monai_probreg.cli.pipeline import FixedSpace, RegistrationOptions, register_scan
+from monai_probreg.utils.errors import InputError, first_line
+from monai_probreg.utils.files import write_text
+
+__all__ = ["BATCH_COLUMNS", "BatchItem", "BatchRow", "error_text", "write_batch_summary", "register_batch",
+           "print_batch_table"]
+
+BATCH_COLUMNS = ["scan", "status", "mean_dice", "mean_dice_affine_only", "num_jacobian_nonpositive", "time_s", "error"]
+
+
+class BatchItem(NamedTuple):
+    name: str  # output folder out/<name>/ and the row's "scan"
+    moving: Path
+    moving_label: Path | None = None
+
+
+class BatchRow(NamedTuple):
+    """One line of batch_summary.csv; ``status`` is ``ok``, ``failed`` or ``not run``."""
+
+    scan: str
+    status: str
+    mean_dice: float | None = None
+    mean_dice_affine_only: float | None = None
+    num_jacobian_nonpositive: int | None = None
+    time_s: float | None = None
+    error: str = ""
+
+
+def error_text(err: BaseException) -> str:
+    """One line: an InputError's own message (it names the file); otherwise the exception's type and first line."""
+    if isinstance(err, InputError):
+        return first_line(err, limit=None)
+    first = first_line(err, limit=None)
+    return type(err).__name__ if first == type(err).__name__ else f"{type(err).__name__}: {first}"
+
+
+def write_batch_summary(path: str | Path, rows: Sequence[BatchRow]) -> Path:
+    """Write ``batch_summary.csv`` (CSV quoting, floats to 4 decimals, empty = not available) atomically."""
+    table = io.StringIO()
+    writer = csv.writer(table, lineterminator="\n")
+    writer.writerow(BATCH_COLUMNS)
+    for row in rows:
+        writer.writerow(["" if v is None else f"{v:.4f}" if isinstance(v, float) else v for v in row])
+    return write_text(path, table.getvalue())
+
+
+def _register_one(model: LoadedModel, fixed: FixedSpace, item: BatchItem, out: Path, options: RegistrationOptions,
+                  overwrite: bool, report) -> BatchRow:
+    if not item.moving.is_file():  # one missing scan is that scan's failure, not the batch's
+        raise InputError(f"--moving {str(item.moving)!r}: no such file")
+    summary = register_scan(model, fixed, item.moving, out / item.name, item.moving_label, options, overwrite,
+                            report=report)
+    dice = summary["dice"] or {}
+    return BatchRow(item.name, "ok", dice.get("mean"), dice.get("mean_affine_only"),
+                    summary["jacobian"]["num_nonpositive"], summary["timings_s"]["total"])
+
+
+def register_batch(model: LoadedModel, fixed: FixedSpace, items: Sequence[BatchItem], out: str | Path,
+                   options: RegistrationOptions, overwrite: bool = False, quiet: bool = False,
+                   debug: bool = False) -> list[BatchRow]:
+    """Register every item; returns one row per item (failures included) and keeps out/batch_summary.csv current.
+    ``debug`` prints each failure's traceback to stderr. Ctrl-C writes the summary (the rest ``not run``), re-raises."""
+    from tqdm import tqdm
+
+    out = Path(out)
+    rows: list[BatchRow] = []
+    bar = tqdm(items, desc="registering", unit="scan", disable=quiet, file=sys.stderr)
+    try:
+        for item in bar:
+            bar.set_postfix_str(item.name)
+            try:
+                row = _register_one(model, fixed, item, out, options, overwrite,
+                                    report=lambda stage, s, n=item.name: bar.set_postfix_str(f"{n}: {stage} done"))
+            except Exception as err:  # noqa: BLE001 - one scan's failure must not stop the batch
+                row = BatchRow(item.name, "failed", error=error_text(err))
+                if debug:
+                    traceback.print_exc()
+            rows.append(row)
+            write_batch_summary(out / "batch_summary.csv", rows)
+    except KeyboardInterrupt:
+        done = {row.scan for row in rows}
+        rows += [BatchRow(item.name, "not run", error="interrupted") for item in items if item.name not in done]
+        write_batch_summary(out / "batch_summary.csv", rows)
+        raise
+    finally:
+        bar.close()
+    return rows
+
+
+def print_batch_table(rows: Sequence[BatchRow], file=None) -> None:
+    """The summary as an aligned table on stdout (or ``file``)."""
+    def fmt(value, spec: str) -> str:
+        return "-" if value is None else format(value, spec)
+
+    print(f"{'scan':<24}{'status':<8}{'Dice':>7}{'affine':>8}{'|J|<=0':>8}{'time (s)':>10}  error", file=file)
+    for r in rows:
+        print(f"{r.scan:<24}{r.status:<8}{fmt(r.mean_dice, '.3f'):>7}{fmt(r.mean_dice_affine_only, '.3f'):>8}"
+              f"{fmt(r.num_jacobian_nonpositive, 'd'):>8}{fmt(r.time_s, '.1f'):>10}  {r.error}", file=file)

@@ -1,0 +1,298 @@
+"""``monai-probreg``: register raw 3-D scans to an atlas from the command line.
+
+Subcommands ``register`` (one scan) and ``register-batch`` (many scans, model and atlas loaded once); the work is
+:func:`monai_probreg.cli.pipeline.register_scan`. Exit status: 0 on success; 1 with one line
+``monai-probreg: error: ...`` on stderr when an input or the registration fails (for a batch: when any scan
+failed); 2 for command-line usage errors (argparse).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+import time
+import traceback
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+__all__ = ["main", "build_parser"]
+
+
+DESCRIPTION = """\
+Register 3-D brain MRI scans to an atlas with the trained VoxelMorph-diff model (Dalca et al. 2018): ITK affine
+pre-alignment (rigid then affine, Mattes mutual information), then the network's diffeomorphic deformation, composed
+into one transform. Scans may come in any orientation, voxel size, field of view and intensity range; they should be
+skull-stripped T1-weighted brains, like the atlas.
+
+  monai-probreg register --moving sub01.nii.gz --fixed atlas.nii.gz --out results/sub01
+  monai-probreg register --moving sub01.nii.gz --moving-label sub01_seg.nii.gz \\
+      --fixed atlas.nii.gz --fixed-label atlas_seg.nii.gz --samples 10 --out results/sub01
+  monai-probreg register-batch --moving scans/ --fixed atlas.nii.gz --out results/
+
+Outputs (see DIR/README.txt): warped.nii.gz (moving on the fixed grid), warp.nii.gz and inverse_warp.nii.gz (ITK/ANTs
+displacement fields, LPS mm), affine.tfm, jacobian.nii.gz, entropy.nii.gz, displacement_std.nii.gz (--samples),
+warped_label.nii.gz / fixed_label_in_moving.nii.gz (labels), summary.json, qc.png.
+
+The model (network settings and weights) comes from the MONAI bundle: BUNDLE/configs/inference.yaml and
+the config's model_file (BUNDLE/models/...), BUNDLE being the repository's bundle/ folder unless --bundle-root, --config or --model-file
+say otherwise. The bundle does not ship the atlas image (LPBA40 may not be redistributed), so --fixed is required:
+pass the image the model was trained against (e.g. lpba40/atlas/S01_image.nii.gz).
+
+Exit status: 0 on success; 1 with one line "monai-probreg: error: ..." when an input or the registration fails
+(nothing is written to DIR; for register-batch, when any scan failed); 2 for a malformed command line.
+"""
+
+
+def _add_common(parser: argparse.ArgumentParser) -> None:
+    io = parser.add_argument_group("inputs and outputs")
+    io.add_argument("--fixed", required=True, metavar="F",
+                    help="the atlas / fixed image (required: the bundle does not ship it)")
+    io.add_argument("--fixed-label", metavar="L", help="its label map (integers, same grid): enables Dice and "
+                    "fixed_label_in_moving.nii.gz")
+    io.add_argument("--out", required=True, metavar="DIR", help="output folder (created; must be empty or absent "
+                    "unless --overwrite)")
+    io.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run in DIR")
+    reg = parser.add_argument_group("registration")
+    reg.add_argument("--samples", type=int, default=0, metavar="K",
+                     help="posterior samples for the displacement std map (0 = none, default; else >= 2)")
+    reg.add_argument("--seed", type=int, default=0, help="random seed of the posterior samples (default 0)")
+    reg.add_argument("--raw-uncertainty", action="store_true", help="entropy and std maps of the raw variational "
+                     "posterior (default: calibrated by the weights' <stem>.calibration.json)")
+    reg.add_argument("--no-affine", action="store_true", help="skip the affine pre-alignment (scans already "
+                     "aligned to the fixed image)")
+    reg.add_argument("--rigid-only", action="store_true", help="pre-align with 6 parameters (no scaling/shear)")
+    reg.add_argument("--affine-levels", type=int, nargs="+", default=[4, 2], metavar="S",
+                     help="shrink factor of each pre-alignment level, coarse to fine, smoothed by S/2 mm (default: 4 2;"
+                    " add 1 for a full-resolution level)")
+    reg.add_argument("--affine-iterations", type=int, nargs="+", default=[100, 50], metavar="N",
+                     help="maximum iterations per level, for each of the rigid and affine stages (default: 100 50)")
+    reg.add_argument("--affine-sampling", type=float, default=0.2, metavar="P",
+                     help="fraction of voxels sampled by the mutual information metric (default 0.2)")
+    reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
+    model = parser.add_argument_group("model and machine")
+    model.add_argument("--bundle-root", metavar="B", help="MONAI bundle folder (default: bundle/ of the repository)")
+    model.add_argument("--model-file", metavar="P", help="weights (default: the model_file of the config, the bundle's shipped default)")
+    model.add_argument("--config", metavar="Y", help="network settings (default: B/configs/inference.yaml)")
+    model.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    model.add_argument("--threads", type=int, default=None, metavar="N", help="CPU threads for torch and ITK "
+                       "(default: all)")
+    model.add_argument("--unet-precision", choices=["auto", "bf16", "fp32"], default=None,
+                       help="the UNet's arithmetic (default: the config's unet_precision, 'auto': bf16 on CPUs with "
+                       "native bf16, else float32; integration and warps are always float32)")
+    model.add_argument("--no-memory-reuse", action="store_true",
+                       help="give freed memory back to the system (glibc's default); by default the process keeps it "
+                       "and reuses it, which saves about a fifth of a registration's time on a CPU (monai_probreg.utils.memory)")
+    model.add_argument("--max-voxels", type=int, default=None, metavar="N",
+                       help="refuse an image of more than N voxels before reading it, instead of running out of memory "
+                       "(default: $MONAI_PROBREG_MAX_VOXELS, else 512^3 = 134217728)")
+    model.add_argument("--quiet", action="store_true", help="print nothing but errors and the final summary")
+    model.add_argument("--debug", action="store_true", help="show the full traceback of an unexpected error")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="monai-probreg", description=DESCRIPTION,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True, metavar="{register,register-batch}")
+    one = commands.add_parser("register", help="register one scan to the fixed image",
+                              description="Register one scan to the fixed image; outputs in DIR.\n\n" + DESCRIPTION,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    one.add_argument("--moving", required=True, metavar="M", help="the scan to register (NIfTI, NRRD, MHA...)")
+    one.add_argument("--moving-label", metavar="L", help="its label map (same grid): warped_label.nii.gz and Dice")
+    _add_common(one)
+    many = commands.add_parser("register-batch", help="register many scans to one fixed image",
+                               description="Register many scans to one fixed image, the model loaded once; outputs "
+                               "in DIR/<scan name>/ plus DIR/batch_summary.csv.\n\n" + DESCRIPTION,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)
+    many.add_argument("--moving", required=True, nargs="+", metavar="M",
+                      help="scans, or one folder of scans (*.nii.gz, *.nii, *.nrrd, *.mha)")
+    many.add_argument("--moving-label-dir", metavar="D", help="folder of label maps named like their scans (a scan "
+                      "without one is registered without labels)")
+    _add_common(many)
+    return parser
+
+
+
+
+def _batch_items(args: argparse.Namespace) -> list[tuple[str, Path, Path | None]]:
+    from monai_probreg.utils.errors import InputError
+    from monai_probreg.utils.files import IMAGE_SUFFIXES, file_stem
+
+    paths = [Path(p) for p in args.moving]
+    if len(paths) == 1 and paths[0].is_dir():
+        paths = sorted(p for p in paths[0].iterdir() if p.is_file() and p.name.endswith(IMAGE_SUFFIXES))
+        if not paths:
+            raise InputError(f"--moving {args.moving[0]!r}: folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+    items, seen = [], {}
+    for path in paths:
+        sid = file_stem(path)
+        if sid in seen:
+            raise InputError(f"--moving: {str(seen[sid])!r} and {str(path)!r} have the same name {sid!r}; their "
+                             "outputs would collide")
+        seen[sid] = path
+        label = None
+        if args.moving_label_dir:
+            matches = [Path(args.moving_label_dir) / (sid + ext) for ext in IMAGE_SUFFIXES]
+            label = next((m for m in matches if m.is_file()), None)
+        items.append((sid, path, label))
+    return items
+
+
+def _options(args: argparse.Namespace):
+    from monai_probreg.cli.pipeline import RegistrationOptions
+    from monai_probreg.spatial.affine import AffineSettings
+    from monai_probreg.utils.errors import InputError
+
+    affine = None
+    if not args.no_affine:
+        levels = tuple(args.affine_levels)
+        iterations = tuple(args.affine_iterations)
+        if len(iterations) != len(levels):
+            raise InputError(f"--affine-iterations needs one value per --affine-levels level ({len(levels)}); "
+                             f"got {len(iterations)}")
+        try:
+            affine = AffineSettings(shrink_factors=levels, smoothing_sigmas_mm=tuple(s / 2.0 for s in levels),
+                                    rigid_iterations=iterations, affine_iterations=iterations,
+                                    sampling_percentage=args.affine_sampling, rigid_only=args.rigid_only)
+        except ValueError as err:
+            raise InputError(f"affine settings: {err}") from None
+    return RegistrationOptions(samples=args.samples, seed=args.seed, qc=not args.no_qc, affine=affine)
+
+
+def _setup(args: argparse.Namespace):
+    """Threads, model, fixed image: the parts a batch pays for once."""
+    import itk
+    import torch
+
+    from monai_probreg.cli.model import load_model
+    from monai_probreg.cli.pipeline import prepare_fixed
+    from monai_probreg.spatial.affine import load_itk_modules
+    from monai_probreg.utils.memory import reuse_freed_memory
+
+    if args.threads is not None:
+        if args.threads < 1:
+            from monai_probreg.utils.errors import InputError
+            raise InputError(f"--threads must be >= 1; got {args.threads}")
+        torch.set_num_threads(args.threads)
+        itk.MultiThreaderBase.SetGlobalDefaultNumberOfThreads(args.threads)
+    if not args.no_memory_reuse:
+        reuse_freed_memory()
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    model = load_model(args.bundle_root, args.model_file, args.config, device, calibrate=not args.raw_uncertainty)
+    if args.unet_precision is not None:
+        model.network.unet_precision = args.unet_precision
+    fixed = prepare_fixed(args.fixed, args.fixed_label, model.divisor)
+    load_itk_modules()
+    return model, fixed
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(text, file=sys.stderr, flush=True)
+
+
+def _summary_line(summary: dict) -> str:
+    t = summary["timings_s"]
+    parts = [f"total {t['total']:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in t.items() if k != "total") + ")"]
+    if summary.get("dice"):
+        parts.append(f"mean Dice {summary['dice']['mean']:.3f} (affine only {summary['dice']['mean_affine_only']:.3f})")
+    parts.append(f"|J|<=0: {summary['jacobian']['num_nonpositive']}")
+    return "; ".join(parts)
+
+
+def _require_files(args: argparse.Namespace, options: Sequence[str]) -> None:
+    """Fail fast, before the model and ITK load (seconds), on input paths that do not exist."""
+    from monai_probreg.utils.errors import InputError
+
+    for option in options:
+        value = getattr(args, option.lstrip("-").replace("-", "_"), None)
+        if value is not None and not Path(value).is_file():
+            what = "is a folder, not an image file" if Path(value).is_dir() else "no such file"
+            raise InputError(f"{option} {value!r}: {what}")
+
+
+def _register(args: argparse.Namespace) -> int:
+    from monai_probreg.cli.output_dir import check_output_dir
+    from monai_probreg.cli.pipeline import register_scan
+
+    options = _options(args)
+    _require_files(args, ["--moving", "--moving-label", "--fixed", "--fixed-label"])
+    check_output_dir(args.out, args.overwrite)  # fail before loading anything
+    start = time.perf_counter()
+    model, fixed = _setup(args)
+    _say(args, f"model and fixed image ready in {time.perf_counter() - start:.1f} s")
+    summary = register_scan(model, fixed, args.moving, args.out, args.moving_label, options, args.overwrite,
+                            report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
+    print(f"{args.out}: {_summary_line(summary)}")
+    return 0
+
+
+def _register_batch(args: argparse.Namespace) -> int:
+    from monai_probreg.cli.batch import BatchItem, print_batch_table, register_batch
+    from monai_probreg.cli.output_dir import check_output_dir
+
+    options = _options(args)
+    _require_files(args, ["--fixed", "--fixed-label"])
+    items = [BatchItem(sid, path, label) for sid, path, label in _batch_items(args)]
+    out = Path(args.out)
+    for item in items:  # fail fast on what is cheap to check and would hit every scan
+        check_output_dir(out / item.name, args.overwrite)
+    model, fixed = _setup(args)
+    rows = register_batch(model, fixed, items, out, options, args.overwrite, quiet=args.quiet, debug=args.debug)
+    print_batch_table(rows)
+    failed = sum(row.status != "ok" for row in rows)
+    if failed:
+        print(f"monai-probreg: error: {failed} of {len(rows)} scans failed (see above and {out}/batch_summary.csv)",
+              file=sys.stderr)
+    return 1 if failed else 0
+
+
+@contextlib.contextmanager
+def _voxel_limit(limit: int | None) -> Iterator[None]:
+    """``--max-voxels``: the limit of :mod:`monai_probreg.spatial.checks` for this call only (restored afterwards)."""
+    from monai_probreg.spatial.checks import MAX_VOXELS_ENV
+    from monai_probreg.utils.errors import InputError
+
+    if limit is None:
+        yield
+        return
+    if limit < 1:
+        raise InputError(f"--max-voxels: expected a positive number of voxels, got {limit}")
+    previous = os.environ.get(MAX_VOXELS_ENV)
+    os.environ[MAX_VOXELS_ENV] = str(limit)
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(MAX_VOXELS_ENV, None)
+        else:
+            os.environ[MAX_VOXELS_ENV] = previous
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``monai-probreg`` command; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    os.environ.setdefault("KMP_WARNINGS", "0")
+    try:
+        with _voxel_limit(args.max_voxels):
+            return _register(args) if args.command == "register" else _register_batch(args)
+    except KeyboardInterrupt:
+        print("monai-probreg: interrupted; the scan in progress left nothing in its output folder (a batch lists "
+              "the scans not run in batch_summary.csv)", file=sys.stderr)
+        return 130
+    except Exception as err:  # noqa: BLE001 - one line for users; --debug for the traceback
+        from monai_probreg.utils.errors import InputError, first_line
+
+        if args.debug:
+            traceback.print_exc()
+        if isinstance(err, InputError):
+            print(f"monai-probreg: error: {err}", file=sys.stderr)
+        else:
+            print(f"monai-probreg: error: unexpected {type(err).__name__}: {first_line(err)} (rerun with --debug for the "
+                  "traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""The trained network as the MONAI bundle describes it: settings from a config, weights from a state_dict file.
+
+Defaults follow the bundle layout: ``BUNDLE/configs/inference.yaml`` (its ``network_def`` and ``divisor``: the
+values the weights were trained with; the weights file does not record them) and its ``model_file`` (a plain
+``ProbRegNet`` state_dict, loaded with ``weights_only=True``), ``BUNDLE`` being the ``bundle/`` folder next to the
+installed package (the repository checkout for an editable install) unless given.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from monai.bundle import ConfigParser
+from torch import nn
+
+import monai_probreg
+from monai_probreg.uncertainty.calibration import calibration_for
+from monai_probreg.utils.errors import InputError, first_line
+from monai_probreg.weights.loading import load_weights
+
+__all__ = ["default_bundle_root", "LoadedModel", "load_model"]
+
+
+def default_bundle_root() -> Path:
+    """``bundle/`` next to the installed package (the repository checkout for an editable install)."""
+    return Path(monai_probreg.__file__).resolve().parents[1] / "bundle"
+
+
+@dataclass
+class LoadedModel:
+    """``network`` in eval mode on ``device``; ``divisor``: the padding multiple of the bundle's preprocessing."""
+
+    network: nn.Module
+    divisor: int
+    device: torch.device
+    model_file: Path
+    config_file: Path
+    std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
+    bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
+
+
+def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
+               config_file: str | os.PathLike | None = None, device: str = "cpu", calibrate: bool = True) -> LoadedModel:
+    """The trained network: settings from ``configs/inference.yaml``'s ``network_def`` (and ``divisor``), weights
+    from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable.
+    ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw."""
+    root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
+    config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"
+    if not config.is_file():
+        raise InputError(f"--config {str(config)!r}: no such file (the bundle's configs/inference.yaml; pass "
+                         "--bundle-root or --config)")
+    parser = ConfigParser()
+    parser.read_config(str(config))
+    parser["bundle_root"] = str(root)
+    if model_file is None:  # the config's own default weights (models/<the shipped default>), relative to the bundle
+        model_file = parser.get_parsed_content("model_file") if "model_file" in parser else root / "models" / "model.pt"
+    weights = Path(model_file)
+    if not weights.is_file():
+        raise InputError(f"--model-file {str(weights)!r}: no such file (train the bundle, or pass --model-file)")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise InputError(f"--device {device}: CUDA is not available on this machine; use --device cpu")
+    try:
+        network = parser.get_parsed_content("network_def")
+        divisor = int(parser.get("divisor", 16))
+    except Exception as err:  # noqa: BLE001 - any config error becomes one line
+        raise InputError(f"--config {str(config)!r}: cannot build the network from 'network_def' "
+                         f"({first_line(err)})") from None
+    try:
+        load_weights(network, weights, device)
+    except InputError as err:  # untrusted (a pickle that could run code), truncated or corrupt: its own message
+        raise type(err)(str(err).replace("model file", "--model-file", 1)) from None
+    except (RuntimeError, KeyError, ValueError) as err:
+        raise InputError(f"--model-file {str(weights)!r}: does not fit the network of {str(config)!r} "
+                         f"({first_line(err)})") from None
+    try:
+        calibration = calibration_for(weights, calibrate)
+    except ValueError as err:  # a sidecar of other weights, or corrupt
+        raise InputError(f"--model-file {str(weights)!r}: {err}") from None
+    return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration)

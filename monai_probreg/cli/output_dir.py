@@ -1,0 +1,127 @@
+"""The output folder of ``monai-probreg register``: all-or-nothing writing, file names, ITK writers.
+
+All-or-nothing: every file is written into a hidden staging folder next to ``DIR`` (same file system) and moved
+into ``DIR`` only when the whole registration has succeeded (:func:`staged_output_dir`). On any error, including
+Ctrl-C, the staging folder is removed and ``DIR`` is left as it was; a hard kill can leave a hidden
+``.DIR.partial-*`` folder next to ``DIR``, never a half-written file inside it.
+
+Images and fields are written with ITK (the reader ITK, ANTs and Slicer use), so their headers carry exactly the
+geometry ITK read from the inputs; each write is itself atomic (:func:`monai_probreg.utils.files.atomic_write`).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import itk
+import numpy as np
+
+from monai_probreg.spatial.physical import field_to_itk
+from monai_probreg.spatial.volume_io import Volume, volume_to_itk
+from monai_probreg.utils.errors import InputError
+from monai_probreg.utils.files import atomic_write
+
+__all__ = ["OUTPUT_FILES", "OUTPUTS_README", "check_output_dir", "staged_output_dir", "write_volume", "label_dtype",
+           "write_field", "write_transform"]
+
+# name -> what it is; the order of the README and of summary.json["outputs"]
+OUTPUT_FILES = {
+    "warped.nii.gz": "moving image resampled onto the fixed grid through the composed transform (linear, original "
+                     "intensities, 0 outside the moving scan)",
+    "warped_label.nii.gz": "moving labels on the fixed grid (nearest neighbour) [--moving-label]",
+    "warp.nii.gz": "composed displacement field fixed -> moving (affine + deformable), LPS mm, on the fixed grid; "
+                   "ITK DisplacementFieldTransform / antsApplyTransforms -t warp.nii.gz",
+    "inverse_warp.nii.gz": "composed inverse field moving -> fixed, LPS mm, on the moving grid; "
+                           "antsApplyTransforms -i FIXED -r MOVING -t inverse_warp.nii.gz",
+    "affine.tfm": "the affine part alone (fixed -> moving, ITK AffineTransform_double_3_3 text file)",
+    "fixed_label_in_moving.nii.gz": "fixed labels mapped onto the moving scan's own grid (nearest neighbour) "
+                                    "[--fixed-label]",
+    "jacobian.nii.gz": "det(I + grad u) of the deformable part on the fixed grid (<= 0: folding); the composed "
+                       "transform's Jacobian is this times summary.json affine.determinant",
+    "entropy.nii.gz": "entropy of the velocity posterior q(z) (Dalca et al. 2018, Eq. 8), fixed grid",
+    "displacement_std.nii.gz": "std of the displacement over K posterior samples, sqrt(sum of the 3 variances), mm "
+                               "[--samples K]",
+    "qc.png": "quality-control figure: three orthogonal slices of each map",
+    "summary.json": "timings per stage, affine, |J| <= 0 count, Dice per label, inputs and settings",
+    "README.txt": "this list",
+}
+
+OUTPUTS_README = "Outputs of monai-probreg register (VoxelMorph-diff, Dalca et al. 2018).\n" + "\n".join(
+    f"  {name:<30}{text}" for name, text in OUTPUT_FILES.items()) + """
+Conventions: physical points are ITK's LPS millimetres. A displacement field maps a point p of its grid to
+p + d(p) in the other space (ITK DisplacementFieldTransform, ANTs warp files): warp.nii.gz pulls the moving image
+back onto the fixed grid, warped(p) = moving(p + d(p)). Files on the fixed grid carry the fixed image's header.
+"""
+
+
+def check_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> Path:
+    """InputError if ``out_dir`` is a file, an existing non-empty folder (unless ``overwrite``), or not writable.
+    Missing parent folders are fine (created when the outputs are moved into place)."""
+    path = Path(out_dir)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"--out {str(path)!r}: exists and is a file, not a folder")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise InputError(f"--out {str(path)!r}: folder exists and is not empty; pass --overwrite to replace its "
+                         "outputs, or choose another folder")
+    existing = path
+    while not existing.exists():  # nearest existing folder: where the new ones will be created
+        existing = existing.parent
+    if not os.access(existing, os.W_OK):
+        raise InputError(f"--out {str(path)!r}: no permission to write in {str(existing)!r}")
+    return path
+
+
+@contextmanager
+def staged_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a staging folder; on success move its files into ``out_dir`` (module docstring), else delete it.
+
+    With ``overwrite``, files of ours (:data:`OUTPUT_FILES`) left from an earlier run and not produced by this one
+    are removed, so the folder never mixes two runs; files of other names are kept.
+    """
+    final = check_output_dir(out_dir, overwrite)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    stage = final.parent / f".{final.name}.partial-{uuid.uuid4().hex[:8]}"
+    stage.mkdir()
+    try:
+        yield stage
+        if not final.exists():
+            os.rename(stage, final)  # atomic: DIR appears complete
+            return
+        produced = {p.name for p in stage.iterdir()}
+        for name in OUTPUT_FILES:
+            if name not in produced and (final / name).is_file():
+                (final / name).unlink()
+        for item in stage.iterdir():
+            os.replace(item, final / item.name)
+        stage.rmdir()
+    finally:
+        if stage.exists():
+            shutil.rmtree(stage, ignore_errors=True)
+
+
+def write_volume(path: str | os.PathLike, volume: Volume, dtype: type = np.float32) -> Path:
+    """Write a :class:`Volume` with ITK (atomic); labels: pass an integer ``dtype`` (int16 when it fits)."""
+    image = volume_to_itk(volume, dtype)
+    return atomic_write(path, lambda tmp: itk.imwrite(image, tmp, compression=True))
+
+
+def label_dtype(array: np.ndarray) -> type:
+    """The smallest of uint8 / int16 / int32 that holds a label map's values."""
+    top = int(array.max()) if array.size else 0
+    return np.uint8 if top < 256 else np.int16 if top < 32768 else np.int32
+
+
+def write_field(path: str | os.PathLike, field: np.ndarray, index_to_lps: np.ndarray) -> Path:
+    """Write a displacement field (*S, 3) in LPS mm as an ITK vector image (NIfTI intent "vector", float32)."""
+    image = field_to_itk(field, index_to_lps)
+    return atomic_write(path, lambda tmp: itk.imwrite(image, tmp, compression=True))
+
+
+def write_transform(path: str | os.PathLike, transform: itk.Transform) -> Path:
+    """Write an ITK transform file (``.tfm``/``.txt`` text, ``.mat`` MATLAB, ``.h5`` HDF5), atomically."""
+    return atomic_write(path, lambda tmp: itk.transformwrite([transform], tmp))

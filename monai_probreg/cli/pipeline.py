@@ -1,0 +1,312 @@
+"""Register one raw scan to a fixed image, end to end: the functional core of ``monai-probreg register``.
+
+Stages, timed under these names in ``summary.json["timings_s"]``:
+
+- ``read``: read and validate the moving scan (and its labels) with their geometry (:mod:`monai_probreg.spatial.volume_io`);
+- ``affine``: ITK rigid + affine registration of the raw moving scan to the fixed image (:mod:`monai_probreg.spatial.affine`);
+- ``resample``: the moving scan onto the fixed grid through the affine (one linear interpolation, the scan's
+  minimum outside it), percentile intensity scaling to [0, 1] exactly as in training, then onto the model grid
+  (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS, padded to the bundle's divisor);
+- ``model``: posterior mean velocity -> displacement and inverse (``exp(-v)``), Jacobian, velocity entropy;
+- ``samples``: with ``samples = K >= 2``, K posterior samples -> displacement standard deviation;
+- ``compose``: affine + deformable -> one field fixed -> moving and its inverse (:mod:`monai_probreg.spatial.physical`);
+  the original moving scan and labels resampled once through it; Dice;
+- ``write``, ``qc``: the files, in a staging folder moved into place at the end (:mod:`monai_probreg.cli.output_dir`).
+
+The model is loaded once (:func:`monai_probreg.cli.model.load_model`) and the fixed image prepared once
+(:func:`prepare_fixed`), so a batch pays for them once; neither is counted in a scan's stages.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import itk
+import numpy as np
+import torch
+from monai.networks.utils import eval_mode
+from monai.transforms import ScaleIntensityRangePercentiles
+
+import monai_probreg
+from monai_probreg.cli.model import LoadedModel
+from monai_probreg.cli.output_dir import (
+    OUTPUTS_README,
+    check_output_dir,
+    label_dtype,
+    staged_output_dir,
+    write_field,
+    write_transform,
+    write_volume,
+)
+from monai_probreg.cli.qc import QCData, save_qc
+from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
+from monai_probreg.engines.registration import register_pair
+from monai_probreg.metrics.dice import label_dice, mean_dice
+from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
+from monai_probreg.spatial.affine import AffineResult, AffineSettings, register_affine
+from monai_probreg.spatial.model_grid import ModelGrid
+from monai_probreg.spatial.physical import (
+    affine_to_itk,
+    apply_affine,
+    compose_forward,
+    compose_inverse,
+    grid_points,
+    voxel_to_mm,
+)
+from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
+from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
+from monai_probreg.uncertainty.posterior_maps import posterior_maps
+from monai_probreg.utils.errors import InputError
+from monai_probreg.utils.files import write_text
+
+__all__ = ["FixedSpace", "prepare_fixed", "RegistrationOptions",
+           "normalise_intensity", "register_scan"]
+
+
+
+def normalise_intensity(array: np.ndarray) -> np.ndarray:
+    """Percentiles LOWER/UPPER_PERCENTILE -> 0 / 1, clipped (MONAI's ScaleIntensityRangePercentiles, as in training)."""
+    scale = ScaleIntensityRangePercentiles(lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0,
+                                           clip=True)
+    return np.asarray(torch.as_tensor(scale(torch.from_numpy(np.asarray(array, np.float32))[None]))[0])
+
+
+@dataclass
+class FixedSpace:
+    """The fixed image prepared once: geometry, model grid, normalised model input, voxel-centre points."""
+
+    image: Volume
+    label: Volume | None
+    grid: ModelGrid
+    itk_image: itk.Image
+    model_input: np.ndarray
+    points: np.ndarray
+    label_ids: list[int] = field(default_factory=list)
+
+
+def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None = None,
+                  divisor: int = 16) -> FixedSpace:
+    image = read_image(path, "--fixed")
+    label = None
+    if label_path is not None:
+        label = read_label(label_path, "--fixed-label")
+        check_same_grid(label, image, "--fixed-label", "--fixed")
+    grid = ModelGrid.for_volume(image, divisor)
+    ids = [int(v) for v in np.unique(label.array) if v != 0] if label is not None else []
+    return FixedSpace(image, label, grid, volume_to_itk(image), grid.to_model(normalise_intensity(image.array)),
+                      grid_points(image.shape, image.index_to_lps), ids)
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed;
+    ``affine``: settings of the ITK pre-alignment, or None to skip it (the identity: scans already aligned to the
+    fixed image, as the paper assumes)."""
+
+    samples: int = 0
+    seed: int = 0
+    qc: bool = True
+    affine: AffineSettings | None = field(default_factory=AffineSettings)
+
+    def __post_init__(self) -> None:
+        if self.samples == 1 or self.samples < 0:
+            raise InputError(f"--samples must be 0 (no sampling) or >= 2 (a standard deviation needs two); "
+                             f"got {self.samples}")
+
+
+@contextmanager
+def _timed(timings: dict[str, float], name: str, report: Callable[[str, float], None] | None) -> Iterator[None]:
+    start = time.perf_counter()
+    yield
+    timings[name] = round(time.perf_counter() - start, 3)
+    if report is not None:
+        report(name, timings[name])
+
+
+def _describe(volume: Volume) -> dict:
+    return {"path": str(Path(volume.path).resolve()), "shape": list(volume.shape),
+            "spacing_mm": np.round(volume.spacing, 4).tolist(), "orientation": volume.axcodes,
+            "value_range": [float(volume.array.min()), float(volume.array.max())]}
+
+
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    return t.detach().float().cpu().numpy()
+
+
+def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
+    per_label = label_dice(torch.from_numpy(warped.astype(np.int64)), torch.from_numpy(fixed.array.astype(np.int64)),
+                           ids)
+    mean = mean_dice(per_label)
+    return {"mean": None if math.isnan(mean) else mean,  # JSON has no NaN: null
+            "per_label": {str(k): (None if math.isnan(v) else round(v, 5)) for k, v in per_label.items()}}
+
+
+@dataclass
+class _ModelMaps:
+    """The network's results on the model grid: displacement and inverse (3, *S) voxels, maps (*S)."""
+
+    displacement: np.ndarray
+    inverse: np.ndarray
+    jacobian: np.ndarray
+    entropy: np.ndarray
+    warped: np.ndarray
+    std: np.ndarray | None = None
+
+
+def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.ndarray, samples: int, seed: int,
+               spacing: np.ndarray, timings: dict, report: Callable | None) -> _ModelMaps:
+    shape = moving_input.shape
+    with _timed(timings, "model", report):
+        moving_t = torch.from_numpy(moving_input)[None, None].to(model.device)
+        fixed_t = torch.from_numpy(fixed_input)[None, None].to(model.device)
+        output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
+        with eval_mode(model.network), torch.inference_mode():
+            inverse = model.network.velocity_to_displacement(-output.velocity_mean, shape)  # exp(-v)
+        posterior = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape,
+                                   std_scale=model.std_scale, bias_fraction=model.bias_fraction)  # 1 and 0 = raw
+        maps = _ModelMaps(_numpy(output.displacement[0]), _numpy(inverse[0]),
+                          _numpy(jacobian_determinant(output.displacement)[0]),
+                          _numpy(posterior.velocity_entropy), _numpy(output.warped[0, 0]))
+    if samples:
+        with _timed(timings, "samples", report):
+            sampled = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape, samples,
+                                     model.std_scale, seed=seed, bias_fraction=model.bias_fraction, spacing=spacing)
+            maps.std = _numpy(sampled.displacement_std)
+    return maps
+
+
+@dataclass
+class _Composed:
+    """Everything on the fixed grid (and the inverse on the moving grid) that is written."""
+
+    warp: np.ndarray
+    inverse_warp: np.ndarray
+    maps: dict[str, np.ndarray]
+    labels: dict[str, np.ndarray]
+    dice: dict | None
+
+
+def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, affine: np.ndarray,
+             model_maps: _ModelMaps, affine_points: np.ndarray) -> _Composed:
+    """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice."""
+    grid = fixed.grid
+    warp = compose_forward(grid.to_fixed(voxel_to_mm(model_maps.displacement, grid.index_to_lps)),
+                           fixed.image.index_to_lps, affine)
+    inverse_warp = compose_inverse(Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
+                                   affine, moving.shape, moving.index_to_lps)
+    maps = {"warped": sample_linear(moving, fixed.points + warp), "jacobian": grid.to_fixed(model_maps.jacobian),
+            "entropy": grid.to_fixed(model_maps.entropy)}
+    if model_maps.std is not None:
+        maps["displacement_std"] = grid.to_fixed(model_maps.std)
+    labels: dict[str, np.ndarray] = {}
+    if moving_label is not None:
+        labels["warped_label"] = sample_nearest(moving_label, fixed.points + warp)
+        labels["affine_label"] = sample_nearest(moving_label, affine_points)  # for Dice and QC, not written
+    if fixed.label is not None:
+        moving_points = grid_points(moving.shape, moving.index_to_lps)
+        labels["fixed_label_in_moving"] = sample_nearest(fixed.label, moving_points + inverse_warp)
+    dice = None
+    if moving_label is not None and fixed.label is not None:
+        dice = _dice(labels["warped_label"], fixed.label, fixed.label_ids)
+        dice["mean_affine_only"] = _dice(labels["affine_label"], fixed.label, fixed.label_ids)["mean"]
+    return _Composed(warp, inverse_warp, maps, labels, dice)
+
+
+def _write(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transform, composed: _Composed) -> None:
+    for name, array in composed.maps.items():
+        write_volume(stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32)))
+    write_field(stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps)
+    write_field(stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps)
+    write_transform(stage / "affine.tfm", affine)
+    for name, grid in (("warped_label", fixed.image), ("fixed_label_in_moving", moving)):
+        if name in composed.labels:
+            array = composed.labels[name]
+            write_volume(stage / f"{name}.nii.gz", grid.with_array(array), label_dtype(array))
+
+
+def _qc_data(fixed: FixedSpace, moving_input: np.ndarray, model_maps: _ModelMaps, composed: _Composed,
+             title: str) -> QCData:
+    to_model, labels = fixed.grid.to_model, composed.labels
+    sampled = model_maps.std is not None
+    return QCData(fixed=fixed.model_input, moving=moving_input, warped=model_maps.warped,
+                  displacement=model_maps.displacement, jacobian=model_maps.jacobian,
+                  uncertainty=model_maps.std if sampled else model_maps.entropy,
+                  uncertainty_name="displacement std (mm)" if sampled else "velocity entropy",
+                  spacing=tuple(fixed.grid.spacing), title=title,
+                  fixed_label=to_model(fixed.label.array) if fixed.label is not None else None,
+                  moving_label=to_model(labels["affine_label"]) if "affine_label" in labels else None,
+                  warped_label=to_model(labels["warped_label"]) if "warped_label" in labels else None)
+
+
+def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.PathLike, out_dir: str | os.PathLike,
+                  moving_label_path: str | os.PathLike | None = None, options: RegistrationOptions | None = None,
+                  overwrite: bool = False, report: Callable[[str, float], None] | None = None) -> dict:
+    """Register ``moving_path`` to ``fixed`` and write every output into ``out_dir`` (all or nothing).
+
+    ``report(stage, seconds)`` is called after each stage. Returns the summary written to ``summary.json``.
+    Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
+    """
+    options = options or RegistrationOptions()
+    out = check_output_dir(out_dir, overwrite)
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    with _timed(timings, "read", report):
+        moving = read_image(moving_path, "--moving")
+        moving_label = read_label(moving_label_path, "--moving-label") if moving_label_path is not None else None
+        if moving_label is not None:
+            check_same_grid(moving_label, moving, "--moving-label", "--moving")
+    with _timed(timings, "affine", report):
+        if options.affine is None:
+            affine = AffineResult(affine_to_itk(np.eye(4)), np.eye(4), np.eye(4), [])
+        else:
+            affine = register_affine(fixed.itk_image, volume_to_itk(moving), options.affine)
+    with _timed(timings, "resample", report):
+        affine_points = apply_affine(affine.matrix, fixed.points)
+        moving_on_fixed = sample_linear(moving, affine_points, fill=float(moving.array.min()))
+        moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
+    model_maps = _run_model(model, moving_input, fixed.model_input, options.samples, options.seed,
+                            fixed.grid.spacing, timings, report)
+    with _timed(timings, "compose", report):
+        composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points)
+        stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
+    with staged_output_dir(out, overwrite) as stage:
+        with _timed(timings, "write", report):
+            _write(stage, fixed, moving, affine.transform, composed)
+        dice = composed.dice
+        title = Path(moving.path).name + (f"   mean Dice {dice['mean']:.3f} (affine only "
+                                          f"{dice['mean_affine_only']:.3f})" if dice else "")
+        title += f"   |J| <= 0: {stats.num_folding} voxels"
+        if options.qc:
+            with _timed(timings, "qc", report):
+                save_qc(stage / "qc.png", _qc_data(fixed, moving_input, model_maps, composed, title))
+        timings["total"] = round(time.perf_counter() - start, 3)
+        jacobian, std = composed.maps["jacobian"], model_maps.std
+        summary = {
+            "moving": _describe(moving), "fixed": _describe(fixed.image),
+            "moving_label": moving_label.path if moving_label is not None else None,
+            "fixed_label": fixed.label.path if fixed.label is not None else None,
+            "model": {"model_file": str(model.model_file), "config": str(model.config_file),
+                      "device": str(model.device), "model_grid_shape": list(fixed.grid.shape),
+                      "divisor": model.divisor, "posterior_std_scale": model.std_scale,
+                      "posterior_bias_fraction": model.bias_fraction},
+            "timings_s": timings,
+            "affine": {**affine.summary(), "settings": options.affine.as_dict() if options.affine else None},
+            "jacobian": {"num_nonpositive": stats.num_folding, "percent_nonpositive": stats.percent_folding,
+                         "std_log_jacobian": stats.std_log_jacobian, "min": float(jacobian.min()),
+                         "max": float(jacobian.max())},
+            "dice": dice,
+            "uncertainty": {"samples": options.samples, "seed": options.seed,
+                            "mean_displacement_std_mm": None if std is None else float(std.mean())},
+            "outputs": sorted(p.name for p in stage.iterdir()) + ["summary.json", "README.txt"],
+            "version": monai_probreg.__version__,
+        }
+        write_text(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
+        write_text(stage / "README.txt", OUTPUTS_README)
+    return summary

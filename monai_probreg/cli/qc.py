@@ -1,0 +1,171 @@
+"""The quality-control figure ``qc.png``: is this registration right, at a glance?
+
+Rows: three orthogonal slices (axial, coronal, sagittal) through the fixed image's centre of mass. Columns:
+
+1. fixed image, with its label outlines;
+2. moving image after the affine alignment only, with its (affinely resampled) label outlines;
+3. moving image after affine + deformable registration, with its warped label outlines
+   (panels 1-3: when a map has no labels of its own, the fixed labels are outlined instead, as a reference);
+4. the deformable part as a warped grid: lines every ``grid_mm`` of the fixed grid drawn where the deformation
+   sends them in the (affinely aligned) moving image, in-plane components;
+5. the Jacobian determinant of the deformable part (blue < 1 < red: shrinking / growing; black = folding, <= 0);
+6. the uncertainty map (displacement std over posterior samples, or the velocity entropy without samples).
+
+Inputs are arrays on the model grid (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS axes, so axis 0 runs left to
+right, 1 posterior to anterior, 2 inferior to superior); slices are drawn in millimetres with the patient's right
+on the right of the axial and coronal panels (neurological convention), anterior on the right of the sagittal.
+Rendered with matplotlib's Agg backend (no display needed).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib import patheffects  # noqa: E402
+from matplotlib.colors import ListedColormap, TwoSlopeNorm  # noqa: E402
+from matplotlib.ticker import FormatStrFormatter  # noqa: E402
+
+from monai_probreg.utils.files import atomic_write  # noqa: E402
+
+__all__ = ["QCData", "qc_figure", "save_qc"]
+
+# (fixed axis, horizontal axis, vertical axis, name, left/right letters)
+_VIEWS = ((2, 0, 1, "axial", "LR"), (1, 0, 2, "coronal", "LR"), (0, 1, 2, "sagittal", "PA"))
+
+
+@dataclass
+class QCData:
+    """Everything :func:`qc_figure` draws; arrays (X, Y, Z) on the model grid, ``displacement`` (3, X, Y, Z) voxels."""
+
+    fixed: np.ndarray
+    moving: np.ndarray
+    warped: np.ndarray
+    displacement: np.ndarray
+    jacobian: np.ndarray
+    uncertainty: np.ndarray
+    uncertainty_name: str
+    spacing: tuple[float, float, float]
+    fixed_label: np.ndarray | None = None
+    moving_label: np.ndarray | None = None
+    warped_label: np.ndarray | None = None
+    title: str = ""
+    grid_mm: float = 5.0
+
+
+def _centre(image: np.ndarray) -> tuple[int, ...]:
+    weights = np.clip(image, 0, None)
+    if weights.sum() <= 0:
+        return tuple(n // 2 for n in image.shape)
+    grids = np.meshgrid(*[np.arange(n) for n in image.shape], indexing="ij", sparse=True)
+    return tuple(int(round(float((g * weights).sum() / weights.sum()))) for g in grids)
+
+
+def _plane(volume: np.ndarray, axis: int, index: int) -> np.ndarray:
+    return np.take(volume, index, axis=axis).T  # rows = vertical axis, columns = horizontal axis
+
+
+def _outline_rgba(labels: np.ndarray) -> np.ndarray:
+    """RGBA image: label boundaries coloured by label id, transparent elsewhere."""
+    edge = np.zeros(labels.shape, dtype=bool)
+    edge[1:, :] |= labels[1:, :] != labels[:-1, :]
+    edge[:-1, :] |= labels[1:, :] != labels[:-1, :]
+    edge[:, 1:] |= labels[:, 1:] != labels[:, :-1]
+    edge[:, :-1] |= labels[:, 1:] != labels[:, :-1]
+    edge &= labels > 0
+    colours = plt.get_cmap("tab20")(np.arange(20))
+    rgba = np.zeros((*labels.shape, 4))
+    rgba[edge] = colours[labels[edge] % 20]
+    rgba[edge, 3] = 0.9
+    return rgba
+
+
+def qc_figure(data: QCData) -> plt.Figure:
+    """Build the figure (see the module docstring); the caller saves or closes it."""
+    centre = _centre(data.fixed)
+    spacing = np.asarray(data.spacing, dtype=np.float64)
+    columns = ["fixed", "moving (affine only)", "warped moving", "deformation (deformable part)",
+               "Jacobian determinant", data.uncertainty_name]
+    fig, axes = plt.subplots(3, 6, figsize=(18, 9.2), squeeze=False, layout="constrained")
+    images = (data.fixed, data.moving, data.warped)
+    labels = (data.fixed_label, data.moving_label, data.warped_label)
+    foreground = data.fixed > 0.05
+    unc = data.uncertainty[foreground] if foreground.any() else data.uncertainty.ravel()
+    unc_range = (float(np.percentile(unc, 2)), float(np.percentile(unc, 98)))
+    if unc_range[1] - unc_range[0] < 1e-6 * max(1.0, abs(unc_range[0])):  # a constant map (e.g. untrained model)
+        unc_range = (unc_range[0] - 0.5, unc_range[0] + 0.5)
+    jac_norm = TwoSlopeNorm(vmin=0.0, vcenter=1.0, vmax=2.0)
+    mappables = {}
+    for row, (axis, h, v, name, letters) in enumerate(_VIEWS):
+        index = centre[axis]
+        extent = (-0.5 * spacing[h], (data.fixed.shape[h] - 0.5) * spacing[h],  # voxel i centred at i * spacing
+                  -0.5 * spacing[v], (data.fixed.shape[v] - 0.5) * spacing[v])
+        show = dict(origin="lower", extent=extent, interpolation="nearest")
+        for col, (image, label) in enumerate(zip(images, labels)):
+            ax = axes[row, col]
+            ax.imshow(_plane(image, axis, index), cmap="gray", vmin=0, vmax=1, **show)
+            outline = label if label is not None else data.fixed_label
+            if outline is not None:
+                ax.imshow(_outline_rgba(_plane(outline, axis, index)), **show)
+        ax = axes[row, 3]
+        ax.imshow(_plane(data.fixed, axis, index), cmap="gray", vmin=0, vmax=1, alpha=0.35, **show)
+        _draw_grid(ax, data.displacement, axis, h, v, index, spacing, data.grid_mm)
+        ax = axes[row, 4]
+        jac = _plane(data.jacobian, axis, index)
+        mappables["jac"] = ax.imshow(jac, cmap="RdBu_r", norm=jac_norm, **show)
+        folding = np.ma.masked_where(jac > 0, np.ones_like(jac))
+        ax.imshow(folding, cmap=ListedColormap(["black"]), **show)
+        ax = axes[row, 5]
+        mappables["unc"] = ax.imshow(_plane(data.uncertainty, axis, index), cmap="magma", vmin=unc_range[0],
+                                     vmax=unc_range[1], **show)
+        for col in range(6):
+            ax = axes[row, col]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_xlim(extent[0], extent[1])
+            ax.set_ylim(extent[2], extent[3])
+            for x, letter, align in ((0.02, letters[0], "left"), (0.98, letters[1], "right")):
+                ax.text(x, 0.5, letter, transform=ax.transAxes, color="yellow", fontsize=10, va="center", ha=align,
+                        path_effects=[patheffects.withStroke(linewidth=2, foreground="black")])
+            if row == 0:
+                ax.set_title(columns[col], fontsize=11)
+        axes[row, 0].set_ylabel(f"{name} {index}", fontsize=11)
+    for key, col, label in (("jac", 4, "|J| (black: <= 0)"), ("unc", 5, data.uncertainty_name)):
+        bar = fig.colorbar(mappables[key], ax=list(axes[:, col]), location="bottom", shrink=0.9, label=label)
+        bar.formatter = FormatStrFormatter("%.3g")
+        bar.update_ticks()
+    if data.title:
+        fig.suptitle(data.title, fontsize=12)
+    return fig
+
+
+def _draw_grid(ax: plt.Axes, displacement: np.ndarray, axis: int, h: int, v: int, index: int, spacing: np.ndarray,
+               grid_mm: float) -> None:
+    """Lines of constant h and constant v, every ``grid_mm``, drawn at (x + u(x)) in the plane, in mm."""
+    uh = _plane(displacement[h], axis, index)
+    uv = _plane(displacement[v], axis, index)
+    rows, cols = uh.shape
+    hh, vv = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
+    xs, ys = (hh + uh) * spacing[h], (vv + uv) * spacing[v]
+    step_h = max(1, int(round(grid_mm / spacing[h])))
+    step_v = max(1, int(round(grid_mm / spacing[v])))
+    style = dict(color="tab:blue", linewidth=0.6)
+    for r in range(0, rows, step_v):
+        ax.plot(xs[r, :], ys[r, :], **style)
+    for c in range(0, cols, step_h):
+        ax.plot(xs[:, c], ys[:, c], **style)
+
+
+def save_qc(path: str | os.PathLike, data: QCData, dpi: int = 90) -> Path:
+    """Render :func:`qc_figure` to a PNG atomically and close the figure."""
+    fig = qc_figure(data)
+    try:
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"))
+    finally:
+        plt.close(fig)

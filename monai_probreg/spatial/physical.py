@@ -1,0 +1,153 @@
+"""Physical-space transforms: voxel <-> millimetre displacements, composing affine + deformable, ITK objects.
+
+Conventions, written once (pinned by ``tests/spatial/test_physical.py``):
+
+1. Index order. Arrays are indexed ``(i, j, k)`` = ITK's index order = nibabel's array order.
+   ``itk.GetArrayFromImage`` returns ``(k, j, i)``; :mod:`monai_probreg.spatial.volume_io` transposes on reading and writing.
+2. Physical space is ITK's: LPS millimetres. A grid is a (4, 4) ``index_to_lps``:
+   ``p = origin + direction @ diag(spacing) @ (i, j, k)``; nibabel's RAS affine is
+   ``diag(-1, -1, 1, 1) @ index_to_lps``.
+3. Our model's displacement ``u`` (3, *S) is in voxels of its grid, channel k along array axis k, and pulls back:
+   ``warped[x] = moving[x + u(x)]``. Since ``p(x)`` is affine in x, ``p(x + u) = p(x) + R u`` with
+   ``R = index_to_lps[:3, :3]``: the same map in millimetres is ``d(p) = R @ u(x)`` (:func:`voxel_to_mm`).
+4. ITK's ``DisplacementFieldTransform`` (and ANTs' warp files) map a point of the **fixed** (output) space to the
+   **moving** (input) space, ``T(p) = p + d(p)``, with ``d`` in LPS mm stored per fixed voxel as (d_L, d_P, d_S):
+   exactly convention 3, so ``R @ u`` is an ITK/ANTs displacement field with no sign change.
+5. Composition. ``--moving`` is first aligned by an affine ``A`` (fixed point -> original moving point, as ITK's
+   registration returns it) and resampled onto the fixed grid; the model then gives ``d`` on the fixed grid. A fixed
+   point goes ``p -> p + d(p) -> A(p + d(p))`` into the original moving scan, so the composed field on the fixed
+   grid is ``D(p) = A(p + d(p)) - p`` (:func:`compose_forward`), exact at every fixed voxel (``A`` is affine, ``d``
+   is evaluated where it is defined). Resampling the original moving scan once through ``D`` is what we write
+   (one interpolation, as ``antsApplyTransforms`` does).
+6. Inverse. With ``d_inv`` the model's inverse (``exp(-v)``) in mm, ``phi^-1(q) = a + d_inv(a)`` where
+   ``a = A^-1(q)``; the inverse field lives on the **moving** grid, ``D_inv(q) = phi^-1(q) - q``
+   (:func:`compose_inverse`), ``d_inv`` being interpolated linearly (border-extended outside its grid).
+"""
+
+from __future__ import annotations
+
+import itk
+import numpy as np
+
+from monai_probreg.spatial.point_sampling import sample_linear
+from monai_probreg.spatial.volume_io import Volume
+
+__all__ = ["grid_points", "voxel_to_mm", "mm_to_voxel", "apply_affine", "compose_forward", "compose_inverse",
+           "affine_to_itk", "affine_from_itk", "field_to_itk", "field_from_itk", "displacement_transform",
+           "resample_with_itk"]
+
+
+def grid_points(shape: tuple[int, ...], index_to_lps: np.ndarray) -> np.ndarray:
+    """LPS points (I, J, K, 3) of every voxel centre of a grid, float64."""
+    index = np.stack(np.meshgrid(*[np.arange(n, dtype=np.float64) for n in shape], indexing="ij"), axis=-1)
+    return index @ np.asarray(index_to_lps)[:3, :3].T + np.asarray(index_to_lps)[:3, 3]
+
+
+def voxel_to_mm(displacement: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray:
+    """Voxel displacement (3, *S), channel k along array axis k -> LPS millimetres (*S, 3): ``R @ u``."""
+    if displacement.ndim != 4 or displacement.shape[0] != 3:
+        raise ValueError(f"expected a (3, I, J, K) displacement in voxels; got {displacement.shape}")
+    return np.einsum("ck,k...->...c", np.asarray(index_to_lps, dtype=np.float64)[:3, :3], displacement)
+
+
+def mm_to_voxel(field: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`voxel_to_mm`: LPS mm (*S, 3) -> voxels (3, *S) of the grid ``index_to_lps``."""
+    inverse = np.linalg.inv(np.asarray(index_to_lps, dtype=np.float64)[:3, :3])
+    return np.einsum("kc,...c->k...", inverse, field)
+
+
+def apply_affine(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``matrix`` (4, 4) applied to LPS points (..., 3)."""
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """Composed field on the fixed grid, ``D(p) = A(p + d(p)) - p`` (*S, 3) mm (module docstring, item 5).
+
+    ``deformable_mm``: ``d`` (*S, 3) on the fixed grid; ``affine``: ``A`` (4, 4), fixed LPS -> moving LPS.
+    """
+    points = grid_points(deformable_mm.shape[:3], fixed_index_to_lps)
+    return apply_affine(affine, points + deformable_mm) - points
+
+
+def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[int, ...],
+                    moving_index_to_lps: np.ndarray) -> np.ndarray:
+    """Composed inverse on the moving grid, ``D_inv(q) = a + d_inv(a) - q`` with ``a = A^-1(q)`` (*S_moving, 3) mm.
+
+    ``inverse_mm``: ``d_inv`` (*S, 3) in mm on its grid (the fixed or model grid), as a :class:`Volume`.
+    """
+    moving_points = grid_points(moving_shape, moving_index_to_lps)
+    fixed_points = apply_affine(np.linalg.inv(affine), moving_points)
+    return fixed_points + sample_linear(inverse_mm, fixed_points, outside="border") - moving_points
+
+
+def affine_to_itk(matrix: np.ndarray, center: np.ndarray | None = None) -> itk.AffineTransform:
+    """(4, 4) LPS matrix -> ``itk.AffineTransform[itk.D, 3]`` with the given centre of rotation (default origin)."""
+    transform = itk.AffineTransform[itk.D, 3].New()
+    center = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
+    transform.SetCenter([float(c) for c in center])
+    transform.SetMatrix(itk.matrix_from_array(np.ascontiguousarray(matrix[:3, :3], dtype=np.float64)))
+    # T(p) = M (p - c) + c + t = M p + offset  =>  t = offset - c + M c
+    translation = matrix[:3, 3] - center + matrix[:3, :3] @ center
+    transform.SetTranslation([float(t) for t in translation])
+    return transform
+
+
+def affine_from_itk(transform: itk.Transform) -> np.ndarray:
+    """Any ITK matrix-offset transform (Euler, versor, affine) -> its (4, 4) LPS matrix ``[[M, offset], [0, 1]]``."""
+    matrix = np.eye(4)
+    matrix[:3, :3] = itk.array_from_matrix(transform.GetMatrix())
+    matrix[:3, 3] = np.asarray(transform.GetOffset(), dtype=np.float64)
+    return matrix
+
+
+def field_to_itk(field: np.ndarray, index_to_lps: np.ndarray) -> itk.Image:
+    """A displacement field (*S, 3) LPS mm on the grid ``index_to_lps`` -> ``itk.Image[itk.Vector[itk.F, 3], 3]``
+    (float32: the type ITK's Python wrapping reads and writes, and what ANTs' warp files hold)."""
+    array = np.ascontiguousarray(np.asarray(field, dtype=np.float32).transpose(2, 1, 0, 3))
+    image = itk.image_from_array(array, ttype=itk.Image[itk.Vector[itk.F, 3], 3])
+    spacing = np.linalg.norm(index_to_lps[:3, :3], axis=0)
+    image.SetSpacing([float(s) for s in spacing])
+    image.SetOrigin([float(o) for o in index_to_lps[:3, 3]])
+    image.SetDirection(itk.matrix_from_array(np.ascontiguousarray(index_to_lps[:3, :3] / spacing)))
+    return image
+
+
+def field_from_itk(image: itk.Image) -> Volume:
+    """An ITK vector image (e.g. ``itk.imread("warp.nii.gz")``) -> :class:`Volume` with array (*S, 3), float64."""
+    from monai_probreg.spatial.volume_io import geometry_of
+
+    array = np.asarray(itk.array_from_image(image), dtype=np.float64).transpose(2, 1, 0, 3)
+    return Volume(np.ascontiguousarray(array), geometry_of(image))
+
+
+def displacement_transform(field: itk.Image) -> itk.DisplacementFieldTransform:
+    """``itk.DisplacementFieldTransform[itk.D, 3]`` of a vector field image (as written to ``warp.nii.gz``).
+
+    ``itk.ResampleImageFilter`` takes double-precision transforms, and ITK's Python wrapping has no reader for
+    double vector images, so the float field is copied into an ``itk.Image[itk.Vector[itk.D, 3], 3]``.
+    """
+    double = itk.Image[itk.Vector[itk.D, 3], 3].New()
+    double.SetRegions(field.GetLargestPossibleRegion())
+    double.SetSpacing(field.GetSpacing())
+    double.SetOrigin(field.GetOrigin())
+    double.SetDirection(field.GetDirection())
+    double.Allocate()
+    itk.array_view_from_image(double)[...] = itk.array_view_from_image(field)
+    transform = itk.DisplacementFieldTransform[itk.D, 3].New()
+    transform.SetDisplacementField(double)
+    return transform
+
+
+def resample_with_itk(moving: itk.Image, reference: itk.Image, transform: itk.Transform,
+                      nearest: bool = False) -> itk.Image:
+    """ITK's own resampling of ``moving`` onto ``reference``'s grid through ``transform`` (fixed -> moving),
+    linear or nearest neighbour, 0 outside: what ``antsApplyTransforms -i moving -r reference -t ...`` does.
+    The independent check of our outputs (tests, ``benchmarks/register_real_scan.py``)."""
+    image_type = type(moving)
+    interpolator = (itk.NearestNeighborInterpolateImageFunction if nearest else itk.LinearInterpolateImageFunction)
+    resampler = itk.ResampleImageFilter[image_type, image_type].New(
+        Input=moving, Transform=transform, Interpolator=interpolator[image_type, itk.D].New(),
+        UseReferenceImage=True, ReferenceImage=reference, DefaultPixelValue=0)
+    resampler.Update()
+    return resampler.GetOutput()

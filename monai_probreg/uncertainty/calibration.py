@@ -1,0 +1,244 @@
+"""Post-hoc calibration of the posterior: two scalars, a velocity std scale and a bias fraction.
+
+Variational posteriors are over-confident (the KL pulls sigma^2 towards 1/(lambda D), whatever the real error).
+We keep the network as trained and temper its posterior afterwards:
+
+    sigma_calibrated = std_scale * sigma        i.e.   log_var_calibrated = log_var + 2 log(std_scale)
+
+The posterior's spread is not the whole error: the prior also pulls the mean registration short of large
+displacements (the translation and population probes of ``benchmarks/uncertainty_calibration.py`` recover 50-96%
+of a known displacement), a bias that grows with the displacement and that the raw posterior does not show. The
+calibrated posterior therefore gets a second, isotropic variance term per component (written by hand: no library
+offers it):
+
+    sigma^2_calibrated,c = std_scale^2 * sigma^2_c + (bias_fraction * |mu|)^2
+
+with mu the posterior mean velocity at that voxel (|mu| its length over the D components). It stays a diagonal
+Gaussian on the velocity grid, so sampling (diffeomorphic samples), the velocity entropy, the displacement std and
+the label entropy all follow from the calibrated ``log_var``. For the small sigmas of a trained model the sampled
+displacement variance is, to first order, std_scale^2 times the raw one plus (bias_fraction |u|)^2 (u the
+displacement, about mu once integrated), which is how :func:`fit_calibration` fits both scalars from one set of
+samples: the pair whose intervals cover closest to nominal at :data:`FIT_LEVELS` (the benchmark re-samples at the
+fitted pair, refits, and checks coverage on held-out subjects).
+They are stored next to the weights they belong to, as ``<weights stem>.calibration.json``, with the weights'
+SHA-256 so that a retrained model is never paired with an old calibration (a sidecar without ``bias_fraction``, from
+before it existed, reads as 0). Raw (uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import warnings
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from monai_probreg.metrics.calibration import gaussian_interval_z
+from monai_probreg.utils.files import write_text
+
+__all__ = [
+    "FIT_LEVELS",
+    "Calibration",
+    "CalibrationRecord",
+    "calibrate_log_var",
+    "bias_variance",
+    "fit_calibration",
+    "fit_std_scale",
+    "calibration_path",
+    "save_calibration",
+    "load_calibration",
+    "calibration_for",
+    "std_scale_for",
+]
+
+FIT_LEVELS: tuple[float, ...] = (0.5, 0.68, 0.8, 0.9, 0.95)  # nominal interval levels whose coverage the fit matches
+_GRID_POINTS = 1024  # candidate scales searched between the per-level solutions (log-spaced)
+BIAS_FRACTIONS: tuple[float, ...] = tuple(i / 100 for i in range(101))  # bias fractions fit_calibration tries
+_SEARCH_POINTS = 200_000  # entries fit_calibration searches the bias fraction on
+_MIN_SCALE = 1e-6  # lower bound of a fitted scale (a bias term alone may cover a level: the scale must stay > 0)
+
+
+class Calibration(NamedTuple):
+    """The two numbers inference uses (raw posterior: 1 and 0)."""
+
+    std_scale: float
+    bias_fraction: float
+
+
+@dataclass(frozen=True)
+class CalibrationRecord:
+    """What is stored next to the weights. ``std_scale`` and ``bias_fraction`` are the numbers inference uses."""
+
+    std_scale: float
+    weights_file: str
+    weights_sha256: str
+    fitted_on: list[str] = field(default_factory=list)
+    num_samples: int = 0
+    levels: list[float] = field(default_factory=lambda: list(FIT_LEVELS))
+    method: str = ("coverage matching: (std_scale, bias_fraction) of sigma^2 = std_scale^2 sigma^2 + (bias_fraction "
+                   "|mean velocity|)^2 minimise sum over levels of (coverage - level)^2 of the sampled displacements")
+    bias_fraction: float = 0.0
+
+
+def _check_scale(std_scale: float) -> None:
+    if not (math.isfinite(std_scale) and std_scale > 0):
+        raise ValueError(f"std_scale must be a positive finite number; got {std_scale}")
+
+
+def _check_bias_fraction(bias_fraction: float) -> None:
+    if not (math.isfinite(bias_fraction) and bias_fraction >= 0):
+        raise ValueError(f"bias_fraction must be a finite number >= 0; got {bias_fraction}")
+
+
+def calibrate_log_var(log_var: Tensor, std_scale: float, mean: Tensor | None = None, bias_fraction: float = 0.0
+                      ) -> Tensor:
+    """log sigma^2 of the calibrated posterior: ``log(std_scale^2 exp(log_var) + (bias_fraction |mean|)^2)``, i.e.
+    ``log_var + 2 log(std_scale)`` without the bias term. ``log_var`` any shape; with ``bias_fraction`` > 0,
+    ``mean`` (B, D, *V) the posterior mean velocity, same shape as ``log_var``."""
+    _check_scale(std_scale)
+    _check_bias_fraction(bias_fraction)
+    if bias_fraction == 0:
+        return log_var + 2.0 * math.log(std_scale)
+    if mean is None or mean.shape != log_var.shape:
+        raise ValueError(f"bias_fraction > 0 needs the posterior mean of the log_var's shape {tuple(log_var.shape)}; "
+                         f"got {None if mean is None else tuple(mean.shape)}")
+    return torch.log(std_scale**2 * log_var.exp() + bias_variance(mean, bias_fraction))
+
+
+def bias_variance(mean: Tensor, bias_fraction: float) -> Tensor:
+    """(B, 1, *S) ``(bias_fraction * |mean|)^2`` for a field ``mean`` (B, D, *S) (the posterior mean velocity): the
+    variance the calibration adds to every component (units of ``mean``, squared)."""
+    _check_bias_fraction(bias_fraction)
+    if mean.dim() < 3:
+        raise ValueError(f"expected a field (B, D, *S); got shape {tuple(mean.shape)}")
+    return bias_fraction**2 * mean.float().pow(2).sum(1, keepdim=True)
+
+
+def _array(x: Tensor | np.ndarray) -> np.ndarray:
+    return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, np.float64)
+
+
+def _fit_scale(s: np.ndarray, e: np.ndarray, b: np.ndarray, z: np.ndarray, levels: np.ndarray
+               ) -> tuple[float, float]:
+    """(scale, cost) for one bias variance ``b``: ``|e| <= z_p sqrt(scale^2 s^2 + b)`` <=> ``r_p <= scale^2`` with
+    ``r_p = (e^2 / z_p^2 - b) / s^2``, so each level's coverage is a sorted search and each level alone has an exact
+    solution; the scale is searched between those."""
+    r = np.sort((e[None, :] ** 2 / z[:, None] ** 2 - b[None, :]) / s[None, :] ** 2, axis=1)  # (levels, N)
+    per_level = np.sqrt(np.maximum([np.quantile(r_p, p) for r_p, p in zip(r, levels)], _MIN_SCALE**2))
+    low, high = per_level.min(), per_level.max()
+    candidates = np.geomspace(low, high, _GRID_POINTS) if high > low else np.array([low])
+    coverage = np.stack([np.searchsorted(r_p, candidates**2, side="right") for r_p in r], 1) / e.size
+    cost = ((coverage - levels[None, :]) ** 2).sum(axis=1)
+    best = int(np.argmin(cost))
+    return float(candidates[best]), float(cost[best])
+
+
+def fit_calibration(std: Tensor | np.ndarray, error: Tensor | np.ndarray, displacement_norm: Tensor | np.ndarray,
+                    levels: Sequence[float] = FIT_LEVELS, bias_fractions: Sequence[float] = BIAS_FRACTIONS
+                    ) -> Calibration:
+    """(scale s, bias fraction a) for which the intervals ``|error| <= z_p sqrt(s^2 std^2 + a^2 n^2)`` cover closest
+    to p over ``levels`` (least squares in coverage; a searched over ``bias_fractions``, s for each a).
+
+    ``std`` > 0, ``error`` and ``displacement_norm`` n = |mean displacement| (>= 0): same shape, any shape, one
+    entry per voxel and component. ``s`` multiplies the std the samples were drawn with."""
+    s, e, n = _array(std).reshape(-1), _array(error).reshape(-1), _array(displacement_norm).reshape(-1)
+    if not (s.shape == e.shape == n.shape) or s.size == 0:
+        raise ValueError(f"std, error and displacement_norm must have the same non-empty shape; got "
+                         f"{_array(std).shape}, {_array(error).shape} and {_array(displacement_norm).shape}")
+    if not (np.isfinite(s).all() and np.isfinite(e).all() and (s > 0).all() and np.isfinite(n).all()
+            and (n >= 0).all()):
+        raise ValueError("std must be positive and finite, error finite, displacement_norm finite and >= 0")
+    if not levels or not bias_fractions:
+        raise ValueError(f"levels and bias_fractions must not be empty; got {list(levels)} and {list(bias_fractions)}")
+    for a in bias_fractions:
+        _check_bias_fraction(a)
+    z, p = np.array([gaussian_interval_z(level) for level in levels]), np.asarray(levels, np.float64)
+    bias_fraction = float(bias_fractions[0])
+    if len(bias_fractions) > 1:  # the search on a fixed random subset (millions of entries: seconds, not minutes)
+        pick = np.random.default_rng(0).permutation(s.size)[:_SEARCH_POINTS]
+        costs = [_fit_scale(s[pick], e[pick], (a * n[pick]) ** 2, z, p)[1] for a in bias_fractions]
+        bias_fraction = float(bias_fractions[int(np.argmin(costs))])
+    return Calibration(_fit_scale(s, e, (bias_fraction * n) ** 2, z, p)[0], bias_fraction)  # the scale on all
+
+
+def fit_std_scale(std: Tensor | np.ndarray, error: Tensor | np.ndarray, levels: Sequence[float] = FIT_LEVELS) -> float:
+    """The scale s for which the intervals ``|error| <= z_p * s * std`` cover closest to p over ``levels``
+    (least squares in coverage): :func:`fit_calibration` without a bias term. ``std`` > 0 and ``error``, same shape."""
+    return fit_calibration(std, error, np.zeros(np.shape(_array(std))), levels, (0.0,)).std_scale
+
+
+def _sha256(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def calibration_path(weights_file: str | os.PathLike) -> Path:
+    """Where the calibration of ``weights_file`` lives: ``models/model.pt`` -> ``models/model.calibration.json``."""
+    path = Path(weights_file)
+    return path.with_name(path.stem + ".calibration.json")
+
+
+def save_calibration(weights_file: str | os.PathLike, std_scale: float, fitted_on: Sequence[str] = (),
+                     num_samples: int = 0, levels: Sequence[float] = FIT_LEVELS,
+                     bias_fraction: float = 0.0) -> CalibrationRecord:
+    """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it."""
+    _check_scale(std_scale)
+    _check_bias_fraction(bias_fraction)
+    record = CalibrationRecord(float(std_scale), Path(weights_file).name, _sha256(weights_file), list(fitted_on),
+                               int(num_samples), [float(p) for p in levels], bias_fraction=float(bias_fraction))
+    target = calibration_path(weights_file)
+    write_text(target, json.dumps(asdict(record), indent=2))
+    return record
+
+
+def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
+    """Read the sidecar of ``weights_file``; refuses one fitted for other weights (SHA-256 mismatch)."""
+    path = calibration_path(weights_file)
+    try:
+        data = json.loads(path.read_text())
+        record = CalibrationRecord(**data)
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(f"{path}: not a calibration record ({err})") from err
+    actual = _sha256(weights_file)
+    if record.weights_sha256 != actual:
+        raise ValueError(f"{path} was fitted for weights with SHA-256 {record.weights_sha256[:12]}..., but "
+                         f"{weights_file} has {actual[:12]}...; refit it (benchmarks/uncertainty_calibration.py) "
+                         "or use std_scale 1 (raw)")
+    try:
+        _check_scale(record.std_scale)
+        _check_bias_fraction(record.bias_fraction)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {err}") from None
+    return record
+
+
+def calibration_for(weights_file: str | os.PathLike, calibrate: bool = True) -> Calibration:
+    """The calibration to use with ``weights_file``: its sidecar's, or the raw posterior's (1, 0) when ``calibrate``
+    is false or, with a warning, when the weights have no calibration."""
+    if not calibrate:
+        return Calibration(1.0, 0.0)
+    try:
+        record = load_calibration(weights_file)
+    except FileNotFoundError:
+        warnings.warn(f"{weights_file} has no calibration ({calibration_path(weights_file).name}); "
+                      "uncertainty maps are the raw, uncalibrated posterior", stacklevel=2)
+        return Calibration(1.0, 0.0)
+    return Calibration(record.std_scale, record.bias_fraction)
+
+
+def std_scale_for(weights_file: str | os.PathLike, calibrate: bool = True) -> float:
+    """:func:`calibration_for`'s ``std_scale`` alone."""
+    return calibration_for(weights_file, calibrate).std_scale

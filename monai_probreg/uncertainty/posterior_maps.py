@@ -1,0 +1,88 @@
+"""The calibrated uncertainty maps the bundle's inference writes, from one pair's velocity posterior.
+
+- ``velocity_entropy``: entropy of the calibrated q(z) (paper Eq. 8, nats, summed over the 3 components),
+  resized to the image grid. Without a bias term, calibration adds ``spatial_dims * log(std_scale)`` everywhere;
+  the bias term (:mod:`monai_probreg.uncertainty.calibration`) raises it more where the mean velocity is long.
+- ``displacement_std``: sqrt(sum_c var_c) of K displacements drawn from the calibrated posterior, in voxels of
+  the image grid: the radius-like spread of where each voxel maps. On held-out LPBA40 subjects its coverage is
+  reported by ``benchmarks/uncertainty_calibration.py`` (README, "Uncertainty").
+- ``label_entropy`` (when moving labels are given): entropy (nats) of the moving labels warped nearest-neighbour
+  by each of the K sampled displacements: 0 where every sample gives the same label, log K at most.
+
+All maps live on the fixed grid, like the rest of the outputs. The K samples use a seeded generator, so the
+maps are reproducible.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from monai_probreg.blocks.warp import warp_labels
+from monai_probreg.uncertainty.calibration import calibrate_log_var
+from monai_probreg.uncertainty.entropy import label_entropy, sampled_displacement_moments, velocity_entropy
+
+__all__ = ["PosteriorMaps", "posterior_maps"]
+
+SAMPLE_CHUNK = 4  # posterior samples integrated at once (memory: chunk x 3 full-resolution fields)
+
+
+class PosteriorMaps(NamedTuple):
+    """(*S) maps on the fixed grid; ``displacement_std`` is None without sampling, ``label_entropy`` also without
+    moving labels."""
+
+    velocity_entropy: Tensor
+    displacement_std: Tensor | None
+    label_entropy: Tensor | None
+
+
+@torch.inference_mode()
+def posterior_maps(
+    network: nn.Module,
+    velocity_mean: Tensor,
+    velocity_log_var: Tensor,
+    spatial_size: Sequence[int],
+    num_samples: int = 0,
+    std_scale: float = 1.0,
+    moving_label: Tensor | None = None,
+    seed: int = 0,
+    bias_fraction: float = 0.0,
+    spacing: Sequence[float] | None = None,
+) -> PosteriorMaps:
+    """Maps of one pair. ``velocity_mean``, ``velocity_log_var``: (1, D, *V) raw posterior; ``network`` provides
+    ``velocity_to_displacement``; ``num_samples``: 0 (velocity entropy only) or >= 2; ``std_scale`` and
+    ``bias_fraction``: the calibration (1 and 0 = raw); ``moving_label``: (1, 1, *S) integer labels on the moving
+    grid, or None; ``spacing``: voxel size per axis of the fixed grid to give ``displacement_std`` in mm (the trace of
+    the covariance is rotation-invariant, so per-axis voxel variances times spacing^2 give it exactly), or None for
+    voxels."""
+    if velocity_mean.shape[0] != 1 or velocity_mean.shape != velocity_log_var.shape:
+        raise ValueError(f"expected one pair's posterior, mean and log_var (1, D, *V); got "
+                         f"{tuple(velocity_mean.shape)} and {tuple(velocity_log_var.shape)}")
+    if num_samples == 1 or num_samples < 0:
+        raise ValueError(f"num_samples must be 0 (no sampling) or >= 2 (a spread needs two); got {num_samples}")
+    size = tuple(int(s) for s in spatial_size)
+    log_var = calibrate_log_var(velocity_log_var.float(), std_scale, velocity_mean.float(), bias_fraction)
+    entropy = velocity_entropy(log_var, size)[0, 0]
+    if num_samples == 0:
+        return PosteriorMaps(entropy, None, None)
+    generator = torch.Generator(device=velocity_mean.device).manual_seed(seed)
+    labels: list[Tensor] = []
+
+    def to_displacement(z: Tensor) -> Tensor:
+        disp = network.velocity_to_displacement(z, size)  # (n, D, *S)
+        if moving_label is not None:  # each sample's label map, kept for the entropy
+            labels.extend(warp_labels(moving_label.to(disp.device), d[None])[0, 0] for d in disp)
+        return disp
+
+    _, variance = sampled_displacement_moments(velocity_mean.float(), log_var, to_displacement, num_samples,
+                                               generator, SAMPLE_CHUNK)
+    if spacing is not None:
+        if len(spacing) != variance.shape[1]:
+            raise ValueError(f"expected one spacing per axis ({variance.shape[1]}); got {tuple(spacing)}")
+        weights = torch.as_tensor([float(v) ** 2 for v in spacing], dtype=variance.dtype, device=variance.device)
+        variance = variance * weights.view(1, -1, *([1] * (variance.ndim - 2)))
+    std = variance[0].sum(0).sqrt()
+    return PosteriorMaps(entropy, std, label_entropy(torch.stack(labels)) if labels else None)

@@ -1,0 +1,4 @@
+"""Utilities with no registration knowledge, imported by every other folder and importing none of them:
+atomic files (``files``), error types and one-line messages (``errors``), tensor helpers (``tensors``), process
+memory reuse (``memory``).
+"""

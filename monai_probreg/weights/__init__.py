@@ -1,0 +1,3 @@
+"""Trained weights: safe loading (``loading``), the network-settings sidecar (``settings``), checkpoint
+averaging (``averaging``) and TorchScript export (``export``).
+"""

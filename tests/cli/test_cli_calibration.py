@@ -1,0 +1,88 @@
+"""The command line applies the calibration stored next to the weights by default; --raw-uncertainty turns it off;
+a sidecar fitted for other weights is refused with a one-line error."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
+
+from monai_probreg.cli.main import main
+from monai_probreg.spatial.volume_io import read_image
+from monai_probreg.uncertainty.calibration import calibration_path, save_calibration
+
+BUNDLE = Path(__file__).resolve().parents[2] / "bundle"
+SCALE = 4.0
+BIAS_FRACTION = 2000.0  # large: the random network's mean velocity is ~5e-4 of its posterior std
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli_calibration")
+    image, _ = asymmetric_phantom()
+    bundle = tiny_bundle(root / "bundle", BUNDLE)
+    weights = bundle / "models" / "model_semisupervised.pt"  # the configs' default model_file
+    save_calibration(weights, SCALE, ["synthetic"], 2)
+    fixed = save_lps(root / "fixed.nii.gz", image.astype(np.float32), FIXED_LPS)
+    moving = save_lps(root / "moving.nii.gz", (image * 400 + 20).astype(np.float32), FIXED_LPS)
+    return root, bundle, weights, fixed, moving
+
+
+def _register(scene, name: str, *extra: str) -> tuple[int, dict, np.ndarray]:
+    root, bundle, _, fixed, moving = scene
+    out = root / name
+    threads = torch.get_num_threads()
+    try:
+        rc = main(["register", "--moving", str(moving), "--fixed", str(fixed), "--bundle-root", str(bundle),
+                   "--out", str(out), "--no-affine", "--no-qc", "--samples", "4", "--threads", "1", "--quiet",
+                   *extra])
+    finally:
+        torch.set_num_threads(threads)
+    if rc != 0:
+        return rc, {}, np.zeros(0)
+    summary = json.loads((out / "summary.json").read_text())
+    return rc, summary, read_image(out / "displacement_std.nii.gz").array
+
+
+def test_calibrated_by_default_raw_on_request(scene):
+    rc, summary, calibrated = _register(scene, "calibrated")
+    assert rc == 0 and summary["model"]["posterior_std_scale"] == SCALE
+    rc, summary, raw = _register(scene, "raw", "--raw-uncertainty")
+    assert rc == 0 and summary["model"]["posterior_std_scale"] == 1.0
+    # same seeded samples, std scaled by 4 in velocity: the displacement spread grows by about 4
+    ratio = np.median(calibrated[raw > 0] / raw[raw > 0])
+    assert 3.0 < ratio < 4.5
+
+
+def test_sidecar_of_other_weights_is_refused(scene, capsys):
+    _, _, weights, _, _ = scene
+    record = calibration_path(weights).read_text()
+    try:
+        calibration_path(weights).write_text(record.replace('"weights_sha256": "', '"weights_sha256": "0'))
+        rc, _, _ = _register(scene, "mismatch")
+        assert rc != 0
+        assert "SHA-256" in capsys.readouterr().err
+    finally:
+        calibration_path(weights).write_text(record)
+
+
+def test_bias_fraction_reaches_the_written_maps(scene):
+    """A sidecar with a bias fraction (std_scale 1): the summary records it and the displacement std widens where
+    the random network's mean velocity is long (the same seeded samples otherwise)."""
+    _, _, weights, _, _ = scene
+    record = calibration_path(weights).read_text()
+    try:
+        save_calibration(weights, 1.0, ["synthetic"], 2, bias_fraction=BIAS_FRACTION)
+        rc, summary, biased = _register(scene, "biased")
+        assert rc == 0 and summary["model"]["posterior_bias_fraction"] == BIAS_FRACTION
+        assert summary["model"]["posterior_std_scale"] == 1.0
+    finally:
+        calibration_path(weights).write_text(record)
+    rc, _, raw = _register(scene, "raw_for_bias", "--raw-uncertainty")
+    assert rc == 0
+    inside = raw > 0
+    assert np.median(biased[inside] / raw[inside]) > 1.2

@@ -1,0 +1,321 @@
+"""``monai-probreg`` end to end on synthetic scans, with a random-weights model (the network's deformation is ~0,
+so what is tested is the geometry, the composition, the files and the errors, not registration quality).
+
+The geometry round trip of the issue: an asymmetric phantom (the "atlas") is moved out of its space by a known
+rigid transform (10-15 degrees, 5 mm) onto a permuted, flipped, anisotropic grid (1.4 x 0.9 x 1.1 mm, another
+orientation code) with raw scanner intensities, registered back, and the recovered transform, the headers of every
+output and ITK's (and ANTs') reproduction of our warped image are checked.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import itk
+import nibabel as nib
+import numpy as np
+import pytest
+import torch
+from conftest import (
+    BUNDLE_DIR,
+    FAST_AFFINE,
+    FIXED_LPS,
+    PHANTOM_LABELS,
+    moved_phantom,
+    run_cli,
+    save_lps,
+    tiny_bundle,
+)
+
+from monai_probreg.cli.main import main
+from monai_probreg.spatial.physical import (
+    affine_from_itk,
+    apply_affine,
+    displacement_transform,
+    grid_points,
+    resample_with_itk,
+)
+from monai_probreg.spatial.volume_io import geometry_of, read_image
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
+    root = tmp_path_factory.mktemp("cli")
+    case = moved_phantom([10.0, -8.0, 12.0], [4.0, -3.0, 2.5])
+    image, labels, truth, moved, moved_labels, grid = (case.image, case.labels, case.truth, case.moved,
+                                                       case.moved_labels, case.grid)
+    s = SimpleNamespace(root=root, truth=truth, image=image, labels=labels, moving_grid=grid,
+                        bundle=tiny_bundle(root / "bundle", BUNDLE_DIR),
+                        fixed=save_lps(root / "fixed.nii.gz", image, FIXED_LPS),
+                        fixed_label=save_lps(root / "fixed_label.nii.gz", labels, FIXED_LPS),
+                        moving=save_lps(root / "moving.nii.gz", np.round(moved * 3000 + 200).astype(np.int16), grid),
+                        moving_label=save_lps(root / "moving_label.nii.gz", moved_labels.astype(np.uint8), grid))
+    s.common = ["--fixed", str(s.fixed), "--bundle-root", str(s.bundle)]
+    return s
+
+
+@pytest.fixture(scope="module")
+def registered(scene) -> SimpleNamespace:
+    out = scene.root / "out"
+    result = run_cli("register", "--moving", str(scene.moving), "--moving-label", str(scene.moving_label),
+                 "--fixed-label", str(scene.fixed_label), "--out", str(out), "--samples", "2", *scene.common,
+                 *FAST_AFFINE)
+    result.dir = out
+    return result
+
+
+def test_register_succeeds_and_prints_one_summary_line(registered):
+    assert registered.rc == 0, registered.err
+    assert registered.out.count("\n") == 1 and "mean Dice" in registered.out and "affine" in registered.out
+
+
+def test_geometry_round_trip_recovers_the_transform(scene, registered):
+    brain = grid_points(scene.image.shape, FIXED_LPS)[scene.labels > 0]
+    affine = affine_from_itk(itk.transformread(str(registered.dir / "affine.tfm"))[0])
+    error = np.linalg.norm(apply_affine(affine, brain) - apply_affine(scene.truth, brain), axis=-1)
+    assert error.mean() < 0.4 and error.max() < 0.8  # well under the 0.9-1.4 mm voxels (see test_affine)
+    warp = itk.array_from_image(itk.imread(str(registered.dir / "warp.nii.gz"))).transpose(2, 1, 0, 3)
+    composed = grid_points(scene.image.shape, FIXED_LPS) + warp  # p + D(p): the whole transform, fixed -> moving
+    error = np.linalg.norm(composed[scene.labels > 0] - apply_affine(scene.truth, brain), axis=-1)
+    assert error.mean() < 0.4 and error.max() < 0.8  # an untrained model adds ~0 deformation
+
+
+def _geometry(path: Path) -> tuple:
+    image = itk.imread(str(path))
+    return tuple(image.GetLargestPossibleRegion().GetSize()), geometry_of(image)
+
+
+def test_output_headers(scene, registered):
+    fixed_size, fixed_geometry = _geometry(scene.fixed)
+    moving_size, moving_geometry = _geometry(scene.moving)
+    for name in ("warped", "warped_label", "jacobian", "entropy", "displacement_std", "warp"):
+        size, geometry = _geometry(registered.dir / f"{name}.nii.gz")
+        assert size == fixed_size, name
+        np.testing.assert_allclose(geometry, fixed_geometry, atol=1e-5, err_msg=name)
+    for name in ("inverse_warp", "fixed_label_in_moving"):
+        size, geometry = _geometry(registered.dir / f"{name}.nii.gz")
+        assert size == moving_size, name
+        np.testing.assert_allclose(geometry, moving_geometry, atol=1e-5, err_msg=name)
+    for name in ("warp", "inverse_warp"):
+        stored = nib.load(registered.dir / f"{name}.nii.gz")
+        assert stored.header.get_intent()[0] == "vector" and stored.shape[3:] == (1, 3)
+    assert nib.load(registered.dir / "warped_label.nii.gz").get_data_dtype() == np.uint8
+    assert set(np.unique(np.asarray(nib.load(registered.dir / "fixed_label_in_moving.nii.gz").dataobj))) <= {
+        0, *PHANTOM_LABELS}
+    assert not [p for p in registered.dir.parent.iterdir() if ".partial-" in p.name]
+
+
+def test_itk_reproduces_the_warped_image_and_labels(scene, registered):
+    """ITK's ResampleImageFilter + DisplacementFieldTransform(warp.nii.gz) on the ORIGINAL moving scan gives our
+    warped.nii.gz. Tolerance 1e-5 of the intensity range (~3000): the field is stored in float32 (~1e-6 mm at these
+    coordinates) and the output in float32 (6e-8 relative); observed ~1e-7 of the range. Labels: identical."""
+    transform = displacement_transform(itk.imread(str(registered.dir / "warp.nii.gz")))
+    fixed = itk.imread(str(scene.fixed), itk.F)
+    theirs = itk.array_from_image(resample_with_itk(itk.imread(str(scene.moving), itk.F), fixed, transform))
+    ours = itk.array_from_image(itk.imread(str(registered.dir / "warped.nii.gz"), itk.F))
+    assert ours.max() > 1000  # original intensities, not the network's [0, 1]
+    np.testing.assert_allclose(theirs, ours, atol=1e-5 * ours.max())
+    labels = resample_with_itk(itk.imread(str(scene.moving_label), itk.SS), fixed, transform, nearest=True)
+    np.testing.assert_array_equal(itk.array_from_image(labels),
+                                  itk.array_from_image(itk.imread(str(registered.dir / "warped_label.nii.gz"), itk.SS)))
+
+
+def test_ants_apply_transforms_reproduces_the_warped_image(scene, registered):
+    ants = pytest.importorskip("ants")
+    theirs = ants.apply_transforms(ants.image_read(str(scene.fixed)), ants.image_read(str(scene.moving)),
+                                   [str(registered.dir / "warp.nii.gz")], interpolator="linear").numpy()
+    ours = ants.image_read(str(registered.dir / "warped.nii.gz")).numpy()
+    np.testing.assert_allclose(theirs, ours, atol=1e-5 * ours.max())
+
+
+def test_inverse_warp_maps_back(scene, registered):
+    """p -> q = p + D(p) (moving space) -> q + D_inv(q) = p, with ITK interpolating inverse_warp.nii.gz.
+    Tolerance 0.05 mm: the model part is ~identity here, so only the field interpolation remains."""
+    forward = displacement_transform(itk.imread(str(registered.dir / "warp.nii.gz")))
+    inverse = displacement_transform(itk.imread(str(registered.dir / "inverse_warp.nii.gz")))
+    for p in grid_points(scene.image.shape, FIXED_LPS)[scene.labels > 0][::97]:
+        back = inverse.TransformPoint(forward.TransformPoint(p.tolist()))
+        np.testing.assert_allclose(np.asarray(back), p, atol=0.05)
+
+
+def test_summary_and_qc(scene, registered):
+    summary = json.loads((registered.dir / "summary.json").read_text())
+    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "samples", "compose", "write", "qc",
+                                          "total"]
+    assert summary["dice"]["mean"] > 0.85 and set(summary["dice"]["per_label"]) == {str(v) for v in PHANTOM_LABELS}
+    assert summary["jacobian"]["num_nonpositive"] == 0
+    assert summary["uncertainty"]["samples"] == 2 and summary["uncertainty"]["mean_displacement_std_mm"] >= 0
+    assert summary["moving"]["orientation"] != summary["fixed"]["orientation"]
+    assert summary["moving"]["spacing_mm"] == pytest.approx([1.4, 0.9, 1.1], abs=1e-4)
+    assert sorted(summary["outputs"]) == sorted(p.name for p in registered.dir.iterdir())
+    assert (registered.dir / "qc.png").read_bytes()[:4] == b"\x89PNG"
+    warped = read_image(registered.dir / "warped.nii.gz").array
+    assert np.corrcoef(warped[scene.labels > 0], scene.image[scene.labels > 0])[0, 1] > 0.95
+
+
+def test_no_affine_for_an_aligned_scan(scene, tmp_path):
+    """--no-affine: the identity pre-alignment (scans already in atlas space, as the paper assumes)."""
+    aligned = save_lps(tmp_path / "aligned.nii.gz", (scene.image * 500).astype(np.float32), FIXED_LPS)
+    result = run_cli("register", "--moving", str(aligned), "--moving-label", str(scene.fixed_label), "--fixed-label",
+                 str(scene.fixed_label), "--out", str(tmp_path / "out"), "--no-affine", "--no-qc", *scene.common)
+    assert result.rc == 0, result.err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["affine"]["stages"] == [] and summary["affine"]["matrix_fixed_to_moving_lps"] == np.eye(4).tolist()
+    assert summary["dice"]["mean"] > 0.99 and not (tmp_path / "out" / "qc.png").exists()
+
+
+def test_overwrite_replaces_an_earlier_run(scene, tmp_path):
+    out = tmp_path / "out"
+    args = ["register", "--moving", str(scene.fixed), "--out", str(out), "--no-affine", "--no-qc", *scene.common]
+    assert run_cli(*args, "--samples", "2").rc == 0 and (out / "displacement_std.nii.gz").exists()
+    assert run_cli(*args).rc == 1  # not empty
+    assert run_cli(*args, "--overwrite").rc == 0
+    assert not (out / "displacement_std.nii.gz").exists()  # no mix of two runs
+
+
+def test_register_batch_folder_with_one_bad_scan(scene, tmp_path):
+    scans, labels = tmp_path / "scans", tmp_path / "labels"
+    scans.mkdir()
+    labels.mkdir()
+    for sid in ("A", "B"):
+        shutil.copy(scene.moving, scans / f"{sid}.nii.gz")
+    shutil.copy(scene.moving_label, labels / "A.nii.gz")
+    bad = np.asarray(nib.load(scene.moving).dataobj).astype(np.float32)
+    bad[0, 0, 0] = np.nan
+    save_lps(scans / "C.nii.gz", bad, scene.moving_grid)
+    out = tmp_path / "out"
+    result = run_cli("register-batch", "--moving", str(scans), "--moving-label-dir", str(labels), "--fixed-label",
+                 str(scene.fixed_label), "--out", str(out), "--no-qc", *scene.common, *FAST_AFFINE)
+    assert result.rc == 1
+    assert "1 of 3 scans failed" in result.err and "registering" in result.err  # the progress bar
+    rows = {row["scan"]: row for row in csv.DictReader((out / "batch_summary.csv").open())}
+    assert [rows[s]["status"] for s in "ABC"] == ["ok", "ok", "failed"]
+    assert float(rows["A"]["mean_dice"]) > 0.85 and rows["B"]["mean_dice"] == ""  # B has no labels
+    assert "NaN" in rows["C"]["error"] and "C.nii.gz" in rows["C"]["error"]
+    assert sorted(p.name for p in out.iterdir()) == ["A", "B", "batch_summary.csv"]  # nothing for C
+    assert "failed" in result.out and "A" in result.out
+
+
+def test_help_explains_the_fixed_image(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["register", "--help"])
+    assert info.value.code == 0
+    text = capsys.readouterr().out
+    assert "--fixed" in text and "does not ship" in text and "warp.nii.gz" in text and "--samples" in text
+
+
+def test_console_script_is_declared():
+    import tomllib
+
+    project = tomllib.loads((BUNDLE_DIR.parent / "pyproject.toml").read_text())["project"]
+    assert project["scripts"]["monai-probreg"] == "monai_probreg.cli.main:main"
+
+
+def test_usage_error_exits_2(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["register", "--moving", "m.nii.gz"])
+    assert info.value.code == 2 and "--fixed" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------- bad input: one test each
+def _fails(scene, tmp_path, *argv: str, moving: Path | None = None, label: Path | None = None) -> str:
+    """Run register expecting failure; return the one-line error. Nothing may be left in or next to DIR."""
+    out = tmp_path / "out"
+    args = ["register", "--moving", str(moving or scene.moving), "--out", str(out), *scene.common, *argv]
+    if label is not None:
+        args += ["--moving-label", str(label)]
+    result = run_cli(*args)
+    assert result.rc == 1
+    lines = [line for line in result.err.splitlines() if line.startswith("monai-probreg: error:")]
+    assert len(lines) == 1, result.err
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
+    return lines[0]
+
+
+def _bad_image(tmp_path: Path, name: str, data: np.ndarray) -> Path:
+    return save_lps(tmp_path / name, data, FIXED_LPS)
+
+
+def test_bad_missing_file(scene, tmp_path):
+    line = _fails(scene, tmp_path, moving=tmp_path / "missing.nii.gz")
+    assert "--moving" in line and "missing.nii.gz" in line and "no such file" in line
+
+
+def test_bad_unreadable_file(scene, tmp_path):
+    (tmp_path / "garbage.nii.gz").write_bytes(b"\x00not an image" * 100)
+    assert "garbage.nii.gz" in _fails(scene, tmp_path, moving=tmp_path / "garbage.nii.gz")
+
+
+def test_bad_two_dimensional_image(scene, tmp_path):
+    path = tmp_path / "slice.nii.gz"
+    nib.save(nib.Nifti1Image(np.random.default_rng(0).random((30, 30)).astype(np.float32), np.eye(4)), path)
+    line = _fails(scene, tmp_path, moving=path)
+    assert "slice.nii.gz" in line and "2-D" in line
+
+
+def test_bad_four_dimensional_image(scene, tmp_path):
+    path = tmp_path / "fmri.nii.gz"
+    nib.save(nib.Nifti1Image(np.random.default_rng(0).random((20, 20, 20, 4)).astype(np.float32), np.eye(4)), path)
+    line = _fails(scene, tmp_path, moving=path)
+    assert "fmri.nii.gz" in line and "4-D" in line
+
+
+def test_bad_nan_voxels(scene, tmp_path):
+    data = scene.image.copy()
+    data[5, 5, 5] = np.nan
+    line = _fails(scene, tmp_path, moving=_bad_image(tmp_path, "nan.nii.gz", data))
+    assert "nan.nii.gz" in line and "NaN" in line
+
+
+def test_bad_inf_voxels_in_the_fixed_image(scene, tmp_path):
+    data = scene.image.copy()
+    data[5, 5, 5] = -np.inf
+    fixed = _bad_image(tmp_path, "inf_atlas.nii.gz", data)
+    line = _fails(scene, tmp_path, "--fixed", str(fixed))  # the later --fixed wins
+    assert "--fixed" in line and "inf_atlas.nii.gz" in line and "Inf" in line
+
+
+def test_bad_constant_image(scene, tmp_path):
+    line = _fails(scene, tmp_path, moving=_bad_image(tmp_path, "blank.nii.gz", np.zeros((20, 20, 20), np.float32)))
+    assert "blank.nii.gz" in line and "constant" in line
+
+
+def test_bad_non_integer_labels(scene, tmp_path):
+    fuzzy = np.asarray(nib.load(scene.moving_label).dataobj).astype(np.float32) * 0.5
+    label = save_lps(tmp_path / "fuzzy.nii.gz", fuzzy, scene.moving_grid)
+    line = _fails(scene, tmp_path, label=label)
+    assert "--moving-label" in line and "fuzzy.nii.gz" in line and "non-integer" in line
+
+
+def test_bad_labels_on_another_grid(scene, tmp_path):
+    label = save_lps(tmp_path / "atlas_grid.nii.gz", scene.labels, FIXED_LPS)  # the atlas grid, not the scan's
+    line = _fails(scene, tmp_path, label=label)
+    assert "atlas_grid.nii.gz" in line and "moving.nii.gz" in line and "not on the grid" in line
+
+
+def test_bad_output_folder_not_empty(scene, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), *scene.common)
+    assert result.rc == 1 and "not empty" in result.err and "--overwrite" in result.err
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+
+
+def test_bad_samples(scene, tmp_path):
+    assert "--samples" in _fails(scene, tmp_path, "--samples", "1")
+
+
+def test_bad_model_file(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--model-file", str(tmp_path / "nope.pt"))
+    assert "--model-file" in line and "nope.pt" in line
+
+
+def test_bad_model_file_for_the_config(scene, tmp_path):
+    torch.save({"network": {}, "optimizer": {}}, tmp_path / "checkpoint.pt")  # a training checkpoint, not weights
+    line = _fails(scene, tmp_path, "--model-file", str(tmp_path / "checkpoint.pt"))
+    assert "checkpoint.pt" in line and "does not fit" in line

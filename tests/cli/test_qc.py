@@ -1,0 +1,48 @@
+"""monai_probreg.cli.qc: the QC figure renders (with and without labels), atomically, and closes its figure."""
+
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+from conftest import asymmetric_phantom
+
+from monai_probreg.cli.qc import QCData, qc_figure, save_qc
+
+
+def _data(with_labels: bool, constant_uncertainty: bool = False) -> QCData:
+    image, labels = asymmetric_phantom((24, 28, 20))
+    rng = np.random.default_rng(0)
+    displacement = 0.5 * rng.standard_normal((3, *image.shape)).astype(np.float32)
+    uncertainty = np.full(image.shape, 1.7) if constant_uncertainty else rng.random(image.shape)
+    jacobian = 1.0 + 0.3 * rng.standard_normal(image.shape)
+    jacobian[10, 10, 10] = -0.2  # one folding voxel
+    return QCData(fixed=image, moving=np.roll(image, 2, axis=0), warped=image, displacement=displacement,
+                  jacobian=jacobian, uncertainty=uncertainty, uncertainty_name="velocity entropy",
+                  spacing=(1.0, 1.2, 0.9), fixed_label=labels if with_labels else None,
+                  moving_label=np.roll(labels, 2, axis=0) if with_labels else None,
+                  warped_label=labels if with_labels else None, title="S11   mean Dice 0.812")
+
+
+@pytest.mark.parametrize("with_labels", [True, False])
+def test_figure_layout(with_labels):
+    fig = qc_figure(_data(with_labels))
+    try:
+        axes = fig.get_axes()
+        panels, bars = axes[:18], axes[18:]  # 3 x 6 panels (row-major), then the two colour bars
+        assert len(bars) == 2
+        assert [ax.get_title() for ax in panels[:6]] == [
+            "fixed", "moving (affine only)", "warped moving", "deformation (deformable part)",
+            "Jacobian determinant", "velocity entropy"]
+        assert [panels[6 * row].get_ylabel().split()[0] for row in range(3)] == ["axial", "coronal", "sagittal"]
+        assert fig._suptitle is not None and "Dice" in fig._suptitle.get_text()
+    finally:
+        plt.close(fig)
+
+
+def test_save_writes_a_png_and_closes_the_figure(tmp_path):
+    before = plt.get_fignums()
+    path = save_qc(tmp_path / "qc.png", _data(True, constant_uncertainty=True))
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert plt.get_fignums() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["qc.png"]  # no temporary file left

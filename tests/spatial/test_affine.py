@@ -1,0 +1,78 @@
+"""monai_probreg.spatial.affine: ITK rigid + affine pre-alignment recovers a known transform across grids and orientations."""
+
+from __future__ import annotations
+
+import itk
+import numpy as np
+import pytest
+from conftest import FIXED_LPS, asymmetric_phantom, moved_scan, rigid_matrix
+
+from monai_probreg.spatial.affine import AffineSettings, register_affine, rotation_angle_deg
+from monai_probreg.spatial.physical import apply_affine, grid_points
+from monai_probreg.spatial.volume_io import Volume, volume_to_itk
+
+# Small volumes: two levels at 1/2 and full resolution instead of the defaults' 1/4 and 1/2 of a 1 mm brain.
+FAST = AffineSettings(shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0), rigid_iterations=(100, 50),
+                      affine_iterations=(100, 50), sampling_percentage=0.25)
+# a permuted, flipped, anisotropic scanner grid (axcodes of the moving scan differ from the fixed LPS)
+DIRECTION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
+
+
+@pytest.fixture(scope="module")
+def case():
+    itk.MultiThreaderBase.SetGlobalDefaultNumberOfThreads(1)
+    image, labels = asymmetric_phantom()
+    centre = grid_points(image.shape, FIXED_LPS).reshape(-1, 3).mean(0)
+    truth = rigid_matrix([10.0, -8.0, 12.0], [4.0, -3.0, 2.5], centre)
+    moved, _, grid = moved_scan(image, labels, truth, spacing=(1.4, 0.9, 1.1), direction=DIRECTION, shape=(34, 52, 40))
+    fixed = Volume(image, FIXED_LPS)
+    moving = Volume(moved * 300.0 + 50.0, grid)  # a raw scanner range: MI does not care
+    brain = grid_points(image.shape, FIXED_LPS)[labels > 0]
+    return fixed, moving, truth, brain
+
+
+def _errors(matrix: np.ndarray, truth: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(apply_affine(matrix, points) - apply_affine(truth, points), axis=-1)
+
+
+def test_recovers_rotation_translation_across_grids(case):
+    """10-15 degrees and 5 mm off, moving on a 1.4 x 0.9 x 1.1 mm permuted/flipped grid: the fixed -> moving map is
+    found to well under a voxel over the object (observed: mean 0.15 mm, max 0.25 mm; the 12-parameter stage
+    fits a little scaling to interpolation noise, the rigid stage alone is at ~0.08 mm)."""
+    fixed, moving, truth, brain = case
+    result = register_affine(volume_to_itk(fixed), volume_to_itk(moving), FAST)
+    assert _errors(result.initial, truth, brain).mean() > 1.5  # the centre-of-mass start is far from the answer
+    errors = _errors(result.matrix, truth, brain)
+    assert errors.mean() < 0.4 and errors.max() < 0.8
+    assert [s.name for s in result.stages] == ["rigid", "affine"]
+    assert all(len(s.iterations) == 2 and s.iterations[0] > 0 for s in result.stages)
+    assert abs(result.summary()["rotation_deg"] - rotation_angle_deg(truth)) < 1.0
+    point = brain[0]
+    np.testing.assert_allclose(np.asarray(result.transform.TransformPoint(point.tolist())),
+                               apply_affine(result.matrix, point), atol=1e-9)
+
+
+def test_rigid_only_is_a_rotation_and_is_deterministic(case):
+    fixed, moving, truth, brain = case
+    settings = AffineSettings(**{**FAST.as_dict(), "rigid_only": True})
+    first = register_affine(volume_to_itk(fixed), volume_to_itk(moving), settings)
+    second = register_affine(volume_to_itk(fixed), volume_to_itk(moving), settings)
+    np.testing.assert_array_equal(first.matrix, second.matrix)  # fixed sampling seed
+    rotation = first.matrix[:3, :3]
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
+    assert _errors(first.matrix, truth, brain).mean() < 0.3
+
+
+def test_rotation_angle():
+    assert rotation_angle_deg(rigid_matrix([0.0, 0.0, 30.0], [1.0, 2.0, 3.0], [0.0, 0.0, 0.0])) == pytest.approx(30.0)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"smoothing_sigmas_mm": (1.0,)}, "one value per level"),
+    ({"shrink_factors": (2, 0), "smoothing_sigmas_mm": (1.0, 0.0)}, "shrink_factors"),
+    ({"sampling_percentage": 0.0}, "sampling_percentage"),
+    ({"initializer": "landmarks"}, "initializer"),
+])
+def test_settings_are_validated(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        AffineSettings(**kwargs)

@@ -1,0 +1,86 @@
+"""The package layout: imports run one way between folders, there is no import circle (lazy imports included), and no
+module imports another module's private name."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "monai_probreg"
+TIERS = {  # a folder may import its own tier and the tiers below it, never above
+    "utils": 0,
+    "blocks": 1, "networks": 1, "losses": 1, "metrics": 1,
+    "uncertainty": 2, "data": 2, "spatial": 2, "weights": 2,
+    "engines": 3, "cli": 3,
+}
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path) -> list[tuple[str, list[str]]]:
+    """(module, names) of every ``monai_probreg`` import in the file, at any depth (lazy ones too)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("monai_probreg"):
+            found.append((node.module, [a.name for a in node.names]))
+        elif isinstance(node, ast.Import):
+            found += [(a.name, []) for a in node.names if a.name.startswith("monai_probreg")]
+    return found
+
+
+MODULES = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def _folder(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in TIERS) else None
+
+
+def test_every_folder_has_a_tier():
+    folders = {p.parent.name for p in PACKAGE.rglob("*.py") if p.parent != PACKAGE}
+    assert folders == set(TIERS), f"expected the folders {sorted(TIERS)}, got {sorted(folders)}"
+    assert sorted(p.name for p in PACKAGE.glob("*.py")) == ["__init__.py"], "modules belong in a folder"
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_imports_run_one_way_and_take_no_private_names(module):
+    own = _folder(module)
+    for target, names in _imports(MODULES[module]):
+        folder = _folder(target)
+        if own is not None and folder is not None:
+            assert TIERS[folder] <= TIERS[own], f"{module} (tier {TIERS[own]}) imports {target} (tier {TIERS[folder]})"
+        if target == "monai_probreg" and own is not None:  # ``import monai_probreg`` for __version__ is fine
+            assert not names, f"{module} imports {names} from the package root; import the defining module instead"
+        private = [n for n in names if n.startswith("_")]
+        assert not private, f"{module} imports private names {private} from {target}"
+
+
+def test_no_import_circle():
+    graph = {}
+    for module, path in MODULES.items():
+        targets = set()
+        for target, names in _imports(path):
+            for candidate in [f"{target}.{n}" for n in names] + [target]:
+                if candidate in MODULES and candidate != module:
+                    targets.add(candidate)
+                    break
+        graph[module] = targets - {"monai_probreg"}
+    state: dict[str, int] = {}
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for nxt in graph[node]:
+            if state.get(nxt) == 1:
+                raise AssertionError("import circle: " + " -> ".join(stack[stack.index(nxt):] + [nxt]))
+            if nxt not in state:
+                visit(nxt, stack + [nxt])
+        state[node] = 2
+
+    for module in graph:
+        if module not in state:
+            visit(module, [module])

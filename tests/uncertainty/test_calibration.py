@@ -1,0 +1,189 @@
+"""Post-hoc calibration: the fit recovers a known scale and bias fraction, the sidecar is tied to its weights."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from monai_probreg.metrics.calibration import interval_coverage
+from monai_probreg.uncertainty.calibration import (
+    bias_variance,
+    calibrate_log_var,
+    calibration_for,
+    calibration_path,
+    fit_calibration,
+    fit_std_scale,
+    load_calibration,
+    save_calibration,
+    std_scale_for,
+)
+
+
+def _toy(true_scale: float, n: int = 100_000):
+    rng = np.random.default_rng(0)
+    std = np.exp(rng.normal(0.0, 0.5, n))
+    return std, true_scale * std * rng.standard_normal(n)
+
+
+def test_calibrate_log_var_scales_the_std():
+    log_var = torch.tensor([-4.0, 0.0, 3.0])
+    out = calibrate_log_var(log_var, 2.5)
+    torch.testing.assert_close(torch.exp(0.5 * out), 2.5 * torch.exp(0.5 * log_var))
+    torch.testing.assert_close(calibrate_log_var(log_var, 1.0), log_var)
+
+
+@pytest.mark.parametrize("scale", [0.0, -1.0, math.inf, math.nan])
+def test_calibrate_log_var_rejects_bad_scale(scale):
+    with pytest.raises(ValueError, match="std_scale"):
+        calibrate_log_var(torch.zeros(1), scale)
+
+
+@pytest.mark.parametrize("true_scale", [0.3, 1.0, 4.0])
+def test_fit_recovers_a_known_scale_and_coverage(true_scale):
+    std, error = _toy(true_scale)
+    scale = fit_std_scale(std, error)
+    assert scale == pytest.approx(true_scale, rel=0.02)
+    assert interval_coverage(scale * std, error, 0.95) == pytest.approx(0.95, abs=0.01)
+    assert interval_coverage(scale * std, error, 0.68) == pytest.approx(0.68, abs=0.01)
+
+
+def test_fit_rejects_bad_input():
+    with pytest.raises(ValueError, match="same"):
+        fit_std_scale(np.ones(3), np.ones(2))
+    with pytest.raises(ValueError, match="positive"):
+        fit_std_scale(np.zeros(3), np.ones(3))
+    with pytest.raises(ValueError, match="levels"):
+        fit_std_scale(np.ones(3), np.ones(3), levels=())
+
+
+@pytest.fixture
+def weights(tmp_path):
+    path = tmp_path / "model.pt"
+    torch.save({"w": torch.arange(4.0)}, path)
+    return path
+
+
+def test_sidecar_round_trip(weights):
+    record = save_calibration(weights, 3.25, fitted_on=["S11", "S14"], num_samples=16)
+    assert calibration_path(weights) == weights.with_name("model.calibration.json")
+    assert load_calibration(weights) == record
+    assert std_scale_for(weights) == 3.25
+    assert std_scale_for(weights, calibrate=False) == 1.0
+    assert not list(weights.parent.glob("*.tmp"))
+
+
+def test_sidecar_refuses_other_weights(weights):
+    save_calibration(weights, 2.0)
+    torch.save({"w": torch.zeros(4)}, weights)  # retrained
+    with pytest.raises(ValueError, match="SHA-256"):
+        std_scale_for(weights)
+
+
+def test_missing_sidecar_warns_and_gives_raw(weights):
+    with pytest.warns(UserWarning, match="no calibration"):
+        assert std_scale_for(weights) == 1.0
+
+
+def test_corrupt_sidecar_names_the_file(weights):
+    calibration_path(weights).write_text("{not json")
+    with pytest.raises(ValueError, match="model.calibration.json"):
+        load_calibration(weights)
+    calibration_path(weights).write_text(json.dumps({"std_scale": 2.0}))  # missing fields
+    with pytest.raises(ValueError, match="not a calibration record"):
+        load_calibration(weights)
+
+
+def test_the_shipped_default_weights_carry_their_own_calibration():
+    """New default weights need a refitted calibration (benchmarks/uncertainty_calibration.py --write-calibration):
+    a stale record would be refused at inference time; this catches it before release."""
+    from pathlib import Path
+
+    from monai_probreg.uncertainty.calibration import load_calibration
+
+    weights = Path(__file__).resolve().parents[2] / "bundle" / "models" / "model_semisupervised.pt"
+    record = load_calibration(weights)  # raises when the SHA-256 does not match the weights
+    assert record.std_scale > 1.0  # the raw variational posterior is over-confident (README "Uncertainty")
+
+
+# --- the bias term: (bias_fraction |u|)^2 added to every component's variance ---------------------------------------
+
+def _biased_toy(scale: float, bias_fraction: float, n: int = 400_000):
+    """Errors drawn exactly from N(0, scale^2 std^2 + (bias_fraction |u|)^2): the fit's known answer."""
+    rng = np.random.default_rng(1)
+    std, norm = np.exp(rng.normal(0.0, 0.4, n)), rng.gamma(2.0, 2.0, n)
+    error = rng.standard_normal(n) * np.sqrt((scale * std) ** 2 + (bias_fraction * norm) ** 2)
+    return std, error, norm
+
+
+@pytest.mark.parametrize("scale, bias_fraction", [(2.5, 0.2), (1.0, 0.5)])
+def test_fit_calibration_recovers_a_known_scale_and_bias_fraction(scale, bias_fraction):
+    std, error, norm = _biased_toy(scale, bias_fraction)
+    fitted = fit_calibration(std, error, norm)
+    assert fitted.std_scale == pytest.approx(scale, rel=0.05)
+    assert fitted.bias_fraction == pytest.approx(bias_fraction, abs=0.02)
+    total = np.sqrt((fitted.std_scale * std) ** 2 + (fitted.bias_fraction * norm) ** 2)
+    for level in (0.68, 0.95):
+        assert interval_coverage(total, error, level) == pytest.approx(level, abs=0.01)
+
+
+def test_fit_calibration_without_bias_matches_fit_std_scale():
+    std, error = _toy(3.0)
+    fitted = fit_calibration(std, error, np.ones_like(std), bias_fractions=(0.0,))
+    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0)
+
+
+@pytest.mark.parametrize("norm, fractions, match", [
+    (np.ones(4), (), "must not be empty"),
+    (np.ones(4), (-0.1,), "bias_fraction"),
+    (-np.ones(4), (0.1,), "displacement_norm finite and >= 0"),
+    (np.ones(3), (0.1,), "same non-empty shape"),
+])
+def test_fit_calibration_rejects_bad_input(norm, fractions, match):
+    with pytest.raises(ValueError, match=match):
+        fit_calibration(np.ones(4), np.ones(4), norm, bias_fractions=fractions)
+
+
+def test_calibrate_log_var_adds_the_bias_term_in_quadrature():
+    log_var = torch.log(torch.full((1, 3, 2, 2, 2), 4.0))  # sigma 2 per component
+    mean = torch.zeros(1, 3, 2, 2, 2)
+    mean[0, :, 0, 0, 0] = torch.tensor([3.0, 4.0, 0.0])  # |mu| = 5
+    out = calibrate_log_var(log_var, 1.5, mean, 0.8)  # (1.5 * 2)^2 + (0.8 * 5)^2 = 9 + 16 = 25
+    torch.testing.assert_close(out[0, :, 0, 0, 0].exp(), torch.full((3,), 25.0))
+    torch.testing.assert_close(out[0, :, 1, 1, 1].exp(), torch.full((3,), 9.0))  # mu = 0: the scaled std alone
+    torch.testing.assert_close(calibrate_log_var(log_var, 1.5, mean, 0.0), calibrate_log_var(log_var, 1.5))
+    with pytest.raises(ValueError, match="needs the posterior mean"):
+        calibrate_log_var(log_var, 1.5, None, 0.8)
+    with pytest.raises(ValueError, match="needs the posterior mean"):
+        calibrate_log_var(log_var, 1.5, mean[:, :2], 0.8)
+    with pytest.raises(ValueError, match="bias_fraction"):
+        calibrate_log_var(log_var, 1.5, mean, -0.1)
+
+
+def test_bias_variance_is_the_squared_fraction_of_the_length():
+    u = torch.zeros(1, 3, 2, 2, 2)
+    u[0, :, 0, 0, 0] = torch.tensor([3.0, 4.0, 0.0])  # |u| = 5
+    variance = bias_variance(u, 0.2)
+    assert variance.shape == (1, 1, 2, 2, 2)
+    assert variance[0, 0, 0, 0, 0].item() == pytest.approx(1.0) and variance.sum().item() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="bias_fraction"):
+        bias_variance(u, float("nan"))
+    with pytest.raises(ValueError, match=r"\(B, D, \*S\)"):
+        bias_variance(torch.zeros(3, 4), 0.1)
+
+
+def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
+    save_calibration(weights, 2.0, bias_fraction=0.15)
+    assert calibration_for(weights) == (2.0, 0.15) and load_calibration(weights).bias_fraction == 0.15
+    assert calibration_for(weights, calibrate=False) == (1.0, 0.0)
+    record = json.loads(calibration_path(weights).read_text())
+    del record["bias_fraction"]  # written before the bias term existed
+    calibration_path(weights).write_text(json.dumps(record))
+    assert calibration_for(weights) == (2.0, 0.0)
+    record["bias_fraction"] = -0.5
+    calibration_path(weights).write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="model.calibration.json: bias_fraction"):
+        load_calibration(weights)
+    with pytest.raises(ValueError, match="bias_fraction"):
+        save_calibration(weights, 2.0, bias_fraction=-1.0)

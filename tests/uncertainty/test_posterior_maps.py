@@ -1,0 +1,115 @@
+"""The inference uncertainty maps: calibration shifts/scales them as stated; sampling is seeded; bad K refused."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from monai_probreg import ProbRegNet, displacement_uncertainty, sample_velocity
+from monai_probreg.uncertainty.entropy import velocity_entropy
+from monai_probreg.uncertainty.posterior_maps import SAMPLE_CHUNK, posterior_maps
+
+SIZE = (12, 10, 8)
+
+
+@pytest.fixture
+def setup():
+    torch.manual_seed(0)
+    network = ProbRegNet(enc_channels=(4, 4, 4, 4), dec_channels=(4, 4, 4, 4, 4)).eval()
+    mean = 0.3 * torch.randn(1, 3, 6, 5, 4)
+    log_var = torch.full((1, 3, 6, 5, 4), -6.0) + 0.5 * torch.rand(1, 3, 6, 5, 4)
+    labels = torch.zeros(1, 1, *SIZE, dtype=torch.int16)
+    labels[..., :6, :, :] = 3
+    labels[..., 6:, :5, :] = 5
+    return network, mean, log_var, labels
+
+
+def test_velocity_entropy_shifts_by_dims_log_scale(setup):
+    network, mean, log_var, _ = setup
+    raw = posterior_maps(network, mean, log_var, SIZE).velocity_entropy
+    calibrated = posterior_maps(network, mean, log_var, SIZE, std_scale=3.0).velocity_entropy
+    torch.testing.assert_close(calibrated - raw, torch.full_like(raw, 3 * math.log(3.0)), atol=1e-5, rtol=0)
+
+
+def test_displacement_std_scales_with_std_scale_for_small_sigma(setup):
+    network, mean, _, _ = setup
+    log_var = torch.full_like(mean, -14.0)  # sigma ~ 1e-3 voxel: exp() is linear in the perturbation
+    raw = posterior_maps(network, mean, log_var, SIZE, num_samples=8).displacement_std
+    doubled = posterior_maps(network, mean, log_var, SIZE, num_samples=8, std_scale=2.0).displacement_std
+    assert raw.shape == SIZE and raw.min() > 0
+    # same seed -> same eps; linear regime -> twice the spread, to 1%
+    torch.testing.assert_close(doubled, 2.0 * raw, rtol=0.01, atol=1e-6)
+
+
+def test_bias_fraction_widens_the_velocity_posterior_where_the_mean_is_long(setup):
+    network, mean, log_var, _ = setup
+    raw = posterior_maps(network, mean, log_var, SIZE, num_samples=4)
+    biased = posterior_maps(network, mean, log_var, SIZE, num_samples=4, bias_fraction=0.3)
+    # sigma^2 -> sigma^2 + (0.3 |mu|)^2 per component: the entropy of that Gaussian, resized like the raw one
+    widened = torch.log(log_var.exp() + 0.09 * mean.pow(2).sum(1, keepdim=True))
+    torch.testing.assert_close(biased.velocity_entropy, velocity_entropy(widened, SIZE)[0, 0], atol=1e-5, rtol=0)
+    # |mu| ~ 0.5 voxel against sigma ~ 0.05: the sampled spread grows several times
+    assert (biased.displacement_std / raw.displacement_std).median() > 2.0
+
+
+def test_label_entropy_zero_when_certain_positive_at_boundaries_when_not(setup):
+    network, mean, _, labels = setup
+    certain = posterior_maps(network, mean, torch.full_like(mean, -30.0), SIZE, 6, moving_label=labels)
+    assert certain.label_entropy is not None and certain.label_entropy.max() == 0
+    vague = posterior_maps(network, mean, torch.full_like(mean, 0.0), SIZE, 6, moving_label=labels)
+    assert vague.label_entropy.max() > 0.3
+    assert vague.label_entropy.max() <= math.log(6) + 1e-6
+
+
+def test_sampling_is_seeded(setup):
+    network, mean, log_var, labels = setup
+    a = posterior_maps(network, mean, log_var, SIZE, 4, moving_label=labels, seed=5)
+    b = posterior_maps(network, mean, log_var, SIZE, 4, moving_label=labels, seed=5)
+    c = posterior_maps(network, mean, log_var, SIZE, 4, moving_label=labels, seed=6)
+    torch.testing.assert_close(a.displacement_std, b.displacement_std, rtol=0, atol=0)
+    assert not torch.equal(a.displacement_std, c.displacement_std)
+
+
+def test_no_samples_gives_entropy_only(setup):
+    network, mean, log_var, labels = setup
+    maps = posterior_maps(network, mean, log_var, SIZE, 0, moving_label=labels)
+    assert maps.displacement_std is None and maps.label_entropy is None
+
+
+@pytest.mark.parametrize("num_samples", [1, -2])
+def test_bad_num_samples_is_refused(setup, num_samples):
+    network, mean, log_var, _ = setup
+    with pytest.raises(ValueError, match="num_samples"):
+        posterior_maps(network, mean, log_var, SIZE, num_samples)
+
+
+def test_batch_of_two_is_refused(setup):
+    network, mean, log_var, _ = setup
+    with pytest.raises(ValueError, match="one pair"):
+        posterior_maps(network, mean.repeat(2, 1, 1, 1, 1), log_var.repeat(2, 1, 1, 1, 1), SIZE)
+
+
+def test_std_in_mm_matches_displacement_uncertainty_on_all_samples(single_thread):
+    """sqrt(sum_k spacing_k^2 var_k) from chunked running sums == displacement_uncertainty on all samples at once
+    (same draws); float64 sums of float32 samples: agreement to 1e-5 mm."""
+    torch.manual_seed(0)
+    network = ProbRegNet(enc_channels=(4, 4, 4, 4), dec_channels=(4, 4, 4, 4, 4)).eval()
+    mean, log_var = 0.5 * torch.randn(1, 3, 5, 6, 4), torch.full((1, 3, 5, 6, 4), -1.0)
+    size, spacing, samples, chunk = (10, 12, 8), np.array([1.0, 1.5, 0.8]), 7, SAMPLE_CHUNK
+    ours = posterior_maps(network, mean, log_var, size, samples, seed=3, spacing=spacing).displacement_std.numpy()
+    generator = torch.Generator().manual_seed(3)
+    draws = torch.cat([sample_velocity(mean, log_var, min(chunk, samples - s), generator=generator)
+                       for s in range(0, samples, chunk)])
+    with torch.no_grad():
+        displacements = network.velocity_to_displacement(draws.flatten(0, 1), size).unflatten(0, (samples, 1))
+    variance = displacement_uncertainty(displacements).variance[0].double()
+    expected = (variance * torch.as_tensor(spacing**2).view(3, 1, 1, 1)).sum(0).sqrt().numpy()
+    assert ours.shape == size and ours.max() > 0.01
+    np.testing.assert_allclose(ours, expected, atol=1e-5)
+
+
+def test_spacing_of_the_wrong_length_is_refused(setup):
+    network, mean, log_var, _ = setup
+    with pytest.raises(ValueError, match="one spacing per axis"):
+        posterior_maps(network, mean, log_var, SIZE, num_samples=2, spacing=(1.0, 1.0))

@@ -1,0 +1,57 @@
+"""Tests of the atomic writer, the temporary-name pattern, file stems and one-line error quoting."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from monai_probreg.utils.errors import InputError, UntrustedFileError, first_line
+from monai_probreg.utils.files import PARTIAL_FILE, atomic_write, file_stem, remove_partial_files, write_text
+
+
+def test_atomic_write_replaces_the_file_only_when_complete(tmp_path):
+    target = tmp_path / "sub" / "scores.csv"
+    write_text(target, "old")
+    seen = []
+
+    def write(tmp: str) -> None:
+        seen.append((Path(tmp).name, target.read_text()))  # the old file is intact while the new one is written
+        Path(tmp).write_text("new")
+
+    atomic_write(target, write)
+    assert target.read_text() == "new"
+    assert seen[0][1] == "old" and PARTIAL_FILE.fullmatch(seen[0][0]) and seen[0][0].endswith(".csv")
+    assert sorted(p.name for p in target.parent.iterdir()) == ["scores.csv"]
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
+    target = tmp_path / "model.pt"
+    write_text(target, "old")
+
+    def fail(tmp: str) -> None:
+        Path(tmp).write_text("half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write(target, fail)
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["model.pt"]
+    assert remove_partial_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("name, stem", [("S01.nii.gz", "S01"), ("a.b.nii", "a.b"), ("scan.nrrd", "scan"),
+                                        ("x.mha", "x"), ("notes.txt", "notes"), ("S01_image.nii.gz", "S01_image")])
+def test_file_stem_strips_the_image_suffix(name, stem):
+    assert file_stem(Path("/data") / name) == stem
+
+
+def test_first_line_quotes_the_first_non_blank_line_within_the_limit():
+    assert first_line(ValueError("\n  bad header  \nmore")) == "bad header"
+    assert first_line(KeyError()) == "KeyError"
+    assert first_line(ValueError("x" * 500)) == "x" * 160
+    assert first_line(ValueError("x" * 500), limit=None) == "x" * 500
+
+
+def test_input_error_is_a_value_error_and_untrusted_an_input_error():
+    assert issubclass(InputError, ValueError) and issubclass(UntrustedFileError, InputError)

@@ -3,7 +3,7 @@
 One subject of an LPBA40-layout dataset (default S11, the first of train.yaml's ``val_ids``: never trained on) is
 turned into what a scanner would give: a random rotation (uniform in +-15 degrees about each axis) and translation
 (+-20 mm per axis) about the atlas centre, resampled (linear; labels nearest neighbour) onto a 0.9 x 1.5 x 0.9 mm grid
-of another orientation code ("AIL" instead of LPBA40's "LPS": axes permuted and flipped) covering the moved head,
+of another orientation code ("AIL" instead of LPBA40's "RAS": axes permuted and flipped) covering the moved head,
 with intensities in a raw scanner range (int16, 50..3050). Then:
 
 1. **aligned, bundle path**: the original (aligned) subject through evaluate.yaml's preprocessing, ``register_pair``

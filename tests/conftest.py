@@ -33,7 +33,8 @@ def _phantom(shape: Sequence[int], shift: Sequence[float], rng: np.random.Genera
 
 def make_tiny_dataset(root: Path, num_subjects: int = 3, shape: Sequence[int] = (32, 32, 32),
                       with_labels: bool = True, seed: int = 0) -> Path:
-    """Write atlas/, images/ and labels/ like lpba40 (affine diag(-1, -1, 1), 1 mm) and return ``root``."""
+    """Write atlas/, images/ and labels/ in the lpba40 layout (affine diag(-1, -1, 1): arrays stored LPS, which
+    the RAS reorientation turns; 1 mm) and return ``root``."""
     rng = np.random.default_rng(seed)
     affine = np.diag([-1.0, -1.0, 1.0, 1.0])
     for sub in ("atlas", "images", "labels"):
@@ -103,7 +104,7 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 # ----------------------------------------------------------------------------- physical-space phantoms (CLI tests)
-FIXED_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])  # index -> LPS of the synthetic atlases: LPBA40's grid, origin 0
+FIXED_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])  # index -> LPS of the synthetic atlases: a RAS array (as LPBA40, identity RAS affine), origin 0
 PHANTOM_LABELS = (1, 2, 3, 4)
 
 

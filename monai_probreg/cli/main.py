@@ -37,8 +37,8 @@ warped_label.nii.gz / fixed_label_in_moving.nii.gz (labels), summary.json, qc.pn
 
 The model (network settings and weights) comes from the MONAI bundle: BUNDLE/configs/inference.yaml and
 the config's model_file (BUNDLE/models/...), BUNDLE being the repository's bundle/ folder unless --bundle-root, --config or --model-file
-say otherwise. The bundle does not ship the atlas image (LPBA40 may not be redistributed), so --fixed is required:
-pass the image the model was trained against (e.g. lpba40/atlas/S01_image.nii.gz).
+say otherwise. Without --fixed, scans are registered to the MNI ICBM152 2009a T1 template that nilearn ships inside
+its package (skull-stripped, 1 mm; licence notice in monai_probreg/data/template.py).
 
 Exit status: 0 on success; 1 with one line "monai-probreg: error: ..." when an input or the registration fails
 (nothing is written to DIR; for register-batch, when any scan failed); 2 for a malformed command line.
@@ -47,8 +47,8 @@ Exit status: 0 on success; 1 with one line "monai-probreg: error: ..." when an i
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
     io = parser.add_argument_group("inputs and outputs")
-    io.add_argument("--fixed", required=True, metavar="F",
-                    help="the atlas / fixed image (required: the bundle does not ship it)")
+    io.add_argument("--fixed", metavar="F",
+                    help="the atlas / fixed image (default: the MNI ICBM152 2009a T1 template that nilearn ships)")
     io.add_argument("--fixed-label", metavar="L", help="its label map (integers, same grid): enables Dice and "
                     "fixed_label_in_moving.nii.gz")
     io.add_argument("--out", required=True, metavar="DIR", help="output folder (created; must be empty or absent "
@@ -182,6 +182,10 @@ def _setup(args: argparse.Namespace):
     model = load_model(args.bundle_root, args.model_file, args.config, device, calibrate=not args.raw_uncertainty)
     if args.unet_precision is not None:
         model.network.unet_precision = args.unet_precision
+    if args.fixed is None:
+        from monai_probreg.data.template import mni152_template_path
+
+        args.fixed = str(mni152_template_path())
     fixed = prepare_fixed(args.fixed, args.fixed_label, model.divisor)
     load_itk_modules()
     return model, fixed
@@ -205,6 +209,8 @@ def _require_files(args: argparse.Namespace, options: Sequence[str]) -> None:
     """Fail fast, before the model and ITK load (seconds), on input paths that do not exist."""
     from monai_probreg.utils.errors import InputError
 
+    if getattr(args, "fixed_label", None) is not None and args.fixed is None:
+        raise InputError(f"--fixed-label {args.fixed_label!r}: expected --fixed too (the label map of which image?)")
     for option in options:
         value = getattr(args, option.lstrip("-").replace("-", "_"), None)
         if value is not None and not Path(value).is_file():

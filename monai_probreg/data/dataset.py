@@ -14,7 +14,7 @@ Every pair is a dict with keys ``moving``, ``fixed`` and, where labels exist, ``
 from __future__ import annotations
 
 import random
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,12 +54,22 @@ class DatasetIndex:
         return sorted(self.images)
 
 
-def index_dataset(dataset_dir: str | Path) -> DatasetIndex:
-    """Read the atlas and subject lists from ``dataset_dir`` (nothing hard-coded); clear errors if malformed."""
+def index_dataset(dataset_dir: str | Path, default_atlas: Callable[[], Path] | None = None) -> DatasetIndex:
+    """Read the atlas and subject lists from ``dataset_dir`` (nothing hard-coded); clear errors if malformed.
+
+    ``default_atlas``: called for the atlas image when ``dataset_dir`` has no ``atlas/`` folder (e.g.
+    :func:`monai_probreg.data.template.mni152_template_path`; no atlas labels then); None: ``atlas/`` is required.
+    """
     root = Path(dataset_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"dataset_dir {str(root)!r} does not exist or is not a folder "
                                 "(expected atlas/, images/ and optionally labels/ inside)")
+    if default_atlas is not None and not (root / "atlas").exists():
+        images = {file_stem(p): p for p in _niftis(root / "images")}
+        if not images:
+            raise ValueError(f"no NIfTI images found in {root / 'images'}")
+        labels = {file_stem(p): p for p in _niftis(root / "labels") if file_stem(p) in images}
+        return DatasetIndex(Path(default_atlas()), None, images, labels)
     atlas = [p for p in _niftis(root / "atlas") if file_stem(p).endswith("_image")]
     if len(atlas) != 1:
         raise ValueError(f"expected exactly one atlas image {root / 'atlas'}/*_image.nii.gz; found {len(atlas)}: "

@@ -110,6 +110,8 @@ def registration_transforms(
     lower_percentile: float = LOWER_PERCENTILE,
     upper_percentile: float = UPPER_PERCENTILE,
     axcodes: str = "RAS",
+    image_keys: Sequence[str] = IMAGE_KEYS,
+    label_keys: Sequence[str] = LABEL_KEYS,
 ) -> Compose:
     """Load -> channel first -> RAS -> percentile intensity scaling to [0, 1] -> pad to ``divisor``.
 
@@ -120,23 +122,26 @@ def registration_transforms(
         resize_labels: resize the label maps too (nearest); by default they stay on the full grid for evaluation.
         lower_percentile, upper_percentile: intensities at these percentiles map to 0 and 1 (clipped).
         axcodes: orientation every image is brought to.
+        image_keys, label_keys: the keys of the images and label maps (default: a pair; ``("image",)`` and
+            ``("label",)`` for one scan, as :mod:`monai_probreg.data.pairs` caches them).
     """
-    keys = list(IMAGE_KEYS) + (list(LABEL_KEYS) if with_labels else [])
-    labels = list(LABEL_KEYS) if with_labels else []
+    images = list(image_keys)
+    labels = list(label_keys) if with_labels else []
+    keys = images + labels
     chain = [
         LoadCheckedd(keys=keys, label_keys=labels),
         EnsureChannelFirstd(keys=keys),
         Orientationd(keys=keys, axcodes=axcodes, labels=(("L", "R"), ("P", "A"), ("I", "S"))),
-        ScaleIntensityRangePercentilesd(keys=list(IMAGE_KEYS), lower=lower_percentile, upper=upper_percentile,
+        ScaleIntensityRangePercentilesd(keys=images, lower=lower_percentile, upper=upper_percentile,
                                         b_min=0.0, b_max=1.0, clip=True),
         DivisiblePadd(keys=keys, k=divisor),
     ]
     if network_size is not None:
-        chain.append(Resized(keys=list(IMAGE_KEYS), spatial_size=tuple(network_size), mode="trilinear",
+        chain.append(Resized(keys=images, spatial_size=tuple(network_size), mode="trilinear",
                              align_corners=True, anti_aliasing=False))
         if resize_labels and labels:
             chain.append(NearestResizeAlignCornersd(keys=labels, spatial_size=network_size))
-    chain.append(EnsureTyped(keys=list(IMAGE_KEYS), dtype=torch.float32))
+    chain.append(EnsureTyped(keys=images, dtype=torch.float32))
     if labels:
         chain.append(EnsureTyped(keys=labels, dtype=torch.int16))
     return Compose(chain)

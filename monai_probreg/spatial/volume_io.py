@@ -86,7 +86,7 @@ class Volume:
 
     @property
     def axcodes(self) -> str:
-        """Orientation code in nibabel's (RAS) convention, e.g. ``"LPS"`` for LPBA40, ``"RAS"`` for MNI files."""
+        """Orientation code in nibabel's (RAS) convention, e.g. ``"RAS"`` for LPBA40 and MNI files, ``"LPS"`` for DICOM-ordered ones."""
         return "".join(nib.aff2axcodes(self.ras_affine))
 
     def with_array(self, array: np.ndarray) -> Volume:

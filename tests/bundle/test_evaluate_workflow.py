@@ -74,3 +74,28 @@ def test_evaluate_without_labels_says_so(tmp_path, bundle):
         wf.run()
     cause = root_cause(info.value)
     assert isinstance(cause, ValueError) and "evaluation needs labels" in str(cause) and str(dataset) in str(cause)
+
+
+def test_evaluate_takes_a_pairs_file_with_any_fixed_image(tmp_path, tiny_dataset, bundle):
+    pairs = tmp_path / "pairs.csv"
+    pairs.write_text("moving,fixed,moving_label,fixed_label,id\n"
+                     f"{tiny_dataset}/images/T01.nii.gz,{tiny_dataset}/images/T02.nii.gz,"
+                     f"{tiny_dataset}/labels/T01.nii.gz,{tiny_dataset}/labels/T02.nii.gz,T01_to_T02\n"
+                     f"{tiny_dataset}/images/T03.nii.gz,{tiny_dataset}/atlas/A01_image.nii.gz,"
+                     f"{tiny_dataset}/labels/T03.nii.gz,{tiny_dataset}/atlas/A01_label.nii.gz,T03_to_atlas\n")
+    wf = infer_workflow("evaluate.yaml", bundle, tmp_path / "no_such_dataset", tmp_path / "pairs", pairs_file=str(pairs))
+    wf.run()
+    wf.finalize()
+    with open(tmp_path / "pairs" / "scores.csv") as f:
+        rows = {r["id"]: r for r in csv.DictReader(f)}
+    assert list(rows) == ["T01_to_T02", "T03_to_atlas"]
+    # the atlas pair scores as it does in the atlas layout
+    atlas = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "atlas", subject_ids=["T03"])
+    atlas.run()
+    atlas.finalize()
+    with open(tmp_path / "atlas" / "scores.csv") as f:
+        (reference,) = list(csv.DictReader(f))
+    for key in ("mean_dice", "mean_dice_no_registration", "num_folding"):
+        assert float(rows["T03_to_atlas"][key]) == pytest.approx(float(reference[key]), abs=1e-12)
+    summary = json.loads((tmp_path / "pairs" / "summary.json").read_text())
+    assert summary["num_subjects"] == 2

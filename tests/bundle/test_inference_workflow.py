@@ -59,3 +59,16 @@ def test_inference_without_labels_writes_no_label_maps(tmp_path, bundle):
     wf.run()
     assert sorted(p.name for p in (tmp_path / "out" / "T01").iterdir()) == sorted(
         f"{name}.nii.gz" for name in OUTPUT_NAMES if name not in ("warped_label", "label_entropy"))
+
+
+def test_inference_takes_a_pairs_file_without_labels(tmp_path, tiny_dataset, bundle):
+    pairs = tmp_path / "pairs.json"
+    import json
+
+    pairs.write_text(json.dumps([{"moving": f"{tiny_dataset}/images/T01.nii.gz",
+                                  "fixed": f"{tiny_dataset}/images/T02.nii.gz"}]))
+    wf = infer_workflow("inference.yaml", bundle, tmp_path / "no_such_dataset", tmp_path / "out", pairs_file=str(pairs))
+    wf.run()
+    wf.finalize()
+    written = sorted(p.name for p in (tmp_path / "out" / "T01_to_T02").iterdir())
+    assert "warped.nii.gz" in written and "displacement.nii.gz" in written and "warped_label.nii.gz" not in written

@@ -53,7 +53,7 @@ ROWS = {  # method key -> row name (table order)
     "ours_mean": "ours, mean (paper network, untrained)",
     "ours_mean_no_reuse": "ours, mean, memory reuse off",
     "ours_samples": "ours, K = {k} posterior samples",
-    "ours_trained": "ours, shipped weights (model_semisupervised.pt)",
+    "ours_trained": "ours, shipped weights (the configs' model_file)",
     "voxelmorph": "MONAI VoxelMorph() (untrained)",
     "ants": 'ANTs SyN (antspyx, type_of_transform="SyN")',
 }

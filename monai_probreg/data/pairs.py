@@ -27,6 +27,7 @@ from torch.utils.data import Dataset
 
 from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS, DatasetIndex
 from monai_probreg.utils.errors import InputError
+from monai_probreg.utils.files import file_stem
 
 __all__ = ["ATLAS_ID", "SCAN_IMAGE", "SCAN_LABEL", "subject_pairs", "read_pairs_file", "scan_dicts", "ordered_pairs",
            "PairDataset"]
@@ -74,8 +75,6 @@ def _resolve(value: str, root: Path, source: Path, row: int, column: str) -> str
 def read_pairs_file(path: str | os.PathLike, require_labels: bool = False) -> list[dict]:
     """Pair dicts from a CSV or JSON pair list (module docstring); every file must exist. ``id`` defaults to
     ``<moving stem>_to_<fixed stem>``. ``InputError`` naming the file and the pair for anything unusable."""
-    from monai_probreg.utils.files import file_stem
-
     source = Path(path)
     if not source.is_file():
         raise InputError(f"pairs file {str(source)!r} does not exist")

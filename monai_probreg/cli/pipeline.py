@@ -155,7 +155,7 @@ class _ModelMaps:
     displacement: np.ndarray
     inverse: np.ndarray
     jacobian: np.ndarray
-    entropy: np.ndarray
+    entropy: np.ndarray | None  # velocity entropy, filled in by _run_model (with the samples when there are any)
     warped: np.ndarray
     std: np.ndarray | None = None
 
@@ -169,16 +169,17 @@ def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.nda
         output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
         with eval_mode(model.network), torch.inference_mode():
             inverse = model.network.velocity_to_displacement(-output.velocity_mean, shape)  # exp(-v)
-        posterior = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape,
-                                   std_scale=model.std_scale, bias_fraction=model.bias_fraction)  # 1 and 0 = raw
         maps = _ModelMaps(_numpy(output.displacement[0]), _numpy(inverse[0]),
-                          _numpy(jacobian_determinant(output.displacement)[0]),
-                          _numpy(posterior.velocity_entropy), _numpy(output.warped[0, 0]))
+                          _numpy(jacobian_determinant(output.displacement)[0]), None, _numpy(output.warped[0, 0]))
+        if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
+            posterior = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape,
+                                       std_scale=model.std_scale, bias_fraction=model.bias_fraction)  # 1, 0 = raw
+            maps.entropy = _numpy(posterior.velocity_entropy)
     if samples:
         with _timed(timings, "samples", report):
             sampled = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape, samples,
                                      model.std_scale, seed=seed, bias_fraction=model.bias_fraction, spacing=spacing)
-            maps.std = _numpy(sampled.displacement_std)
+            maps.entropy, maps.std = _numpy(sampled.velocity_entropy), _numpy(sampled.displacement_std)
     return maps
 
 

@@ -64,23 +64,19 @@ def index_dataset(dataset_dir: str | Path, default_atlas: Callable[[], Path] | N
     if not root.is_dir():
         raise FileNotFoundError(f"dataset_dir {str(root)!r} does not exist or is not a folder "
                                 "(expected atlas/, images/ and optionally labels/ inside)")
+    images = {file_stem(p): p for p in _niftis(root / "images")}
+    if not images:
+        raise ValueError(f"no NIfTI images found in {root / 'images'}")
+    labels = {file_stem(p): p for p in _niftis(root / "labels") if file_stem(p) in images}
     if default_atlas is not None and not (root / "atlas").exists():
-        images = {file_stem(p): p for p in _niftis(root / "images")}
-        if not images:
-            raise ValueError(f"no NIfTI images found in {root / 'images'}")
-        labels = {file_stem(p): p for p in _niftis(root / "labels") if file_stem(p) in images}
         return DatasetIndex(Path(default_atlas()), None, images, labels)
     atlas = [p for p in _niftis(root / "atlas") if file_stem(p).endswith("_image")]
     if len(atlas) != 1:
         raise ValueError(f"expected exactly one atlas image {root / 'atlas'}/*_image.nii.gz; found {len(atlas)}: "
                          f"{[p.name for p in atlas]}")
-    atlas_label = atlas[0].parent / (file_stem(atlas[0])[: -len("_image")] + "_label" + atlas[0].name[len(file_stem(atlas[0])):])
-    images = {file_stem(p): p for p in _niftis(root / "images")}
-    if not images:
-        raise ValueError(f"no NIfTI images found in {root / 'images'}")
-    labels = {file_stem(p): p for p in _niftis(root / "labels") if file_stem(p) in images}
+    stem = file_stem(atlas[0])
+    atlas_label = atlas[0].parent / (stem[: -len("_image")] + "_label" + atlas[0].name[len(stem):])
     return DatasetIndex(atlas[0], atlas_label if atlas_label.is_file() else None, images, labels)
-
 
 def split_ids(ids: Sequence[str], num_val: int, seed: int = 0) -> tuple[list[str], list[str]]:
     """Deterministic random split of subject ids into (train, validation)."""

@@ -70,6 +70,15 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                      help="maximum iterations per level, for each of the rigid and affine stages (default: 100 50)")
     reg.add_argument("--affine-sampling", type=float, default=0.2, metavar="P",
                      help="fraction of voxels sampled by the mutual information metric (default 0.2)")
+    reg.add_argument("--brain-mask-margin", type=float, default=None, metavar="MM",
+                     help="after the affine, hide the moving scan outside the fixed image's non-background voxels "
+                          "dilated by MM (a skull-stripped template against a whole head); default 3")
+    reg.add_argument("--no-brain-mask", action="store_true",
+                     help="show the network the whole moving scan (both images skull-stripped, or both not)")
+    reg.add_argument("--refine", type=int, default=None, metavar="N",
+                     help="refine the posterior mean for this pair with N optimiser steps (test-time refinement: "
+                          "more Dice for a few seconds on a CPU; 20 = the measured setting); default: the config's "
+                          "refine_iterations (0 = off)")
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     model = parser.add_argument_group("model and machine")
     model.add_argument("--bundle-root", metavar="B", help="MONAI bundle folder (default: bundle/ of the repository)")
@@ -144,6 +153,10 @@ def _options(args: argparse.Namespace):
     from monai_probreg.spatial.affine import AffineSettings
     from monai_probreg.utils.errors import InputError
 
+    if args.brain_mask_margin is not None and not args.brain_mask_margin >= 0:
+        raise InputError(f"--brain-mask-margin must be >= 0 mm; got {args.brain_mask_margin}")
+    if args.refine is not None and args.refine < 0:
+        raise InputError(f"--refine must be >= 0 optimiser steps (0 = off); got {args.refine}")
     affine = None
     if not args.no_affine:
         levels = tuple(args.affine_levels)
@@ -168,6 +181,7 @@ def _setup(args: argparse.Namespace):
     from monai_probreg.cli.model import load_model
     from monai_probreg.cli.pipeline import prepare_fixed
     from monai_probreg.spatial.affine import load_itk_modules
+    from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM
     from monai_probreg.utils.memory import reuse_freed_memory
 
     if args.threads is not None:
@@ -186,9 +200,25 @@ def _setup(args: argparse.Namespace):
         from monai_probreg.data.template import mni152_template_path
 
         args.fixed = str(mni152_template_path())
-    fixed = prepare_fixed(args.fixed, args.fixed_label, model.divisor)
+    margin = DEFAULT_MARGIN_MM if args.brain_mask_margin is None else args.brain_mask_margin
+    fixed = prepare_fixed(args.fixed, args.fixed_label, model.divisor, None if args.no_brain_mask else margin)
     load_itk_modules()
     return model, fixed
+
+
+def _with_refinement(options, model, iterations: int | None):
+    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps when given."""
+    import dataclasses
+
+    from monai_probreg.utils.errors import InputError
+
+    refinement = model.refinement
+    if iterations is not None:
+        try:
+            refinement = dataclasses.replace(refinement, num_iterations=iterations)
+        except ValueError as err:
+            raise InputError(f"--refine: {err}") from None
+    return dataclasses.replace(options, refinement=refinement)
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -227,6 +257,7 @@ def _register(args: argparse.Namespace) -> int:
     check_output_dir(args.out, args.overwrite)  # fail before loading anything
     start = time.perf_counter()
     model, fixed = _setup(args)
+    options = _with_refinement(options, model, args.refine)
     _say(args, f"model and fixed image ready in {time.perf_counter() - start:.1f} s")
     summary = register_scan(model, fixed, args.moving, args.out, args.moving_label, options, args.overwrite,
                             report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
@@ -245,6 +276,7 @@ def _register_batch(args: argparse.Namespace) -> int:
     for item in items:  # fail fast on what is cheap to check and would hit every scan
         check_output_dir(out / item.name, args.overwrite)
     model, fixed = _setup(args)
+    options = _with_refinement(options, model, args.refine)
     rows = register_batch(model, fixed, items, out, options, args.overwrite, quiet=args.quiet, debug=args.debug)
     print_batch_table(rows)
     failed = sum(row.status != "ok" for row in rows)

@@ -9,7 +9,7 @@ installed package (the repository checkout for an editable install) unless given
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -17,6 +17,7 @@ from monai.bundle import ConfigParser
 from torch import nn
 
 import monai_probreg
+from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.uncertainty.calibration import calibration_for
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.weights.loading import load_weights
@@ -40,6 +41,7 @@ class LoadedModel:
     config_file: Path
     std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
     bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
+    refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement`` (off)
 
 
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
@@ -69,6 +71,10 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
         raise InputError(f"--config {str(config)!r}: cannot build the network from 'network_def' "
                          f"({first_line(err)})") from None
     try:
+        refinement = parser.get_parsed_content("refinement") if "refinement" in parser else RefinementSettings()
+    except Exception as err:  # noqa: BLE001 - any config error becomes one line
+        raise InputError(f"--config {str(config)!r}: bad 'refinement' settings ({first_line(err)})") from None
+    try:
         load_weights(network, weights, device)
     except InputError as err:  # untrusted (a pickle that could run code), truncated or corrupt: its own message
         raise type(err)(str(err).replace("model file", "--model-file", 1)) from None
@@ -79,4 +85,4 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
         calibration = calibration_for(weights, calibrate)
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
-    return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration)
+    return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration, refinement=refinement)

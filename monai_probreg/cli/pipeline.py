@@ -5,9 +5,12 @@ Stages, timed under these names in ``summary.json["timings_s"]``:
 - ``read``: read and validate the moving scan (and its labels) with their geometry (:mod:`monai_probreg.spatial.volume_io`);
 - ``affine``: ITK rigid + affine registration of the raw moving scan to the fixed image (:mod:`monai_probreg.spatial.affine`);
 - ``resample``: the moving scan onto the fixed grid through the affine (one linear interpolation, the scan's
-  minimum outside it), percentile intensity scaling to [0, 1] exactly as in training, then onto the model grid
+  minimum outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`), percentile
+  intensity scaling to [0, 1] exactly as in training, then onto the model grid
   (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS, padded to the bundle's divisor);
-- ``model``: posterior mean velocity -> displacement and inverse (``exp(-v)``), Jacobian, velocity entropy;
+- ``model``: the network's posterior mean velocity -> displacement and the warped scan (network, integration, warp);
+- ``refine``: with ``refinement`` enabled, that mean refined for the pair (:mod:`monai_probreg.engines.refinement`);
+- ``maps``: the inverse displacement (``exp(-v)``), Jacobian, velocity entropy;
 - ``samples``: with ``samples = K >= 2``, K posterior samples -> displacement standard deviation;
 - ``compose``: affine + deformable -> one field fixed -> moving and its inverse (:mod:`monai_probreg.spatial.physical`);
   the original moving scan and labels resampled once through it; Dice;
@@ -47,10 +50,12 @@ from monai_probreg.cli.output_dir import (
 )
 from monai_probreg.cli.qc import QCData, save_qc
 from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
+from monai_probreg.engines.refinement import RefinementSettings, refine_registration
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.spatial.affine import AffineResult, AffineSettings, register_affine
+from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask, hide_outside
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import (
     affine_to_itk,
@@ -89,10 +94,14 @@ class FixedSpace:
     model_input: np.ndarray
     points: np.ndarray
     label_ids: list[int] = field(default_factory=list)
+    brain_mask: np.ndarray | None = None  # where the moving scan stays visible (monai_probreg.spatial.brain_mask)
+    brain_mask_margin_mm: float | None = None  # its margin; None = no mask
 
 
 def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None = None,
-                  divisor: int = 16) -> FixedSpace:
+                  divisor: int = 16, brain_mask_margin_mm: float | None = DEFAULT_MARGIN_MM) -> FixedSpace:
+    """``brain_mask_margin_mm``: hide the moving scan outside the fixed image's support dilated by this many mm
+    (:mod:`monai_probreg.spatial.brain_mask`); None: show the network the whole moving scan."""
     image = read_image(path, "--fixed")
     label = None
     if label_path is not None:
@@ -100,20 +109,22 @@ def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None 
         check_same_grid(label, image, "--fixed-label", "--fixed")
     grid = ModelGrid.for_volume(image, divisor)
     ids = [int(v) for v in np.unique(label.array) if v != 0] if label is not None else []
+    mask = None if brain_mask_margin_mm is None else fixed_brain_mask(image.array, image.spacing, brain_mask_margin_mm)
     return FixedSpace(image, label, grid, volume_to_itk(image), grid.to_model(normalise_intensity(image.array)),
-                      grid_points(image.shape, image.index_to_lps), ids)
+                      grid_points(image.shape, image.index_to_lps), ids, mask, brain_mask_margin_mm)
 
 
 @dataclass(frozen=True)
 class RegistrationOptions:
     """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed;
     ``affine``: settings of the ITK pre-alignment, or None to skip it (the identity: scans already aligned to the
-    fixed image, as the paper assumes)."""
+    fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean (off by default)."""
 
     samples: int = 0
     seed: int = 0
     qc: bool = True
     affine: AffineSettings | None = field(default_factory=AffineSettings)
+    refinement: RefinementSettings = field(default_factory=RefinementSettings)
 
     def __post_init__(self) -> None:
         if self.samples == 1 or self.samples < 0:
@@ -160,13 +171,17 @@ class _ModelMaps:
     std: np.ndarray | None = None
 
 
-def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.ndarray, samples: int, seed: int,
+def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.ndarray, options: RegistrationOptions,
                spacing: np.ndarray, timings: dict, report: Callable | None) -> _ModelMaps:
-    shape = moving_input.shape
+    shape, samples, seed = moving_input.shape, options.samples, options.seed
+    moving_t = torch.from_numpy(moving_input)[None, None].to(model.device)
+    fixed_t = torch.from_numpy(fixed_input)[None, None].to(model.device)
     with _timed(timings, "model", report):
-        moving_t = torch.from_numpy(moving_input)[None, None].to(model.device)
-        fixed_t = torch.from_numpy(fixed_input)[None, None].to(model.device)
         output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
+    if options.refinement.enabled:
+        with _timed(timings, "refine", report), eval_mode(model.network):
+            output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement)
+    with _timed(timings, "maps", report):
         with eval_mode(model.network), torch.inference_mode():
             inverse = model.network.velocity_to_displacement(-output.velocity_mean, shape)  # exp(-v)
         maps = _ModelMaps(_numpy(output.displacement[0]), _numpy(inverse[0]),
@@ -215,8 +230,15 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
         labels["fixed_label_in_moving"] = sample_nearest(fixed.label, moving_points + inverse_warp)
     dice = None
     if moving_label is not None and fixed.label is not None:
-        dice = _dice(labels["warped_label"], fixed.label, fixed.label_ids)
-        dice["mean_affine_only"] = _dice(labels["affine_label"], fixed.label, fixed.label_ids)["mean"]
+        # the structures both label maps have (a moving map of another protocol, e.g. LPBA40's 48 cortical labels
+        # against the atlas' 56, is not charged for the labels it never had)
+        ids = sorted(set(fixed.label_ids) & {int(v) for v in np.unique(moving_label.array) if v != 0})
+        if ids:  # else no Dice (summary "dice": null): the two maps share no structure
+            dice = _dice(labels["warped_label"], fixed.label, ids)
+            affine_only = _dice(labels["affine_label"], fixed.label, ids)
+            dice.update(mean_affine_only=affine_only["mean"], per_label_affine_only=affine_only["per_label"],
+                        labels="the non-zero labels of both label maps",
+                        num_fixed_only_labels=len(fixed.label_ids) - len(ids))
     return _Composed(warp, inverse_warp, maps, labels, dice)
 
 
@@ -270,10 +292,11 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             affine = register_affine(fixed.itk_image, volume_to_itk(moving), options.affine)
     with _timed(timings, "resample", report):
         affine_points = apply_affine(affine.matrix, fixed.points)
-        moving_on_fixed = sample_linear(moving, affine_points, fill=float(moving.array.min()))
+        background = float(moving.array.min())
+        moving_on_fixed = hide_outside(sample_linear(moving, affine_points, fill=background), fixed.brain_mask,
+                                       background)
         moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
-    model_maps = _run_model(model, moving_input, fixed.model_input, options.samples, options.seed,
-                            fixed.grid.spacing, timings, report)
+    model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report)
     with _timed(timings, "compose", report):
         composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points)
         stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
@@ -296,7 +319,11 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             "model": {"model_file": str(model.model_file), "config": str(model.config_file),
                       "device": str(model.device), "model_grid_shape": list(fixed.grid.shape),
                       "divisor": model.divisor, "posterior_std_scale": model.std_scale,
-                      "posterior_bias_fraction": model.bias_fraction},
+                      "posterior_bias_fraction": model.bias_fraction,
+                      "refinement": options.refinement.as_dict(),
+                      "brain_mask": None if fixed.brain_mask is None else {
+                          "margin_mm": fixed.brain_mask_margin_mm,
+                          "fraction_of_fixed_grid": round(float(fixed.brain_mask.mean()), 4)}},
             "timings_s": timings,
             "affine": {**affine.summary(), "settings": options.affine.as_dict() if options.affine else None},
             "jacobian": {"num_nonpositive": stats.num_folding, "percent_nonpositive": stats.percent_folding,

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from monai_probreg.data.screening import InputFailures
 from monai_probreg.engines.outputs import OUTPUT_NAMES, OUTPUTS_README, SAMPLED_NAMES, write_outputs
+from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.engines.registration import timed_register_pair
 from monai_probreg.engines.score_files import summary_table, write_scores
 from monai_probreg.metrics.scores import PairScores, score_pair
@@ -38,15 +39,21 @@ _LOG = logging.getLogger(__name__)
 
 
 class RegistrationInferer(Inferer):
-    """Engine inferer: ``network(moving, fixed)`` through :func:`timed_register_pair`; the wall time of the
-    last call (the whole batch) is kept in ``last_runtime_s`` for the handlers."""
+    """Engine inferer: ``network(moving, fixed)`` through :func:`timed_register_pair`, its mean refined per pair when
+    ``refinement`` is enabled (:mod:`monai_probreg.engines.refinement`); the wall time of the last call (the whole
+    batch, refinement included) is kept in ``last_runtime_s`` for the handlers."""
 
     last_runtime_s: float = math.nan
+
+    def __init__(self, refinement: RefinementSettings | None = None) -> None:
+        super().__init__()
+        self.refinement = refinement
 
     def __call__(self, inputs: Tensor, network: Callable, *args: Any, **kwargs: Any) -> RegistrationOutput:
         if len(args) != 1 or kwargs:
             raise ValueError(f"expected one extra argument, the fixed image; got {len(args)}, keywords {sorted(kwargs)}")
-        output, self.last_runtime_s = timed_register_pair(network, inputs, args[0])  # type: ignore[arg-type]
+        output, self.last_runtime_s = timed_register_pair(
+            network, inputs, args[0], self.refinement)  # type: ignore[arg-type]
         return output
 
 

@@ -12,9 +12,11 @@ import nibabel as nib
 import numpy as np
 import pytest
 from bundle_fixtures import infer_workflow
-from conftest import TINY_LABELS, make_tiny_dataset
+from conftest import BUNDLE_DIR, TINY_LABELS, make_tiny_dataset
+from monai.bundle import ConfigParser
 
 from monai_probreg.engines.outputs import OUTPUT_NAMES
+from monai_probreg.engines.refinement import RefinementSettings
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -72,3 +74,16 @@ def test_inference_takes_a_pairs_file_without_labels(tmp_path, tiny_dataset, bun
     wf.finalize()
     written = sorted(p.name for p in (tmp_path / "out" / "T01_to_T02").iterdir())
     assert "warped.nii.gz" in written and "displacement.nii.gz" in written and "warped_label.nii.gz" not in written
+
+
+@pytest.mark.parametrize("config", ["inference.yaml", "evaluate.yaml"])
+def test_refinement_is_off_by_default_and_settable_from_the_config(config):
+    """Both workflows hand the config's ``refinement`` to their inferer: off unless refine_iterations > 0."""
+    parser = ConfigParser()
+    parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    assert parser.get_parsed_content("inferer").refinement == RefinementSettings()
+    parser = ConfigParser()
+    parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    parser["refine_iterations"], parser["refine_prior_lambda"] = 20, 3.0
+    refinement = parser.get_parsed_content("inferer").refinement
+    assert refinement.enabled and refinement.num_iterations == 20 and refinement.prior_lambda == 3.0

@@ -144,8 +144,8 @@ def test_inverse_warp_maps_back(scene, registered):
 
 def test_summary_and_qc(scene, registered):
     summary = json.loads((registered.dir / "summary.json").read_text())
-    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "samples", "compose", "write", "qc",
-                                          "total"]
+    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "maps", "samples", "compose", "write",
+                                          "qc", "total"]
     assert summary["dice"]["mean"] > 0.85 and set(summary["dice"]["per_label"]) == {str(v) for v in PHANTOM_LABELS}
     assert summary["jacobian"]["num_nonpositive"] == 0
     assert summary["uncertainty"]["samples"] == 2 and summary["uncertainty"]["mean_displacement_std_mm"] >= 0
@@ -234,6 +234,70 @@ def _fails(scene, tmp_path, *argv: str, moving: Path | None = None, label: Path 
     assert len(lines) == 1, result.err
     assert not out.exists() and not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
     return lines[0]
+
+
+def test_bad_refine_steps(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--refine", "-2")
+    assert "--refine" in line and "got -2" in line
+
+
+def test_refine_adds_its_stage_and_records_its_settings(scene, tmp_path):
+    """--refine N: a ``refine`` stage between ``model`` and ``maps``, its settings in summary.json (the rest from the
+    bundle's inference.yaml), no folding; without it the config's default (off) is recorded."""
+    out = tmp_path / "refined"
+    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--refine", "3", "--no-qc",
+                     *scene.common, *FAST_AFFINE)
+    assert result.rc == 0, result.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["timings_s"])[3:6] == ["model", "refine", "maps"]
+    assert summary["model"]["refinement"]["num_iterations"] == 3
+    assert summary["model"]["refinement"]["prior_lambda"] > 0 and summary["jacobian"]["num_nonpositive"] == 0
+    assert "refine" in result.err
+
+
+def test_dice_counts_only_the_labels_both_maps_have(scene, tmp_path):
+    """A moving label map without one of the fixed labels (another protocol) is scored on the labels both have; the
+    summary says so and counts the fixed-only labels."""
+    dropped = PHANTOM_LABELS[-1]
+    labels = np.asarray(nib.load(scene.moving_label).dataobj).copy()
+    labels[labels == dropped] = 0
+    partial = save_lps(tmp_path / "partial_label.nii.gz", labels.astype(np.uint8), scene.moving_grid)
+    out = tmp_path / "partial"
+    result = run_cli("register", "--moving", str(scene.moving), "--moving-label", str(partial), "--fixed-label",
+                     str(scene.fixed_label), "--out", str(out), "--no-qc", *scene.common, *FAST_AFFINE)
+    assert result.rc == 0, result.err
+    dice = json.loads((out / "summary.json").read_text())["dice"]
+    assert set(dice["per_label"]) == set(dice["per_label_affine_only"]) == {str(v) for v in PHANTOM_LABELS[:-1]}
+    assert dice["num_fixed_only_labels"] == 1 and dice["mean"] > 0.85  # not dragged down by a 0 for the dropped one
+
+
+def test_bad_brain_mask_margin(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--brain-mask-margin", "-1")
+    assert "--brain-mask-margin" in line and "got -1" in line
+
+
+def test_brain_mask_of_a_skull_stripped_fixed_image_is_recorded_and_can_be_switched_off(scene, registered, tmp_path):
+    """A fixed image with a background at its minimum (skull-stripped: the phantom outside its labels set to 0) gets a
+    brain mask (its support + 3 mm) and the summary says so; --no-brain-mask records none; the noisy phantom itself has
+    no background, so nothing is hidden."""
+    assert json.loads((registered.dir / "summary.json").read_text())["model"]["brain_mask"] is None
+    stripped = save_lps(tmp_path / "stripped.nii.gz", np.where(scene.labels > 0, scene.image, 0.0).astype(np.float32),
+                        FIXED_LPS)
+    fraction = {}
+    for name, extra in (("masked", []), ("unmasked", ["--no-brain-mask"])):
+        out = tmp_path / name
+        result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--fixed", str(stripped),
+                         "--bundle-root", str(scene.bundle), "--no-qc", *extra, *FAST_AFFINE)
+        assert result.rc == 0, result.err
+        fraction[name] = json.loads((out / "summary.json").read_text())["model"]["brain_mask"]
+    assert fraction["unmasked"] is None and fraction["masked"]["margin_mm"] == 3.0
+    support = float((scene.labels > 0).mean())
+    assert support < fraction["masked"]["fraction_of_fixed_grid"] < 1.0  # the support, dilated
+
+
+def test_refinement_is_off_by_default(registered):
+    summary = json.loads((registered.dir / "summary.json").read_text())
+    assert summary["model"]["refinement"]["num_iterations"] == 0 and "refine" not in summary["timings_s"]
 
 
 def _bad_image(tmp_path: Path, name: str, data: np.ndarray) -> Path:

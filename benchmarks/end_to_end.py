@@ -1,0 +1,189 @@
+"""End-to-end benchmark on native scans: the whole command against ANTs, side by side in one run.
+
+Each labelled native scan of ``--native-dir`` (default ``../shared/data/lpba40-native``: S20, raw, unaligned, with
+its 48 cortical labels) is registered onto the atlas of ``--dataset-dir`` (default ``../shared/data/lpba40``: S01
+and its labels) by
+  - "ours": ``python -m monai_probreg.cli.main register --moving M --moving-label L --fixed A --fixed-label AL``
+    in a fresh subprocess (wall time from process start to exit: imports, model, affine, network, outputs, QC);
+  - "ours + refinement": the same with ``--refine N`` (:mod:`monai_probreg.engines.refinement`);
+  - "ANTs Affine" and "ANTs SyN" (antspyx, ``ants.registration(fixed, moving, type_of_transform=...)`` on the raw
+    files, the SyN call with its own affine stages), labels through ``ants.apply_transforms(...,
+    interpolator="nearestNeighbor")``; time = the registration call (no process start, no file writing). Rows say
+    "skipped" when antspyx cannot be imported (``pip install -e ".[bench]"``).
+Dice: per label on the atlas grid, over the labels both label maps have (S20: 48), and their mean; for ours also
+after the affine alone (the command's ``summary.json``). Writes ``OUT_DIR/end_to_end.json`` and prints a table.
+Without the data it prints "skipped: ..." and exits 0.
+
+Not yet here (issue "The whole command in seconds"): register-batch throughput, a synthetic moved subject, the
+stacked-stage PNG.
+
+    python benchmarks/end_to_end.py --threads 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import torch
+
+import monai_probreg
+from monai_probreg.data.dataset import index_dataset
+from monai_probreg.metrics.dice import label_dice, mean_dice
+from monai_probreg.utils.files import write_text
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
+DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
+DEFAULT_OUT = REPO / "benchmarks" / "results"
+DEFAULT_REFINE_ITERATIONS = 20  # as benchmarks/accuracy_table.py's refined row
+ANTS_TYPES = {"ants_affine": "Affine", "ants_syn": "SyN"}
+
+
+def native_scans(native_dir: Path) -> list[tuple[str, Path, Path]]:
+    """(id, scan, labels) of every ``<id>.nii.gz`` with an ``<id>_labels.nii.gz`` next to it."""
+    found = []
+    for scan in sorted(native_dir.glob("*.nii.gz")):
+        sid = scan.name[: -len(".nii.gz")]
+        labels = native_dir / f"{sid}_labels.nii.gz"
+        if not sid.endswith("_labels") and labels.is_file():
+            found.append((sid, scan, labels))
+    return found
+
+
+def atlas_files(dataset_dir: Path) -> tuple[Path, Path]:
+    index = index_dataset(dataset_dir)
+    if index.atlas_label is None:
+        raise SystemExit(f"the atlas of {dataset_dir} has no label map: Dice needs one")
+    return index.atlas_image, index.atlas_label
+
+
+def shared_dice(warped_label: np.ndarray, fixed_label: np.ndarray, moving_ids: set[int]) -> dict:
+    """Dice per label over the labels of both maps (the moving map's ids before warping), with the package's rule."""
+    ids = sorted(moving_ids & {int(v) for v in np.unique(fixed_label) if v != 0})
+    per_label = label_dice(torch.from_numpy(np.rint(warped_label).astype(np.int64)),
+                           torch.from_numpy(fixed_label.astype(np.int64)), ids)
+    return {"mean": mean_dice(per_label), "num_labels": len(ids),
+            "per_label": {str(k): v for k, v in per_label.items()}}
+
+
+def run_ours(scan: Path, labels: Path, atlas: Path, atlas_label: Path, out: Path, threads: int,
+             extra: Sequence[str] = ()) -> dict:
+    """The command in a fresh process; its summary.json plus the process wall time."""
+    cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register", "--moving", str(scan), "--moving-label",
+           str(labels), "--fixed", str(atlas), "--fixed-label", str(atlas_label), "--out", str(out), "--threads",
+           str(threads), "--quiet", *extra]
+    start = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr[-2000:]}")
+    summary = json.loads((out / "summary.json").read_text())
+    return {"wall_s": wall, "summary": summary}
+
+
+def run_ants(kind: str, scan: Path, labels: Path, atlas: Path) -> tuple[np.ndarray, float]:
+    """ANTs ``kind`` ("Affine" or "SyN") of the raw scan onto the atlas: (labels on the atlas grid, seconds)."""
+    import ants
+
+    fixed, moving = ants.image_read(str(atlas)), ants.image_read(str(scan))
+    with tempfile.TemporaryDirectory(prefix="ants_e2e_") as tmp:
+        start = time.perf_counter()
+        result = ants.registration(fixed, moving, type_of_transform=kind, outprefix=f"{tmp}/tx_")
+        seconds = time.perf_counter() - start
+        warped = ants.apply_transforms(fixed, ants.image_read(str(labels)), result["fwdtransforms"],
+                                       interpolator="nearestNeighbor")
+    return warped.numpy(), seconds
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET, help="its atlas/ is the fixed image")
+    ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE, help="native scans with <id>_labels.nii.gz")
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where end_to_end.json goes")
+    ap.add_argument("--threads", type=int, default=2, help="threads for every tool (default: %(default)s)")
+    ap.add_argument("--refine-iterations", type=int, default=DEFAULT_REFINE_ITERATIONS,
+                    help="--refine of the 'ours + refinement' row (default: %(default)s)")
+    ap.add_argument("--no-ants", action="store_true", help="leave the ANTs rows out")
+    args = ap.parse_args(argv)
+    for folder in (args.dataset_dir, args.native_dir):
+        if not folder.resolve().is_dir():
+            print(f"skipped: dataset not found at {folder.resolve()}", flush=True)
+            return 0
+    scans = native_scans(args.native_dir.resolve())
+    if not scans:
+        print(f"skipped: no labelled native scan in {args.native_dir.resolve()}", flush=True)
+        return 0
+    atlas, atlas_label = atlas_files(args.dataset_dir.resolve())
+    fixed_label = np.asanyarray(nib.load(atlas_label).dataobj)
+    os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)
+    antspyx = None
+    if not args.no_ants:
+        try:
+            import ants
+
+            antspyx = getattr(ants, "__version__", "unknown")
+        except ImportError as err:
+            antspyx = f"skipped: antspyx not importable ({err})"
+
+    rows: dict[str, dict] = {}
+    for sid, scan, labels in scans:
+        moving_ids = {int(v) for v in np.unique(np.asanyarray(nib.load(labels).dataobj)) if v != 0}
+        with tempfile.TemporaryDirectory(prefix="e2e_") as tmp:
+            for key, extra in (("ours", []), ("ours_refined", ["--refine", str(args.refine_iterations)])):
+                out = Path(tmp) / key
+                ran = run_ours(scan, labels, atlas, atlas_label, out, args.threads, extra)
+                warped = np.asanyarray(nib.load(out / "warped_label.nii.gz").dataobj)
+                summary = ran["summary"]
+                rows.setdefault(key, {})[sid] = {
+                    "dice": shared_dice(warped, fixed_label, moving_ids),
+                    "dice_affine_only": summary["dice"]["mean_affine_only"],
+                    "dice_command_summary": summary["dice"]["mean"],
+                    "num_folding": summary["jacobian"]["num_nonpositive"],
+                    "wall_s": ran["wall_s"], "stages_s": summary["timings_s"]}
+                print(f"{sid} {key}: Dice {rows[key][sid]['dice']['mean']:.3f} (affine only "
+                      f"{rows[key][sid]['dice_affine_only']:.3f}), |J|<=0 {rows[key][sid]['num_folding']}, "
+                      f"{ran['wall_s']:.1f} s wall", flush=True)
+        for key, kind in ANTS_TYPES.items():
+            if antspyx is None or antspyx.startswith("skipped"):
+                continue
+            warped, seconds = run_ants(kind, scan, labels, atlas)
+            rows.setdefault(key, {})[sid] = {"dice": shared_dice(warped, fixed_label, moving_ids), "wall_s": seconds}
+            print(f"{sid} ANTs {kind}: Dice {rows[key][sid]['dice']['mean']:.3f}, {seconds:.1f} s", flush=True)
+
+    names = {"ours": "ours (command, process wall)", "ours_refined": f"ours + refinement ({args.refine_iterations} "
+             "steps)", "ants_affine": "ANTs Affine (registration call)", "ants_syn": "ANTs SyN (registration call)"}
+    lines = ["| scan | method | mean Dice (labels of both maps) | affine-only Dice | \\|J\\|<=0 | s |",
+             "|---|---|---|---|---|---|"]
+    for key, per_scan in rows.items():
+        for sid, r in per_scan.items():
+            affine = f"{r['dice_affine_only']:.3f}" if "dice_affine_only" in r else "–"
+            folding = r.get("num_folding", "–")
+            lines.append(f"| {sid} | {names[key]} | {r['dice']['mean']:.3f} ({r['dice']['num_labels']} labels) | "
+                         f"{affine} | {folding} | {r['wall_s']:.1f} |")
+    if antspyx is not None and antspyx.startswith("skipped"):
+        lines.append(f"| all | ANTs | {antspyx} | | | |")
+    table = "\n".join(lines)
+    result = {"atlas": str(atlas), "atlas_label": str(atlas_label), "scans": [str(s) for _, s, _ in scans],
+              "threads": args.threads, "refine_iterations": args.refine_iterations, "rows": rows, "markdown": table,
+              "versions": {"python": platform.python_version(), "torch": torch.__version__,
+                           "monai_probreg": monai_probreg.__version__, "antspyx": antspyx,
+                           "platform": platform.platform()}}
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    path = write_text(args.out_dir / "end_to_end.json", json.dumps(result, indent=2) + "\n")
+    print(f"\n{table}\n\nwrote {path}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""monai_probreg.engines.refinement: test-time refinement of the posterior mean (settings, recovery of a known shift,
+consistency of the returned fields, the network left as it was, the engine and bundle hooks)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from monai_probreg.blocks.warp import warp_image
+from monai_probreg.engines.handlers import RegistrationInferer
+from monai_probreg.engines.refinement import RefinementSettings, refine_registration
+from monai_probreg.engines.registration import register_pair, timed_register_pair
+from monai_probreg.networks.probreg_net import ProbRegNet
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+SHIFT = 1.5  # image-grid voxels: the known displacement the refinement must find
+SMALL = {"enc_channels": (4, 8, 8, 8), "dec_channels": (8, 8, 8, 8, 4)}
+
+
+def _identity_net(spatial_dims: int, **kwargs) -> ProbRegNet:
+    """A small ProbRegNet whose posterior mean is exactly 0 (zeroed mean head): refinement starts at the identity."""
+    torch.manual_seed(0)
+    net = ProbRegNet(spatial_dims=spatial_dims, **SMALL, **kwargs)
+    with torch.no_grad():
+        net.unet.mean_head.weight.zero_()
+        net.unet.mean_head.bias.zero_()
+    return net.eval()
+
+
+def _blobs(shape: tuple[int, ...], offset: tuple[float, ...]) -> torch.Tensor:
+    """(1, 1, *shape): a wide Gaussian off the centre plus a smaller one (no symmetry), moved by ``offset`` voxels."""
+    axes = torch.meshgrid(*[torch.arange(n, dtype=torch.float32) for n in shape], indexing="ij")
+    big = [0.45 * n + o for n, o in zip(shape, offset)]
+    small = [0.7 * n + o for n, o in zip(shape, offset)]
+    image = torch.exp(-sum((x - c) ** 2 for x, c in zip(axes, big)) / (2 * 5.0**2))
+    image = image + 0.6 * torch.exp(-sum((x - c) ** 2 for x, c in zip(axes, small)) / (2 * 2.5**2))
+    return image[None, None]
+
+
+def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(moving, fixed) with moving[y] = fixed[y - SHIFT e_axis]: the registration is u = +SHIFT e_axis (pull-back)."""
+    offset = tuple(SHIFT if a == axis else 0.0 for a in range(len(shape)))
+    return _blobs(shape, offset), _blobs(shape, (0.0,) * len(shape))
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("num_iterations", -1), ("num_iterations", 2.0), ("num_iterations", True),
+    ("learning_rate", 0.0), ("learning_rate", -0.1), ("learning_rate", "0.1"),
+    ("image_sigma", 0.0), ("image_sigma", math.nan),
+    ("prior_lambda", -1.0), ("prior_lambda", None),
+    ("posterior_weight", -0.5), ("posterior_weight", math.nan), ("posterior_weight", True),
+])
+def test_bad_setting_names_itself(name, value):
+    with pytest.raises(ValueError, match=name):
+        RefinementSettings(**{name: value})
+
+
+def test_default_is_off_and_returns_the_output_itself():
+    settings = RefinementSettings()
+    assert not settings.enabled
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    output = register_pair(net, moving, fixed)
+    assert refine_registration(net, moving, fixed, output, settings) is output
+
+
+@pytest.mark.parametrize(("shape", "axis"), [((32, 48), 0), ((32, 48), 1), ((32, 32, 48), 2), ((32, 32, 48), 0)])
+def test_refinement_finds_a_known_shift(shape, axis):
+    """From the identity, the refined displacement inside the structure is +SHIFT along ``axis`` (pull-back: the
+    moving structure sits SHIFT voxels higher) and ~0 along the other axes; the image error drops. The prior is
+    strong enough (lambda 10) that the translation, which it does not penalise, wins over the non-rigid fields that
+    match smooth blobs about as well (with lambda 0.1 the mean displacement stops near 1.0)."""
+    net = _identity_net(len(shape))
+    moving, fixed = _pair(shape, axis)
+    settings = RefinementSettings(num_iterations=60, learning_rate=0.1, image_sigma=0.05, prior_lambda=10.0,
+                                  posterior_weight=0.0)  # the untrained posterior (log_var -10) would pin it
+    start = register_pair(net, moving, fixed)
+    refined = refine_registration(net, moving, fixed, start, settings)
+    inside = fixed[0, 0] > 0.3
+    for k in range(len(shape)):
+        mean_k = refined.displacement[0, k][inside].mean().item()
+        expected = SHIFT if k == axis else 0.0
+        # tolerance 0.25 voxel: the smoothness prior and the finite steps leave a small bias, a wrong sign or axis is
+        # off by >= 1.5
+        assert mean_k == pytest.approx(expected, abs=0.25), (k, mean_k)
+    before = (start.warped - fixed).square().mean()
+    after = (refined.warped - fixed).square().mean()
+    assert after < 0.1 * before, (before.item(), after.item())
+
+
+def test_refined_fields_are_consistent_and_the_network_is_untouched():
+    net = _identity_net(3, bidirectional=True)
+    params = {k: v.clone() for k, v in net.state_dict().items()}
+    moving, fixed = _pair((32, 32, 48), axis=1)
+    start = register_pair(net, moving, fixed)
+    refined = refine_registration(net, moving, fixed, start, RefinementSettings(num_iterations=5))
+    assert torch.equal(refined.velocity, refined.velocity_mean)
+    assert not torch.equal(refined.velocity_mean, start.velocity_mean)
+    assert torch.equal(refined.velocity_log_var, start.velocity_log_var)  # the uncertainty stays the network's
+    with torch.no_grad():
+        displacement = net.velocity_to_displacement(refined.velocity_mean, moving.shape[2:])
+        inverse = net.velocity_to_displacement(-refined.velocity_mean, moving.shape[2:])
+        torch.testing.assert_close(refined.displacement, displacement)
+        torch.testing.assert_close(refined.warped, warp_image(moving, displacement))
+        torch.testing.assert_close(refined.inverse_displacement, inverse)
+        torch.testing.assert_close(refined.warped_fixed, warp_image(fixed, inverse))
+    assert all(torch.equal(params[k], v) for k, v in net.state_dict().items())
+    assert all(p.grad is None for p in net.parameters())
+
+
+def test_a_strong_posterior_weight_keeps_the_network_mean():
+    """The pull is in units of the network's posterior std: the untrained head's log_var of -10 (std 0.007 voxel) pins
+    the mean to the network's at the default weight, and weight 0 lets it go."""
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    start = register_pair(net, moving, fixed)
+    free = refine_registration(net, moving, fixed, start, RefinementSettings(num_iterations=20, posterior_weight=0.0))
+    pinned = refine_registration(net, moving, fixed, start, RefinementSettings(num_iterations=20))
+    assert free.velocity_mean.abs().max() > 0.2
+    assert pinned.velocity_mean.abs().max() < 0.2 * free.velocity_mean.abs().max()
+
+
+def test_refinement_refuses_inference_mode():
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    output = register_pair(net, moving, fixed)
+    with torch.inference_mode(), pytest.raises(RuntimeError, match="inference_mode"):
+        refine_registration(net, moving, fixed, output, RefinementSettings(num_iterations=1))
+
+
+def test_refinement_checks_the_pair():
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    output = register_pair(net, moving, fixed)
+    with pytest.raises(ValueError, match="same shape"):
+        refine_registration(net, moving, fixed[..., :32], output, RefinementSettings(num_iterations=1))
+    with pytest.raises(ValueError, match="batch"):
+        refine_registration(net, moving.repeat(2, 1, 1, 1), fixed.repeat(2, 1, 1, 1), output,
+                            RefinementSettings(num_iterations=1))
+
+
+def test_register_pair_and_the_engine_inferer_refine_the_same_way():
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    settings = RefinementSettings(num_iterations=8)
+    by_hand = refine_registration(net, moving, fixed, register_pair(net, moving, fixed), settings)
+    through_register, runtime = timed_register_pair(net, moving, fixed, settings)
+    inferer = RegistrationInferer(refinement=settings)
+    with torch.no_grad():  # as MONAI's evaluator calls its inferer
+        through_inferer = inferer(moving, net, fixed)
+    torch.testing.assert_close(through_register.displacement, by_hand.displacement)
+    torch.testing.assert_close(through_inferer.displacement, by_hand.displacement)
+    assert runtime > 0 and inferer.last_runtime_s > 0
+    assert not torch.equal(RegistrationInferer()(moving, net, fixed).displacement, by_hand.displacement)

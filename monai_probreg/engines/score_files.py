@@ -28,6 +28,8 @@ def _mean_std(values: Sequence[float]) -> dict[str, float | None]:
 def _jsonable(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
     return value if isinstance(value, (bool, int, float, str, type(None))) else str(value)
 
 

@@ -55,6 +55,24 @@ def test_evaluate_scores_every_labelled_subject(tmp_path, tiny_dataset, bundle, 
     assert "3 subjects" in capsys.readouterr().out
 
 
+def test_evaluate_with_refinement_runs_inside_the_evaluator(tmp_path, tiny_dataset, bundle):
+    """refine_iterations > 0: the refinement needs gradients inside MONAI's evaluator (which runs without them); it
+    moves the random model's ~0 field (posterior weight 0: the untrained head's log_var would pin it), its settings
+    are in summary.json and its time is in the runtime."""
+    plain = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "plain")
+    plain.run()
+    wf = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "refined", refine_iterations=5,
+                        refine_posterior_weight=0.0)
+    wf.run()
+    summary = json.loads((tmp_path / "refined" / "summary.json").read_text())
+    assert summary["config"]["refinement"]["num_iterations"] == 5
+    assert summary["config"]["refinement"]["posterior_weight"] == 0.0
+    with open(tmp_path / "plain" / "scores.csv") as f, open(tmp_path / "refined" / "scores.csv") as g:
+        plain_rows, refined_rows = list(csv.DictReader(f)), list(csv.DictReader(g))
+    assert any(p["mean_dice"] != r["mean_dice"] for p, r in zip(plain_rows, refined_rows))
+    assert all(int(r["num_folding"]) == 0 for r in refined_rows)
+
+
 def test_evaluate_command_line_as_documented(tmp_path, tiny_dataset, bundle):
     """Exactly the documented command with nothing else set (default network_size, workers, device)."""
     cmd = [sys.executable, "-m", "monai.bundle", "run", "--config_file", str(bundle / "configs" / "evaluate.yaml"),

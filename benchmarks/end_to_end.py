@@ -5,6 +5,10 @@ its 48 cortical labels) is registered onto the atlas of ``--dataset-dir`` (defau
 and its labels) by
   - "ours": ``python -m monai_probreg.cli.main register --moving M --moving-label L --fixed A --fixed-label AL``
     in a fresh subprocess (wall time from process start to exit: imports, model, affine, network, outputs, QC);
+  - "ours, again": the same command a second time: its warp.nii.gz and affine.tfm must be byte-identical to the
+    first run's (issue "Same input, same output");
+  - "ours, non-deterministic affine": with ``--nondeterministic-affine`` (ITK's metric multi-threaded): the wall
+    time against "ours" is the cost of determinism;
   - "ours + refinement": the same with ``--refine N`` (:mod:`monai_probreg.engines.refinement`);
   - "ANTs Affine" and "ANTs SyN" (antspyx, ``ants.registration(fixed, moving, type_of_transform=...)`` on the raw
     files, the SyN call with its own affine stages), labels through ``ants.apply_transforms(...,
@@ -23,6 +27,7 @@ stacked-stage PNG.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -48,6 +53,11 @@ DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
 DEFAULT_OUT = REPO / "benchmarks" / "results"
 DEFAULT_REFINE_ITERATIONS = 20  # as benchmarks/accuracy_table.py's refined row
 ANTS_TYPES = {"ants_affine": "Affine", "ants_syn": "SyN"}
+REPRODUCED_FILES = ("warp.nii.gz", "affine.tfm")  # compared byte for byte between "ours" and "ours, again"
+
+
+def file_digests(folder: Path) -> dict[str, str]:
+    return {name: hashlib.sha256((folder / name).read_bytes()).hexdigest() for name in REPRODUCED_FILES}
 
 
 def native_scans(native_dir: Path) -> list[tuple[str, Path, Path]]:
@@ -140,7 +150,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     for sid, scan, labels in scans:
         moving_ids = {int(v) for v in np.unique(np.asanyarray(nib.load(labels).dataobj)) if v != 0}
         with tempfile.TemporaryDirectory(prefix="e2e_") as tmp:
-            for key, extra in (("ours", []), ("ours_refined", ["--refine", str(args.refine_iterations)])):
+            variants = (("ours", []), ("ours_again", []), ("ours_nondeterministic", ["--nondeterministic-affine"]),
+                        ("ours_refined", ["--refine", str(args.refine_iterations)]))
+            for key, extra in variants:
                 out = Path(tmp) / key
                 ran = run_ours(scan, labels, atlas, atlas_label, out, args.threads, extra)
                 warped = np.asanyarray(nib.load(out / "warped_label.nii.gz").dataobj)
@@ -150,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "dice_affine_only": summary["dice"]["mean_affine_only"],
                     "dice_command_summary": summary["dice"]["mean"],
                     "num_folding": summary["jacobian"]["num_nonpositive"],
-                    "wall_s": ran["wall_s"], "stages_s": summary["timings_s"]}
+                    "wall_s": ran["wall_s"], "stages_s": summary["timings_s"], "sha256": file_digests(out)}
                 print(f"{sid} {key}: Dice {rows[key][sid]['dice']['mean']:.3f} (affine only "
                       f"{rows[key][sid]['dice_affine_only']:.3f}), |J|<=0 {rows[key][sid]['num_folding']}, "
                       f"{ran['wall_s']:.1f} s wall", flush=True)
@@ -161,7 +173,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             rows.setdefault(key, {})[sid] = {"dice": shared_dice(warped, fixed_label, moving_ids), "wall_s": seconds}
             print(f"{sid} ANTs {kind}: Dice {rows[key][sid]['dice']['mean']:.3f}, {seconds:.1f} s", flush=True)
 
-    names = {"ours": "ours (command, process wall)", "ours_refined": f"ours + refinement ({args.refine_iterations} "
+    for sid, again in rows.get("ours_again", {}).items():
+        again["identical_to_first_run"] = again["sha256"] == rows["ours"][sid]["sha256"]
+    names = {"ours": "ours (command, process wall)", "ours_again": "ours, again (same files as the first run?)",
+             "ours_nondeterministic": "ours, --nondeterministic-affine", "ours_refined": f"ours + refinement ({args.refine_iterations} "
              "steps)", "ants_affine": "ANTs Affine (registration call)", "ants_syn": "ANTs SyN (registration call)"}
     lines = ["| scan | method | mean Dice (labels of both maps) | affine-only Dice | \\|J\\|<=0 | s |",
              "|---|---|---|---|---|---|"]
@@ -169,10 +184,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         for sid, r in per_scan.items():
             affine = f"{r['dice_affine_only']:.3f}" if "dice_affine_only" in r else "–"
             folding = r.get("num_folding", "–")
-            lines.append(f"| {sid} | {names[key]} | {r['dice']['mean']:.3f} ({r['dice']['num_labels']} labels) | "
+            same = {True: ": identical", False: ": DIFFERENT"}.get(r.get("identical_to_first_run"), "")
+            lines.append(f"| {sid} | {names[key]}{same} | {r['dice']['mean']:.3f} ({r['dice']['num_labels']} labels) | "
                          f"{affine} | {folding} | {r['wall_s']:.1f} |")
     if antspyx is not None and antspyx.startswith("skipped"):
         lines.append(f"| all | ANTs | {antspyx} | | | |")
+    for sid, r in rows.get("ours_nondeterministic", {}).items():
+        lines.append(f"| {sid} | cost of determinism: ours / non-deterministic affine, process wall | "
+                     f"{rows['ours'][sid]['wall_s'] / r['wall_s']:.2f}x | affine stage "
+                     f"{rows['ours'][sid]['stages_s']['affine'] / r['stages_s']['affine']:.2f}x | | |")
     table = "\n".join(lines)
     result = {"atlas": str(atlas), "atlas_label": str(atlas_label), "scans": [str(s) for _, s, _ in scans],
               "threads": args.threads, "refine_iterations": args.refine_iterations, "rows": rows, "markdown": table,

@@ -185,8 +185,9 @@ OBLIQUE_DIRECTION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0
 FAST_AFFINE = ["--affine-levels", "2", "1", "--affine-iterations", "100", "50", "--affine-sampling", "0.25"]
 
 
-def run_cli(*argv: str) -> SimpleNamespace:
-    """``monai-probreg`` in-process with 1 thread; returns rc, stdout, stderr (torch's thread count restored)."""
+def run_cli(*argv: str, threads: int = 1) -> SimpleNamespace:
+    """``monai-probreg`` in-process with ``threads`` threads; returns rc, stdout, stderr (torch's thread count
+    restored)."""
     import torch
 
     from monai_probreg.cli.main import main
@@ -195,7 +196,7 @@ def run_cli(*argv: str) -> SimpleNamespace:
     out, err = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            rc = main([*argv, "--threads", "1"])
+            rc = main([*argv, "--threads", str(threads)])
     finally:
         torch.set_num_threads(threads)
     return SimpleNamespace(rc=rc, out=out.getvalue(), err=err.getvalue())

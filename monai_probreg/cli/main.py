@@ -57,7 +57,8 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     reg = parser.add_argument_group("registration")
     reg.add_argument("--samples", type=int, default=0, metavar="K",
                      help="posterior samples for the displacement std map (0 = none, default; else >= 2)")
-    reg.add_argument("--seed", type=int, default=0, help="random seed of the posterior samples (default 0)")
+    reg.add_argument("--seed", type=int, default=0, help="random seed of the affine stage's metric sampling and of the "
+                     "posterior samples (default 0); the same inputs, options and seed give the same outputs")
     reg.add_argument("--raw-uncertainty", action="store_true", help="entropy and std maps of the raw variational "
                      "posterior (default: calibrated by the weights' <stem>.calibration.json)")
     reg.add_argument("--no-affine", action="store_true", help="skip the affine pre-alignment (scans already "
@@ -70,6 +71,10 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                      help="maximum iterations per level, for each of the rigid and affine stages (default: 100 50)")
     reg.add_argument("--affine-sampling", type=float, default=0.2, metavar="P",
                      help="fraction of voxels sampled by the mutual information metric (default 0.2)")
+    reg.add_argument("--nondeterministic-affine", action="store_true",
+                     help="multi-threaded mutual information in the affine stage: faster on many cores, but ITK "
+                          "then sums in thread order and two runs differ slightly (default: one work unit, the same "
+                          "result every run)")
     reg.add_argument("--brain-mask-margin", type=float, default=None, metavar="MM",
                      help="after the affine, hide the moving scan outside the fixed image's non-background voxels "
                           "dilated by MM (a skull-stripped template against a whole head); default 3")
@@ -167,7 +172,8 @@ def _options(args: argparse.Namespace):
         try:
             affine = AffineSettings(shrink_factors=levels, smoothing_sigmas_mm=tuple(s / 2.0 for s in levels),
                                     rigid_iterations=iterations, affine_iterations=iterations,
-                                    sampling_percentage=args.affine_sampling, rigid_only=args.rigid_only)
+                                    sampling_percentage=args.affine_sampling, rigid_only=args.rigid_only,
+                                    seed=args.seed, deterministic=not args.nondeterministic_affine)
         except ValueError as err:
             raise InputError(f"affine settings: {err}") from None
     return RegistrationOptions(samples=args.samples, seed=args.seed, qc=not args.no_qc, affine=affine)

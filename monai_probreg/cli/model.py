@@ -20,6 +20,7 @@ import monai_probreg
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.uncertainty.calibration import calibration_for
 from monai_probreg.utils.errors import InputError, first_line
+from monai_probreg.utils.provenance import file_sha256
 from monai_probreg.weights.loading import load_weights
 
 __all__ = ["default_bundle_root", "LoadedModel", "load_model"]
@@ -42,6 +43,7 @@ class LoadedModel:
     std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
     bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
     refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement`` (off)
+    weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
 
 
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
@@ -85,4 +87,5 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
         calibration = calibration_for(weights, calibrate)
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
-    return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration, refinement=refinement)
+    return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration, refinement=refinement,
+                       weights_sha256=file_sha256(weights))

@@ -70,6 +70,7 @@ from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image,
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import library_versions
 
 __all__ = ["FixedSpace", "prepare_fixed", "RegistrationOptions",
            "normalise_intensity", "register_scan"]
@@ -116,7 +117,8 @@ def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None 
 
 @dataclass(frozen=True)
 class RegistrationOptions:
-    """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed;
+    """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed (the
+    command line gives the same seed to ``affine.seed``);
     ``affine``: settings of the ITK pre-alignment, or None to skip it (the identity: scans already aligned to the
     fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean (off by default)."""
 
@@ -145,6 +147,14 @@ def _describe(volume: Volume) -> dict:
     return {"path": str(Path(volume.path).resolve()), "shape": list(volume.shape),
             "spacing_mm": np.round(volume.spacing, 4).tolist(), "orientation": volume.axcodes,
             "value_range": [float(volume.array.min()), float(volume.array.max())]}
+
+
+def _reproducibility(model: LoadedModel, options: RegistrationOptions) -> dict:
+    """What the same outputs need besides the inputs (monai_probreg.utils.provenance): the seeds (the command gives
+    ``--seed`` to both), whether the affine metric ran in one work unit, the weights' hash and the library versions.
+    The other options are in the summary's ``affine.settings``, ``model`` and ``uncertainty``."""
+    return {"seed": options.seed, "affine_seed": options.affine.seed if options.affine else None, "deterministic_affine": options.affine.deterministic if options.affine else None,
+            "weights_sha256": model.weights_sha256, "versions": library_versions()}
 
 
 def _numpy(t: torch.Tensor) -> np.ndarray:
@@ -334,6 +344,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
                             "mean_displacement_std_mm": None if std is None else float(std.mean())},
             "outputs": sorted(p.name for p in stage.iterdir()) + ["summary.json", "README.txt"],
             "version": monai_probreg.__version__,
+            "reproducibility": _reproducibility(model, options),
         }
         write_text(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
         write_text(stage / "README.txt", OUTPUTS_README)

@@ -27,7 +27,6 @@ before it existed, reads as 0). Raw (uncalibrated) values: ``std_scale = 1``, ``
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -43,6 +42,7 @@ from torch import Tensor
 
 from monai_probreg.metrics.calibration import gaussian_interval_z
 from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import file_sha256
 
 __all__ = [
     "FIT_LEVELS",
@@ -175,14 +175,6 @@ def fit_std_scale(std: Tensor | np.ndarray, error: Tensor | np.ndarray, levels: 
     return fit_calibration(std, error, np.zeros(np.shape(_array(std))), levels, (0.0,)).std_scale
 
 
-def _sha256(path: str | os.PathLike) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def calibration_path(weights_file: str | os.PathLike) -> Path:
     """Where the calibration of ``weights_file`` lives: ``models/model.pt`` -> ``models/model.calibration.json``."""
     path = Path(weights_file)
@@ -195,7 +187,7 @@ def save_calibration(weights_file: str | os.PathLike, std_scale: float, fitted_o
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it."""
     _check_scale(std_scale)
     _check_bias_fraction(bias_fraction)
-    record = CalibrationRecord(float(std_scale), Path(weights_file).name, _sha256(weights_file), list(fitted_on),
+    record = CalibrationRecord(float(std_scale), Path(weights_file).name, file_sha256(weights_file), list(fitted_on),
                                int(num_samples), [float(p) for p in levels], bias_fraction=float(bias_fraction))
     target = calibration_path(weights_file)
     write_text(target, json.dumps(asdict(record), indent=2))
@@ -212,7 +204,7 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
         raise
     except (OSError, ValueError, TypeError) as err:
         raise ValueError(f"{path}: not a calibration record ({err})") from err
-    actual = _sha256(weights_file)
+    actual = file_sha256(weights_file)
     if record.weights_sha256 != actual:
         raise ValueError(f"{path} was fitted for weights with SHA-256 {record.weights_sha256[:12]}..., but "
                          f"{weights_file} has {actual[:12]}...; refit it (benchmarks/uncertainty_calibration.py) "

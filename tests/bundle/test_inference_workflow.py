@@ -87,3 +87,16 @@ def test_refinement_is_off_by_default_and_settable_from_the_config(config):
     parser["refine_iterations"], parser["refine_prior_lambda"] = 20, 3.0
     refinement = parser.get_parsed_content("inferer").refinement
     assert refinement.enabled and refinement.num_iterations == 20 and refinement.prior_lambda == 3.0
+
+
+def test_inference_twice_writes_the_same_files(tmp_path, tiny_dataset, bundle):
+    """Issue "Same input, same output": the posterior samples are seeded (sample_seed), nothing else is random."""
+    for name in ("first", "second"):
+        wf = infer_workflow("inference.yaml", bundle, tiny_dataset, tmp_path / name)
+        wf.run()
+        wf.finalize()
+    first = sorted(p.relative_to(tmp_path / "first") for p in (tmp_path / "first").rglob("*") if p.is_file())
+    assert first and first == sorted(p.relative_to(tmp_path / "second") for p in (tmp_path / "second").rglob("*")
+                                     if p.is_file())
+    for path in first:
+        assert (tmp_path / "first" / path).read_bytes() == (tmp_path / "second" / path).read_bytes(), path

@@ -16,9 +16,10 @@ scales), a step estimated once per level so that it moves points by at most ``ma
 when the metric has changed by less than ``convergence`` over a window of 10 iterations.
 
 Reproducibility: a fixed seed is not enough. ITK's Mattes metric merges its per-thread derivative buffers in the
-order the threads finish (ITK pull request #6622, open in 5.4), so two multi-threaded runs of the same registration
-differ (measured on a native LPBA40 scan: up to 0.33 mm of translation, Dice 0.5364 to 0.5369). ``deterministic=True`` (the
-default) computes the metric in one work unit; the image pyramid and everything else stay multi-threaded.
+order the threads finish (ITK pull request #6622, open in 5.4), so two multi-threaded runs of the same
+registration differ (measured on a native LPBA40 scan: up to 0.33 mm of translation, Dice 0.5364 to 0.5369).
+``deterministic=True`` (the default) computes the metric in one work unit; the image pyramid and everything else
+stay multi-threaded.
 
 The result maps a point of the **fixed** space to the **moving** space (LPS mm), ``A(p) = M p + offset``: the
 transform ``itk.ResampleImageFilter`` and ``antsApplyTransforms`` use to bring the moving image onto the fixed grid.

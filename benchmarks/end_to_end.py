@@ -176,8 +176,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     for sid, again in rows.get("ours_again", {}).items():
         again["identical_to_first_run"] = again["sha256"] == rows["ours"][sid]["sha256"]
     names = {"ours": "ours (command, process wall)", "ours_again": "ours, again (same files as the first run?)",
-             "ours_nondeterministic": "ours, --nondeterministic-affine", "ours_refined": f"ours + refinement ({args.refine_iterations} "
-             "steps)", "ants_affine": "ANTs Affine (registration call)", "ants_syn": "ANTs SyN (registration call)"}
+             "ours_nondeterministic": "ours, --nondeterministic-affine",
+             "ours_refined": f"ours + refinement ({args.refine_iterations} steps)",
+             "ants_affine": "ANTs Affine (registration call)", "ants_syn": "ANTs SyN (registration call)"}
     lines = ["| scan | method | mean Dice (labels of both maps) | affine-only Dice | \\|J\\|<=0 | s |",
              "|---|---|---|---|---|---|"]
     for key, per_scan in rows.items():

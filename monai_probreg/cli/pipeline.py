@@ -153,7 +153,9 @@ def _reproducibility(model: LoadedModel, options: RegistrationOptions) -> dict:
     """What the same outputs need besides the inputs (monai_probreg.utils.provenance): the seeds (the command gives
     ``--seed`` to both), whether the affine metric ran in one work unit, the weights' hash and the library versions.
     The other options are in the summary's ``affine.settings``, ``model`` and ``uncertainty``."""
-    return {"seed": options.seed, "affine_seed": options.affine.seed if options.affine else None, "deterministic_affine": options.affine.deterministic if options.affine else None,
+    affine = options.affine
+    return {"seed": options.seed, "affine_seed": affine.seed if affine else None,
+            "deterministic_affine": affine.deterministic if affine else None,
             "weights_sha256": model.weights_sha256, "versions": library_versions()}
 
 

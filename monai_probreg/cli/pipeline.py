@@ -3,7 +3,8 @@
 Stages, timed under these names in ``summary.json["timings_s"]``:
 
 - ``read``: read and validate the moving scan (and its labels) with their geometry (:mod:`monai_probreg.spatial.volume_io`);
-- ``affine``: ITK rigid + affine registration of the raw moving scan to the fixed image (:mod:`monai_probreg.spatial.affine`);
+- ``affine``: rigid + affine registration of the raw moving scan to the fixed image (:mod:`monai_probreg.spatial.affine`:
+  torch by default, or ITK);
 - ``resample``: the moving scan onto the fixed grid through the affine (one linear interpolation, the scan's
   minimum outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`), percentile
   intensity scaling to [0, 1] exactly as in training, then onto the model grid
@@ -54,7 +55,7 @@ from monai_probreg.engines.refinement import RefinementSettings, refine_registra
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
-from monai_probreg.spatial.affine import AffineResult, AffineSettings, register_affine
+from monai_probreg.spatial.affine import AffineResult, AffineSettings, align
 from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask, hide_outside
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import (
@@ -301,7 +302,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         if options.affine is None:
             affine = AffineResult(affine_to_itk(np.eye(4)), np.eye(4), np.eye(4), [])
         else:
-            affine = register_affine(fixed.itk_image, volume_to_itk(moving), options.affine)
+            affine = align(fixed.image, moving, options.affine, fixed.itk_image)
     with _timed(timings, "resample", report):
         affine_points = apply_affine(affine.matrix, fixed.points)
         background = float(moving.array.min())

@@ -75,6 +75,6 @@ def test_another_seed_still_recovers_the_transform(scene):
 
 
 def test_nondeterministic_affine_is_recorded(scene):
-    _, summary = _register(scene, "fast", "--nondeterministic-affine")
+    _, summary = _register(scene, "fast", "--affine-backend", "itk", "--nondeterministic-affine")
     assert summary["reproducibility"]["deterministic_affine"] is False
     assert summary["affine"]["settings"]["deterministic"] is False

@@ -71,8 +71,8 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                      help="shrink factor of each pre-alignment level, coarse to fine, smoothed by S/2 mm (default: "
                           "torch 4 2 1, itk 4 2)")
     reg.add_argument("--affine-iterations", type=int, nargs="+", default=None, metavar="N",
-                     help="iterations per level, for each of the rigid and affine stages (default: torch 60 30 0 "
-                          "rigid and 60 30 15 affine, itk at most 100 50)")
+                     help="iterations per level, for each of the rigid and affine stages (default: torch at most 30 15 0 "
+                          "rigid and 30 15 10 affine, itk at most 100 50)")
     reg.add_argument("--affine-sampling", type=float, default=None, metavar="P",
                      help="fraction of each level's voxels sampled by the mutual information metric (default: "
                           "torch 0.05, itk 0.2)")

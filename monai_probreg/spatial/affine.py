@@ -58,22 +58,21 @@ class AffineSettings:
     backend's (two levels at 1/4 and 1/2, 20% sampled, as ``antsRegistrationSyNQuick.sh``'s linear stages stop at
     half resolution).
 
-    Backend-specific: ``learning_rate_mm`` (torch: Adam's first step, cosine-decayed to a tenth over each level);
-    ``max_step_mm``, ``convergence`` and ``deterministic`` (ITK: the line search's step bound, the stopping
-    threshold, and the metric in one work unit; the torch backend is reproducible with any number of threads).
+    Iterations are maxima (both backends stop a level earlier when converged). ITK backend only: ``max_step_mm``,
+    ``convergence`` and ``deterministic`` (the line search's step bound, the stopping threshold, and the metric in
+    one work unit; the torch backend is reproducible with any number of threads).
     """
 
     shrink_factors: tuple[int, ...] = (4, 2, 1)
     smoothing_sigmas_mm: tuple[float, ...] = (2.0, 1.0, 0.0)
-    rigid_iterations: tuple[int, ...] = (60, 30, 0)
-    affine_iterations: tuple[int, ...] = (60, 30, 15)
+    rigid_iterations: tuple[int, ...] = (30, 15, 0)
+    affine_iterations: tuple[int, ...] = (30, 15, 10)
     sampling_percentage: float = 0.05
     histogram_bins: int = 32
     initializer: str = "moments"
     seed: int = 1
     rigid_only: bool = False  # 6 parameters only (same subject, another session)
     backend: str = "torch"
-    learning_rate_mm: float = 2.0
     max_step_mm: float = 1.0
     convergence: float = 1e-6
     deterministic: bool = True  # the metric in one work unit: the same result every run (module docstring)
@@ -94,8 +93,6 @@ class AffineSettings:
             raise ValueError(f"backend must be one of {BACKENDS}; got {self.backend!r}")
         if min(self.rigid_iterations + self.affine_iterations, default=0) < 0:
             raise ValueError(f"iterations must be >= 0; got {self.rigid_iterations}, {self.affine_iterations}")
-        if not self.learning_rate_mm > 0:
-            raise ValueError(f"learning_rate_mm must be > 0; got {self.learning_rate_mm}")
         if levels == 0 or min(self.shrink_factors) < 1:
             raise ValueError(f"shrink_factors must be >= 1, at least one level; got {self.shrink_factors}")
         if not 0 < self.sampling_percentage <= 1:

@@ -79,7 +79,6 @@ def test_rotation_angle():
     ({"initializer": "landmarks"}, "initializer"),
     ({"backend": "ants"}, "backend"),
     ({"rigid_iterations": (10, -1, 0)}, "iterations must be >= 0"),
-    ({"learning_rate_mm": 0.0}, "learning_rate_mm"),
 ])
 def test_settings_are_validated(kwargs, message):
     with pytest.raises(ValueError, match=message):

@@ -66,7 +66,7 @@ from monai_probreg.spatial.physical import (
     grid_points,
     voxel_to_mm,
 )
-from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
+from monai_probreg.spatial.point_sampling import continuous_index, sample_linear, sample_nearest
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.utils.errors import InputError
@@ -121,11 +121,15 @@ class RegistrationOptions:
     """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed (the
     command line gives the same seed to ``affine.seed``);
     ``affine``: settings of the ITK pre-alignment, or None to skip it (the identity: scans already aligned to the
-    fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean (off by default)."""
+    fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean (off by default);
+    ``inverse``: compute and write the inverse field and the fixed labels in moving space; ``maps``: write the
+    Jacobian, entropy and std maps (their statistics stay in the summary either way)."""
 
     samples: int = 0
     seed: int = 0
     qc: bool = True
+    inverse: bool = True
+    maps: bool = True
     affine: AffineSettings | None = field(default_factory=AffineSettings)
     refinement: RefinementSettings = field(default_factory=RefinementSettings)
 
@@ -216,31 +220,36 @@ class _Composed:
     """Everything on the fixed grid (and the inverse on the moving grid) that is written."""
 
     warp: np.ndarray
-    inverse_warp: np.ndarray
+    inverse_warp: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse)
     maps: dict[str, np.ndarray]
     labels: dict[str, np.ndarray]
     dice: dict | None
 
 
 def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, affine: np.ndarray,
-             model_maps: _ModelMaps, affine_points: np.ndarray) -> _Composed:
-    """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice."""
+             model_maps: _ModelMaps, affine_points: np.ndarray, inverse: bool) -> _Composed:
+    """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice.
+    Grid points and continuous indices are computed once and shared (the scan and its labels share a grid)."""
     grid = fixed.grid
     warp = compose_forward(grid.to_fixed(voxel_to_mm(model_maps.displacement, grid.index_to_lps)),
-                           fixed.image.index_to_lps, affine)
-    inverse_warp = compose_inverse(Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
-                                   affine, moving.shape, moving.index_to_lps)
-    maps = {"warped": sample_linear(moving, fixed.points + warp), "jacobian": grid.to_fixed(model_maps.jacobian),
-            "entropy": grid.to_fixed(model_maps.entropy)}
+                           fixed.image.index_to_lps, affine, fixed.points)
+    warped_points = fixed.points + warp
+    warped_index = continuous_index(warped_points, moving.index_to_lps).reshape(warped_points.shape)
+    maps = {"warped": sample_linear(moving, warped_points, index=warped_index),
+            "jacobian": grid.to_fixed(model_maps.jacobian), "entropy": grid.to_fixed(model_maps.entropy)}
     if model_maps.std is not None:
         maps["displacement_std"] = grid.to_fixed(model_maps.std)
     labels: dict[str, np.ndarray] = {}
     if moving_label is not None:
-        labels["warped_label"] = sample_nearest(moving_label, fixed.points + warp)
+        labels["warped_label"] = sample_nearest(moving_label, warped_points, index=warped_index)
         labels["affine_label"] = sample_nearest(moving_label, affine_points)  # for Dice and QC, not written
-    if fixed.label is not None:
+    inverse_warp = None
+    if inverse:
         moving_points = grid_points(moving.shape, moving.index_to_lps)
-        labels["fixed_label_in_moving"] = sample_nearest(fixed.label, moving_points + inverse_warp)
+        inverse_warp = compose_inverse(Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
+                                       affine, moving.shape, moving.index_to_lps, moving_points)
+        if fixed.label is not None:
+            labels["fixed_label_in_moving"] = sample_nearest(fixed.label, moving_points + inverse_warp)
     dice = None
     if moving_label is not None and fixed.label is not None:
         # the structures both label maps have (a moving map of another protocol, e.g. LPBA40's 48 cortical labels
@@ -255,11 +264,17 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
     return _Composed(warp, inverse_warp, maps, labels, dice)
 
 
-def _write(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transform, composed: _Composed) -> None:
+_MAP_FILES = ("jacobian", "entropy", "displacement_std")  # left out by RegistrationOptions.maps = False
+
+
+def _write(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transform, composed: _Composed,
+           options: RegistrationOptions) -> None:
     for name, array in composed.maps.items():
-        write_volume(stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32)))
+        if options.maps or name not in _MAP_FILES:
+            write_volume(stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32)))
     write_field(stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps)
-    write_field(stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps)
+    if composed.inverse_warp is not None:
+        write_field(stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps)
     write_transform(stage / "affine.tfm", affine)
     for name, grid in (("warped_label", fixed.image), ("fixed_label_in_moving", moving)):
         if name in composed.labels:
@@ -311,11 +326,11 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
     model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report)
     with _timed(timings, "compose", report):
-        composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points)
+        composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points, options.inverse)
         stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
     with staged_output_dir(out, overwrite) as stage:
         with _timed(timings, "write", report):
-            _write(stage, fixed, moving, affine.transform, composed)
+            _write(stage, fixed, moving, affine.transform, composed, options)
         dice = composed.dice
         title = Path(moving.path).name + (f"   mean Dice {dice['mean']:.3f} (affine only "
                                           f"{dice['mean_affine_only']:.3f})" if dice else "")

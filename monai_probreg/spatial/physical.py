@@ -61,22 +61,26 @@ def apply_affine(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ matrix[:3, :3].T + matrix[:3, 3]
 
 
-def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, affine: np.ndarray) -> np.ndarray:
+def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, affine: np.ndarray,
+                    points: np.ndarray | None = None) -> np.ndarray:
     """Composed field on the fixed grid, ``D(p) = A(p + d(p)) - p`` (*S, 3) mm (module docstring, item 5).
 
-    ``deformable_mm``: ``d`` (*S, 3) on the fixed grid; ``affine``: ``A`` (4, 4), fixed LPS -> moving LPS.
+    ``deformable_mm``: ``d`` (*S, 3) on the fixed grid; ``affine``: ``A`` (4, 4), fixed LPS -> moving LPS;
+    ``points``: the fixed grid's :func:`grid_points`, if the caller has them.
     """
-    points = grid_points(deformable_mm.shape[:3], fixed_index_to_lps)
+    points = grid_points(deformable_mm.shape[:3], fixed_index_to_lps) if points is None else points
     return apply_affine(affine, points + deformable_mm) - points
 
 
 def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[int, ...],
-                    moving_index_to_lps: np.ndarray) -> np.ndarray:
+                    moving_index_to_lps: np.ndarray, moving_points: np.ndarray | None = None) -> np.ndarray:
     """Composed inverse on the moving grid, ``D_inv(q) = a + d_inv(a) - q`` with ``a = A^-1(q)`` (*S_moving, 3) mm.
 
-    ``inverse_mm``: ``d_inv`` (*S, 3) in mm on its grid (the fixed or model grid), as a :class:`Volume`.
+    ``inverse_mm``: ``d_inv`` (*S, 3) in mm on its grid (the fixed or model grid), as a :class:`Volume`;
+    ``moving_points``: the moving grid's :func:`grid_points`, if the caller has them.
     """
-    moving_points = grid_points(moving_shape, moving_index_to_lps)
+    if moving_points is None:
+        moving_points = grid_points(moving_shape, moving_index_to_lps)
     fixed_points = apply_affine(np.linalg.inv(affine), moving_points)
     return fixed_points + sample_linear(inverse_mm, fixed_points, outside="border") - moving_points
 

@@ -31,24 +31,33 @@ def continuous_index(points: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray
     return points @ lps_to_index[:3, :3].T + lps_to_index[:3, 3]
 
 
+def _index(points: np.ndarray, volume: Volume, index: np.ndarray | None) -> np.ndarray:
+    if index is not None:
+        if index.shape != np.shape(points):
+            raise ValueError(f"expected an index of the points' shape {np.shape(points)}; got {index.shape}")
+        return index.reshape(-1, 3)
+    return continuous_index(np.asarray(points, dtype=np.float64).reshape(-1, 3), volume.index_to_lps)
+
+
 def _inside(index: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     upper = np.asarray(shape, dtype=np.float64) - 0.5
     return np.all((index >= -0.5) & (index < upper), axis=-1)
 
 
 def sample_linear(volume: Volume, points: np.ndarray, fill: float = 0.0, outside: str = "fill",
-                  chunk: int = 2_000_000) -> np.ndarray:
+                  chunk: int = 2_000_000, index: np.ndarray | None = None) -> np.ndarray:
     """Trilinear samples of ``volume.array`` (I, J, K[, C]) at ``points`` (..., 3) -> (...[, C]) float64.
 
     ``outside``: ``"fill"`` (ITK: ``fill`` outside the half-voxel-extended grid) or ``"border"`` (clamp).
-    ``chunk``: points per ``grid_sample`` call (bounds memory on large grids).
+    ``chunk``: points per ``grid_sample`` call (bounds memory on large grids). ``index``: the points'
+    :func:`continuous_index` in ``volume``'s grid when the caller has it already (several volumes on one grid).
     """
     if outside not in ("fill", "border"):
         raise ValueError(f"outside must be 'fill' or 'border'; got {outside!r}")
     data = np.asarray(volume.array, dtype=np.float64)
     channels = data.shape[3:]
     source = torch.from_numpy(np.ascontiguousarray(data.reshape(*data.shape[:3], -1).transpose(3, 0, 1, 2)))[None]
-    index = continuous_index(np.asarray(points, dtype=np.float64).reshape(-1, 3), volume.index_to_lps)
+    index = _index(points, volume, index)
     sizes = np.asarray(data.shape[:3], dtype=np.float64)
     # align_corners=True: normalised -1 / +1 are the centres of the first / last voxel; grid order is (x, y, z) =
     # (axis 2, axis 1, axis 0) of the (N, C, D, H, W) input, hence the flip.
@@ -63,9 +72,10 @@ def sample_linear(volume: Volume, points: np.ndarray, fill: float = 0.0, outside
     return out.reshape(*np.shape(points)[:-1], *channels)
 
 
-def sample_nearest(volume: Volume, points: np.ndarray, fill: int = 0) -> np.ndarray:
-    """Nearest-neighbour samples (ITK rounding, half up) at ``points`` (..., 3); ``fill`` outside; input dtype."""
-    index = continuous_index(np.asarray(points, dtype=np.float64).reshape(-1, 3), volume.index_to_lps)
+def sample_nearest(volume: Volume, points: np.ndarray, fill: int = 0, index: np.ndarray | None = None) -> np.ndarray:
+    """Nearest-neighbour samples (ITK rounding, half up) at ``points`` (..., 3); ``fill`` outside; input dtype.
+    ``index``: as :func:`sample_linear`'s."""
+    index = _index(points, volume, index)
     inside = _inside(index, volume.shape)
     nearest = np.floor(index + 0.5).astype(np.int64)
     out = np.full(index.shape[0], fill, dtype=volume.array.dtype)

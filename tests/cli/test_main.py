@@ -168,6 +168,24 @@ def test_no_affine_for_an_aligned_scan(scene, tmp_path):
     assert summary["dice"]["mean"] > 0.99 and not (tmp_path / "out" / "qc.png").exists()
 
 
+def test_no_inverse_and_no_maps_leave_out_only_those_files(scene, tmp_path):
+    """--no-inverse / --no-maps: the files asked for are byte-identical to a full run's; the others are absent."""
+    args = ["register", "--moving", str(scene.moving), "--moving-label", str(scene.moving_label), "--fixed-label",
+            str(scene.fixed_label), "--no-affine", "--no-qc", "--samples", "2", *scene.common]
+    assert run_cli(*args, "--out", str(tmp_path / "full")).rc == 0
+    result = run_cli(*args, "--out", str(tmp_path / "lean"), "--no-inverse", "--no-maps")
+    assert result.rc == 0, result.err
+    full, lean = ({p.name for p in (tmp_path / d).iterdir()} for d in ("full", "lean"))
+    left_out = {"inverse_warp.nii.gz", "fixed_label_in_moving.nii.gz", "jacobian.nii.gz", "entropy.nii.gz",
+                "displacement_std.nii.gz"}
+    assert full - lean == left_out and lean <= full
+    for name in lean - {"summary.json", "README.txt"}:
+        assert (tmp_path / "lean" / name).read_bytes() == (tmp_path / "full" / name).read_bytes(), name
+    summary = json.loads((tmp_path / "lean" / "summary.json").read_text())
+    assert set(summary["outputs"]) == lean and summary["jacobian"]["num_nonpositive"] == 0
+    assert summary["uncertainty"]["mean_displacement_std_mm"] > 0
+
+
 def test_overwrite_replaces_an_earlier_run(scene, tmp_path):
     out = tmp_path / "out"
     args = ["register", "--moving", str(scene.fixed), "--out", str(out), "--no-affine", "--no-qc", *scene.common]

@@ -7,8 +7,11 @@ and its labels) by
     in a fresh subprocess (wall time from process start to exit: imports, model, affine, network, outputs, QC);
   - "ours, again": the same command a second time: its warp.nii.gz and affine.tfm must be byte-identical to the
     first run's (issue "Same input, same output");
-  - "ours, non-deterministic affine": with ``--nondeterministic-affine`` (ITK's metric multi-threaded): the wall
-    time against "ours" is the cost of determinism;
+  - "ours, lean": with ``--no-inverse --no-maps --no-qc`` (the warp, the warped scan and labels, affine.tfm and
+    the summary only);
+  - "ours, ITK affine": with ``--affine-backend itk`` (ITK's v4 registration, metric in one work unit), and again
+    with ``--nondeterministic-affine`` (ITK's metric multi-threaded): against it, the cost of determinism of the
+    ITK backend; the default torch backend is deterministic with any number of threads;
   - "ours + refinement": the same with ``--refine N`` (:mod:`monai_probreg.engines.refinement`);
   - "ANTs Affine" and "ANTs SyN" (antspyx, ``ants.registration(fixed, moving, type_of_transform=...)`` on the raw
     files, the SyN call with its own affine stages), labels through ``ants.apply_transforms(...,
@@ -18,8 +21,12 @@ Dice: per label on the atlas grid, over the labels both label maps have (S20: 48
 after the affine alone (the command's ``summary.json``). Writes ``OUT_DIR/end_to_end.json`` and prints a table.
 Without the data it prints "skipped: ..." and exits 0.
 
-Not yet here (issue "The whole command in seconds"): register-batch throughput, a synthetic moved subject, the
-stacked-stage PNG.
+``register-batch`` over ``--batch-size`` aligned scans of ``--dataset-dir``'s images/ (model and atlas loaded
+once): scans per minute after start-up (from the scans' own stage totals) and over the whole process.
+Writes ``end_to_end.png``: each variant's wall time as stacked stages, "start-up" being the process wall time
+outside the stages (imports, model, reading and preparing the fixed image).
+
+Not yet here (issue "The whole command in seconds"): a synthetic moved-and-resampled subject.
 
     python benchmarks/end_to_end.py --threads 2
 """
@@ -53,6 +60,9 @@ DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
 DEFAULT_OUT = REPO / "benchmarks" / "results"
 DEFAULT_REFINE_ITERATIONS = 20  # as benchmarks/accuracy_table.py's refined row
 ANTS_TYPES = {"ants_affine": "Affine", "ants_syn": "SyN"}
+LEAN = ("--no-inverse", "--no-maps", "--no-qc")
+DEFAULT_BATCH_SIZE = 8  # register-batch throughput over this many scans (the issue asks for >= 8)
+STAGES = ("read", "affine", "resample", "model", "refine", "maps", "samples", "compose", "write", "qc")
 REPRODUCED_FILES = ("warp.nii.gz", "affine.tfm")  # compared byte for byte between "ours" and "ours, again"
 
 
@@ -116,6 +126,62 @@ def run_ants(kind: str, scan: Path, labels: Path, atlas: Path) -> tuple[np.ndarr
     return warped.numpy(), seconds
 
 
+def run_batch(dataset_dir: Path, atlas: Path, threads: int, size: int) -> dict | None:
+    """``register-batch`` over the first ``size`` images of ``dataset_dir`` (aligned scans; the affine stage runs
+    as for any scan) in a fresh process; throughput after start-up from the scans' stage totals."""
+    found = index_dataset(dataset_dir).images
+    images = [found[sid] for sid in sorted(found)][:size]
+    if len(images) < size:
+        print(f"register-batch: skipped, {len(images)} images in {dataset_dir} (< {size})", flush=True)
+        return None
+    with tempfile.TemporaryDirectory(prefix="e2e_batch_") as tmp:
+        scans = Path(tmp) / "scans"
+        scans.mkdir()
+        for image in images:
+            (scans / Path(image).name).symlink_to(image)
+        cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register-batch", "--moving", str(scans), "--fixed",
+               str(atlas), "--out", f"{tmp}/out", "--threads", str(threads), "--quiet"]
+        start = time.perf_counter()
+        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        wall = time.perf_counter() - start
+        if done.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr[-2000:]}")
+        totals = [json.loads(p.read_text())["timings_s"]["total"] for p in Path(tmp, "out").glob("*/summary.json")]
+    return {"num_scans": len(totals), "wall_s": wall, "scan_totals_s": totals,
+            "scans_per_minute": 60.0 * len(totals) / sum(totals), "scans_per_minute_whole": 60.0 * len(totals) / wall}
+
+
+def stage_figure(rows: dict, names: dict, path: Path) -> Path:
+    """Stacked stage times of each of our variants (first scan), start-up = wall - the stages' total."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in rows if k.startswith("ours")]
+    fig, ax = plt.subplots(figsize=(9, 0.6 * len(keys) + 1.5))
+    colours = dict(zip(("start-up", *STAGES), plt.get_cmap("tab20").colors))
+    labelled: set[str] = set()
+    for row, key in enumerate(keys):
+        r = next(iter(rows[key].values()))
+        left = 0.0
+        parts = [("start-up", r["wall_s"] - r["stages_s"]["total"])] + [
+            (s, r["stages_s"][s]) for s in STAGES if s in r["stages_s"]]
+        for stage, seconds in parts:
+            ax.barh(row, seconds, left=left, color=colours[stage], label=None if stage in labelled else stage)
+            labelled.add(stage)
+            left += seconds
+        ax.text(left + 0.3, row, f"{r['wall_s']:.1f} s", va="center")
+    ax.set_yticks(range(len(keys)), [names[k] for k in keys])
+    ax.invert_yaxis()
+    ax.set_xlabel("seconds (process wall, 2 threads)")
+    ax.legend(ncol=4, fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET, help="its atlas/ is the fixed image")
@@ -125,6 +191,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--refine-iterations", type=int, default=DEFAULT_REFINE_ITERATIONS,
                     help="--refine of the 'ours + refinement' row (default: %(default)s)")
     ap.add_argument("--no-ants", action="store_true", help="leave the ANTs rows out")
+    ap.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE,
+                    help="scans for the register-batch throughput (0: leave it out; default: %(default)s)")
     args = ap.parse_args(argv)
     for folder in (args.dataset_dir, args.native_dir):
         if not folder.resolve().is_dir():
@@ -150,7 +218,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     for sid, scan, labels in scans:
         moving_ids = {int(v) for v in np.unique(np.asanyarray(nib.load(labels).dataobj)) if v != 0}
         with tempfile.TemporaryDirectory(prefix="e2e_") as tmp:
-            variants = (("ours", []), ("ours_again", []), ("ours_nondeterministic", ["--nondeterministic-affine"]),
+            variants = (("ours", []), ("ours_again", []), ("ours_lean", list(LEAN)),
+                        ("ours_itk", ["--affine-backend", "itk"]),
+                        ("ours_itk_nondeterministic", ["--affine-backend", "itk", "--nondeterministic-affine"]),
                         ("ours_refined", ["--refine", str(args.refine_iterations)]))
             for key, extra in variants:
                 out = Path(tmp) / key
@@ -176,7 +246,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for sid, again in rows.get("ours_again", {}).items():
         again["identical_to_first_run"] = again["sha256"] == rows["ours"][sid]["sha256"]
     names = {"ours": "ours (command, process wall)", "ours_again": "ours, again (same files as the first run?)",
-             "ours_nondeterministic": "ours, --nondeterministic-affine",
+             "ours_lean": "ours, lean (" + " ".join(LEAN) + ")", "ours_itk": "ours, --affine-backend itk",
+             "ours_itk_nondeterministic": "ours, --affine-backend itk --nondeterministic-affine",
              "ours_refined": f"ours + refinement ({args.refine_iterations} steps)",
              "ants_affine": "ANTs Affine (registration call)", "ants_syn": "ANTs SyN (registration call)"}
     lines = ["| scan | method | mean Dice (labels of both maps) | affine-only Dice | \\|J\\|<=0 | s |",
@@ -190,19 +261,34 @@ def main(argv: Sequence[str] | None = None) -> int:
                          f"{affine} | {folding} | {r['wall_s']:.1f} |")
     if antspyx is not None and antspyx.startswith("skipped"):
         lines.append(f"| all | ANTs | {antspyx} | | | |")
-    for sid, r in rows.get("ours_nondeterministic", {}).items():
-        lines.append(f"| {sid} | cost of determinism: ours / non-deterministic affine, process wall | "
+    for sid, r in rows.get("ours_itk_nondeterministic", {}).items():
+        lines.append(f"| {sid} | ITK backend's cost of determinism: one work unit / multi-threaded, process wall | "
+                     f"{rows['ours_itk'][sid]['wall_s'] / r['wall_s']:.2f}x | affine stage "
+                     f"{rows['ours_itk'][sid]['stages_s']['affine'] / r['stages_s']['affine']:.2f}x | | |")
+        lines.append(f"| {sid} | ours (torch affine, deterministic) / ITK multi-threaded, process wall | "
                      f"{rows['ours'][sid]['wall_s'] / r['wall_s']:.2f}x | affine stage "
                      f"{rows['ours'][sid]['stages_s']['affine'] / r['stages_s']['affine']:.2f}x | | |")
+    for sid, r in rows.get("ants_syn", {}).items():
+        for key in ("ours", "ours_lean"):
+            if sid in rows.get(key, {}):
+                lines.append(f"| {sid} | ANTs SyN / {names[key]}, wall | {r['wall_s'] / rows[key][sid]['wall_s']:.1f}x "
+                             "faster | | | |")
+    batch = run_batch(args.dataset_dir.resolve(), atlas, args.threads, args.batch_size) if args.batch_size else None
+    if batch is not None:
+        lines.append(f"| {batch['num_scans']} aligned scans | register-batch: {batch['scans_per_minute']:.1f} scans/min "
+                     f"after start-up ({batch['scans_per_minute_whole']:.1f} over the whole process) | | | | "
+                     f"{batch['wall_s']:.1f} |")
     table = "\n".join(lines)
     result = {"atlas": str(atlas), "atlas_label": str(atlas_label), "scans": [str(s) for _, s, _ in scans],
-              "threads": args.threads, "refine_iterations": args.refine_iterations, "rows": rows, "markdown": table,
+              "threads": args.threads, "refine_iterations": args.refine_iterations, "rows": rows, "batch": batch,
+              "markdown": table,
               "versions": {"python": platform.python_version(), "torch": torch.__version__,
                            "monai_probreg": monai_probreg.__version__, "antspyx": antspyx,
                            "platform": platform.platform()}}
     args.out_dir.mkdir(parents=True, exist_ok=True)
     path = write_text(args.out_dir / "end_to_end.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{table}\n\nwrote {path}", flush=True)
+    figure = stage_figure(rows, names, args.out_dir / "end_to_end.png")
+    print(f"\n{table}\n\nwrote {path} and {figure}", flush=True)
     return 0
 
 

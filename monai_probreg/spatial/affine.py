@@ -40,8 +40,8 @@ import numpy as np
 from monai_probreg.spatial.physical import affine_from_itk
 from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 
-__all__ = ["AffineSettings", "StageReport", "AffineResult", "align", "register_affine", "rotation_angle_deg",
-           "load_itk_modules", "BACKENDS"]
+__all__ = ["BACKENDS", "AffineResult", "AffineSettings", "StageReport", "align", "load_itk_modules",
+           "register_affine", "rotation_angle_deg"]
 
 BACKENDS = ("torch", "itk")
 
@@ -78,7 +78,7 @@ class AffineSettings:
     deterministic: bool = True  # the metric in one work unit: the same result every run (module docstring)
 
     @classmethod
-    def itk_defaults(cls, **changes) -> "AffineSettings":
+    def itk_defaults(cls, **changes) -> AffineSettings:
         """The ITK backend's defaults (class docstring), with ``changes``."""
         return cls(**{"shrink_factors": (4, 2), "smoothing_sigmas_mm": (2.0, 1.0), "rigid_iterations": (100, 50),
                       "affine_iterations": (100, 50), "sampling_percentage": 0.20, "backend": "itk", **changes})

@@ -45,7 +45,7 @@ from monai_probreg.spatial.affine import AffineResult, AffineSettings, StageRepo
 from monai_probreg.spatial.physical import affine_to_itk
 from monai_probreg.spatial.volume_io import Volume
 
-__all__ = ["register_affine_torch", "mutual_information", "rotation_matrix"]
+__all__ = ["mutual_information", "register_affine_torch", "rotation_matrix"]
 
 LBFGS_HISTORY = 10  # L-BFGS's memory (curvature pairs)
 GRADIENT_TOLERANCE = 1e-9  # stop a level when the metric's gradient (per mm) or its change falls below these
@@ -194,7 +194,7 @@ def _optimise(levels: list[_Level], iterations: tuple[int, ...], parameters: tor
                                       line_search_fn="strong_wolfe", tolerance_grad=GRADIENT_TOLERANCE,
                                       tolerance_change=CHANGE_TOLERANCE)
 
-        def closure() -> torch.Tensor:
+        def closure(optimizer: torch.optim.LBFGS = optimizer, level: _Level = level) -> torch.Tensor:
             optimizer.zero_grad(set_to_none=True)
             loss = level.loss(to_matrix(parameters))
             loss.backward()

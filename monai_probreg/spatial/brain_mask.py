@@ -7,7 +7,7 @@ own support says where the brain is: ``mask = dilate(fixed > min(fixed), margin_
 fixed grid is set to its background value outside it before intensity scaling. For a fixed image with a head around
 the brain (no background at its minimum), the mask is the whole grid or the head: nothing of the brain is hidden.
 
-The dilation is a max-pool with a per-axis radius of ``ceil(margin_mm / spacing)`` voxels (a box, written here because
+The dilation is a (separable) max-pool with a per-axis radius of ``ceil(margin_mm / spacing)`` voxels (a box, written here because
 the package does not otherwise depend on scipy.ndimage; a box of radius r contains the ball of radius r).
 """
 
@@ -38,8 +38,11 @@ def fixed_brain_mask(array: np.ndarray, spacing: Sequence[float], margin_mm: flo
         return None
     radius = [math.ceil(margin_mm / float(s) - 1e-9) for s in spacing]
     mask = torch.from_numpy(support.astype(np.float32))[None, None]
-    if any(radius):
-        mask = F.max_pool3d(mask, kernel_size=[2 * r + 1 for r in radius], stride=1, padding=radius)
+    for axis, r in enumerate(radius):  # a box is separable: three 1-d max-pools, 3 x 7 instead of 7^3 comparisons
+        if r:
+            kernel, padding = [1, 1, 1], [0, 0, 0]
+            kernel[axis], padding[axis] = 2 * r + 1, r
+            mask = F.max_pool3d(mask, kernel_size=kernel, stride=1, padding=padding)
     mask = mask[0, 0].numpy() > 0
     return None if mask.all() else mask
 

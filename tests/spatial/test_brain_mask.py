@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -54,3 +56,19 @@ def test_hide_outside_sets_the_fill_and_keeps_the_inside():
     assert hide_outside(image, None, fill=0.0) is image
     with pytest.raises(ValueError, match="does not match"):
         hide_outside(image, mask[:1], fill=0.0)
+
+
+def test_separable_dilation_equals_the_box_brute_force():
+    """Random support, anisotropic spacing: the three 1-d max-pools give exactly the box of radius
+    ceil(margin / spacing) voxels per axis, checked voxel by voxel."""
+    rng = np.random.default_rng(0)
+    array = np.zeros((14, 11, 9), np.float32)
+    array[3:11, 2:9, 2:7] = rng.random((8, 7, 5)) > 0.85
+    spacing, margin = (1.0, 1.5, 0.7), 2.0
+    radius = [math.ceil(margin / s - 1e-9) for s in spacing]
+    support = array > array.min()
+    expected = np.zeros_like(support)
+    for i, j, k in zip(*np.nonzero(support)):
+        expected[max(i - radius[0], 0):i + radius[0] + 1, max(j - radius[1], 0):j + radius[1] + 1,
+                 max(k - radius[2], 0):k + radius[2] + 1] = True
+    np.testing.assert_array_equal(fixed_brain_mask(array, spacing, margin), expected)

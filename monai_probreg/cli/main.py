@@ -72,7 +72,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                           "torch 4 2 1, itk 4 2)")
     reg.add_argument("--affine-iterations", type=int, nargs="+", default=None, metavar="N",
                      help="iterations per level, for each of the rigid and affine stages (default: torch at most 30 15 0 "
-                          "rigid and 30 15 10 affine, itk at most 100 50)")
+                          "rigid and 30 15 10 affine, itk at most 100 50; with other --affine-levels: the first of these)")
     reg.add_argument("--affine-sampling", type=float, default=None, metavar="P",
                      help="fraction of each level's voxels sampled by the mutual information metric (default: "
                           "torch 0.05, itk 0.2)")
@@ -162,6 +162,10 @@ def _batch_items(args: argparse.Namespace) -> list[tuple[str, Path, Path | None]
     return items
 
 
+def _per_level(values: tuple[int, ...], levels: int) -> tuple[int, ...]:
+    return tuple(values[:levels]) + (values[-1],) * max(0, levels - len(values))
+
+
 def _options(args: argparse.Namespace):
     from monai_probreg.cli.pipeline import RegistrationOptions
     from monai_probreg.spatial.affine import AffineSettings
@@ -188,9 +192,9 @@ def _options(args: argparse.Namespace):
                                  f"got {len(args.affine_iterations)}")
             changes.update(rigid_iterations=tuple(args.affine_iterations),
                            affine_iterations=tuple(args.affine_iterations))
-        elif args.affine_levels is not None and len(levels) != len(base.shrink_factors):
-            raise InputError(f"--affine-levels {' '.join(map(str, levels))}: give --affine-iterations too (one "
-                             f"value per level; the defaults have {len(base.shrink_factors)} levels)")
+        elif args.affine_levels is not None:  # the defaults' first levels, the last one repeated if more
+            changes.update(rigid_iterations=_per_level(base.rigid_iterations, len(levels)),
+                           affine_iterations=_per_level(base.affine_iterations, len(levels)))
         if args.affine_sampling is not None:
             changes["sampling_percentage"] = args.affine_sampling
         try:

@@ -245,10 +245,10 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
         labels["affine_label"] = sample_nearest(moving_label, affine_points)  # for Dice and QC, not written
     inverse_warp = None
     if inverse:
-        moving_points = grid_points(moving.shape, moving.index_to_lps)
         inverse_warp = compose_inverse(Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
-                                       affine, moving.shape, moving.index_to_lps, moving_points)
+                                       affine, moving.shape, moving.index_to_lps)
         if fixed.label is not None:
+            moving_points = grid_points(moving.shape, moving.index_to_lps)
             labels["fixed_label_in_moving"] = sample_nearest(fixed.label, moving_points + inverse_warp)
     dice = None
     if moving_label is not None and fixed.label is not None:

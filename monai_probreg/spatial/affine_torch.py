@@ -1,19 +1,21 @@
-"""Affine pre-alignment in torch: the same two stages as :mod:`monai_probreg.spatial.affine` (ITK), in a second.
+"""Affine pre-alignment in torch: the same two stages as :mod:`monai_probreg.spatial.affine`'s ITK backend, in 2-4 s.
 
-Why a second implementation: ITK's v4 registration costs this command most of its time (measured on a native
-LPBA40 scan, 2 threads: about 7 s to load ITK's lazily imported registration modules, 10-19 s to register), and its
+Why a second implementation: ITK's v4 registration cost this command most of its time (measured on a native
+LPBA40 scan, 2 threads: about 7 s to load ITK's lazily imported registration modules, 13-23 s to register), and its
 Mattes metric is only reproducible in one work unit (ITK pull request #6622). Nothing in MONAI or torch registers
-two images affinely, so the optimisation loop is written here; everything else is borrowed: MONAI's
-``GlobalMutualInformationLoss`` (Mattes' B-spline Parzen windows, as ITK's metric), MONAI's ``GaussianSmooth``
-for the pyramid, ``torch.nn.functional.grid_sample`` for interpolation and ``torch.optim.LBFGS``.
+two images affinely, and MONAI's ``GlobalMutualInformationLoss`` is too slow for an optimiser's inner loop
+(:func:`mutual_information`), so the loop and the metric are written here; the rest is borrowed: MONAI's
+``ScaleIntensityRangePercentiles`` and ``GaussianSmooth``, ``torch.nn.functional.grid_sample`` for interpolation and
+``torch.optim.LBFGS``.
 
 The method, stage by stage as ``antsRegistration -t Rigid -t Affine`` (and the ITK backend) runs it:
 
 - **initialisation** (``"moments"``): the intensity centres of mass matched (ITK's ``CenteredTransformInitializer``
   in moments mode); ``"geometry"``: the grid centres;
-- **pyramid**: per level, both images smoothed by ``smoothing_sigmas_mm`` (in mm, per axis of each grid); the
-  fixed image is subsampled by the level's shrink factor and ``sampling_percentage`` of its voxels are drawn once
-  per level with a seeded generator (``seed``): the metric's sample points;
+- **pyramid**: per level, both images averaged over blocks of about the level's voxel size (the fixed grid's
+  times the shrink factor) and smoothed by ``smoothing_sigmas_mm`` (in mm, per axis of each grid);
+  ``sampling_percentage`` of the fixed level's voxels are drawn once per level with a seeded generator (``seed``):
+  the metric's sample points;
 - **rigid** (rotation vector + translation, 6 parameters), then **affine** (12 parameters) from the rigid result;
   L-BFGS with a strong-Wolfe line search (``torch.optim.LBFGS``) on parameters measured in millimetres (a
   rotation or shear is scaled by the fixed image's radius, so one unit moves the brain's edge by about 1 mm, as
@@ -24,8 +26,8 @@ The method, stage by stage as ``antsRegistration -t Rigid -t Affine`` (and the I
   sample mapped outside the moving grid sees the moving image's background (0 after scaling).
 
 Deterministic: a seeded sample and torch's CPU kernels (no atomic reductions; the histogram is a ``bincount``)
-give the same transform on every run with the same inputs and settings; the thread count changes it by less
-than 1e-5 mm (tested).
+give the same transform on every run with the same inputs and settings; another thread count changes the matrix
+by less than 1e-5 (tested).
 
 The result maps a point of the **fixed** space to the **moving** space (LPS mm), as the ITK backend's.
 """

@@ -388,6 +388,33 @@ def test_bad_output_folder_not_empty(scene, tmp_path):
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
 
+def test_bad_nondeterministic_affine_without_the_itk_backend(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--nondeterministic-affine")
+    assert "--nondeterministic-affine" in line and "--affine-backend itk" in line
+
+
+def test_bad_affine_iterations_per_level(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--affine-levels", "4", "2", "--affine-iterations", "10")
+    assert "--affine-iterations" in line and "got 1" in line
+
+
+def test_bad_negative_affine_iterations(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--affine-levels", "2", "1", "--affine-iterations", "10", "-1")
+    assert "iterations must be >= 0" in line
+
+
+def test_affine_backend_and_levels_are_recorded(scene, tmp_path):
+    """--affine-levels without --affine-iterations: the backend's defaults for the first levels (torch: rigid 30, 15;
+    affine 30, 15); the backend is in summary.json."""
+    out = tmp_path / "levels"
+    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--no-qc", "--affine-levels", "2",
+                     "1", *scene.common)
+    assert result.rc == 0, result.err
+    settings = json.loads((out / "summary.json").read_text())["affine"]["settings"]
+    assert settings["backend"] == "torch" and settings["shrink_factors"] == [2, 1]
+    assert settings["rigid_iterations"] == [30, 15] and settings["affine_iterations"] == [30, 15]
+
+
 def test_bad_samples(scene, tmp_path):
     assert "--samples" in _fails(scene, tmp_path, "--samples", "1")
 

@@ -122,6 +122,36 @@ def test_compose_forward_is_itk_composite_of_affine_after_deformable():
         np.testing.assert_allclose(points[index] + composed[index], expected, atol=1e-4)  # float32 field storage
 
 
+# a rotated, permuted direction for the moving grid (columns: unit axes)
+DIRECTION_OBLIQUE = np.array([[0.0, 0.8, 0.6], [0.0, -0.6, 0.8], [1.0, 0.0, 0.0]])
+
+
+def test_compose_inverse_equals_its_definition_point_by_point():
+    """The slab-wise, broadcast computation against D_inv(q) = a + d_inv(a) - q written out with explicit points
+    (a = A^-1 q; d_inv linear, border-extended), on an oblique moving grid that reaches outside d_inv's grid, with
+    slabs of 3 rows (the last one short)."""
+    d_inv = voxel_to_mm(_smooth(SHAPE, 3, 2.0, seed=7), _grid())
+    moving_grid = np.eye(4)
+    moving_grid[:3, :3] = DIRECTION_OBLIQUE @ np.diag([1.3, 0.8, 1.1])
+    moving_grid[:3, 3] = [-6.0, 4.0, -3.0]
+    moving_shape = (17, 13, 15)
+    ours = compose_inverse(Volume(d_inv, _grid()), _affine(), moving_shape, moving_grid, rows_per_chunk=3)
+    q = grid_points(moving_shape, moving_grid)
+    a = apply_affine(np.linalg.inv(_affine()), q)
+    index = np.linalg.solve(_grid()[:3, :3], (a - _grid()[:3, 3]).reshape(-1, 3).T).T
+    assert (index < -0.5).any() or (index > np.asarray(SHAPE) - 0.5).any()  # the border rule is exercised
+    expected = a + sample_linear(Volume(d_inv, _grid()), a, outside="border") - q
+    np.testing.assert_allclose(ours, expected, atol=1e-4)  # float32 coordinates and field values
+
+
+def test_grid_points_are_index_to_lps_of_every_index():
+    matrix = _grid()
+    points = grid_points((4, 3, 5), matrix)
+    for index in [(0, 0, 0), (3, 2, 4), (1, 2, 3)]:
+        np.testing.assert_allclose(points[index], matrix[:3, :3] @ np.asarray(index, float) + matrix[:3, 3],
+                                   rtol=0, atol=1e-12)
+
+
 def test_compose_inverse_undoes_compose_forward():
     """q = p + D(p), then q + D_inv(q) comes back to p as far as exp(-v) inverts exp(v) on the model grid: the
     residual must equal the model's own voxel-space residual u + u_inv(x + u) (in mm; up to ~0.3 mm for this rough

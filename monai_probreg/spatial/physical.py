@@ -31,7 +31,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from monai_probreg.spatial.point_sampling import sample_linear
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = ["grid_points", "voxel_to_mm", "mm_to_voxel", "apply_affine", "compose_forward", "compose_inverse",

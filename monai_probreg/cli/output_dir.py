@@ -135,6 +135,8 @@ def write_transform(path: str | os.PathLike, transform: itk.Transform) -> Path:
     center = np.asarray(transform.GetCenter(), dtype=np.float64)
     translation = matrix[:3, 3] - center + matrix[:3, :3] @ center  # T(p) = M (p - c) + c + t
     numbers = [*matrix[:3, :3].reshape(-1), *translation]
+    if not np.isfinite([*numbers, *center]).all():
+        raise ValueError(f"{str(path)!r}: the transform has non-finite parameters {numbers}, centre {center.tolist()}")
     text = ("#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
             f"Parameters: {' '.join(repr(float(v)) for v in numbers)}\n"
             f"FixedParameters: {' '.join(repr(float(v)) for v in center)}\n")

@@ -43,7 +43,7 @@ from monai.transforms import GaussianSmooth, ScaleIntensityRangePercentiles
 from monai.utils import convert_to_tensor
 
 from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
-from monai_probreg.spatial.affine import AffineResult, AffineSettings, StageReport
+from monai_probreg.spatial.affine_settings import AffineResult, AffineSettings, StageReport
 from monai_probreg.spatial.physical import affine_to_itk
 from monai_probreg.spatial.volume_io import Volume
 
@@ -117,15 +117,16 @@ def _smoothed(image: torch.Tensor, spacing: np.ndarray, sigma_mm: float) -> torc
     return convert_to_tensor(GaussianSmooth(sigma=sigma_voxels)(image[None]), track_meta=False)[0]
 
 
-def _centre(image: np.ndarray, index_to_lps: np.ndarray, moments: bool) -> np.ndarray:
-    """LPS centre of mass of the intensities (moments) or of the grid (geometry)."""
-    if moments:
-        weights = np.clip(np.asarray(image, np.float64), 0, None)
-        total = weights.sum()
+def _centre(scaled: torch.Tensor, index_to_lps: np.ndarray, moments: bool) -> np.ndarray:
+    """LPS centre of mass of the intensities scaled to [0, 1] (moments: the same for any intensity units, negative
+    ones included), or of the grid (geometry, also when the scaled image is all 0)."""
+    weights = scaled.double().numpy()
+    total = weights.sum()
+    if moments and total > 0:
         index = np.array([(weights.sum(axis=tuple(a for a in range(3) if a != axis))
-                           * np.arange(image.shape[axis])).sum() / total for axis in range(3)])
+                           * np.arange(weights.shape[axis])).sum() / total for axis in range(3)])
     else:
-        index = (np.asarray(image.shape, np.float64) - 1) / 2
+        index = (np.asarray(weights.shape, np.float64) - 1) / 2
     return index_to_lps[:3, :3] @ index + index_to_lps[:3, 3]
 
 
@@ -213,8 +214,8 @@ def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSetting
     generator = torch.Generator().manual_seed(int(settings.seed))
     fixed_image, moving_image = _scaled(fixed), _scaled(moving)
     moments = settings.initializer == "moments"
-    fixed_centre = torch.from_numpy(_centre(fixed.array, fixed.index_to_lps, moments))
-    moving_centre = torch.from_numpy(_centre(moving.array, moving.index_to_lps, moments))
+    fixed_centre = torch.from_numpy(_centre(fixed_image, fixed.index_to_lps, moments))
+    moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, moments))
     radius = float(np.mean(np.asarray(fixed.shape) * fixed.spacing)) / 2  # mm: 1 unit of rotation = 1 mm there
     levels = [_Level(fixed, fixed_image, moving, moving_image, int(shrink), float(sigma),
                      settings.sampling_percentage, generator, settings.histogram_bins)
@@ -243,6 +244,9 @@ def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSetting
         stages.append(_stage("affine", levels, settings.affine_iterations, affine, affine_matrix))
         result = affine_matrix(affine).detach()
     matrix = result.numpy()
+    if not np.isfinite(matrix).all():
+        raise RuntimeError(f"the torch affine registration diverged (non-finite matrix); settings {settings}. "
+                           "Try --affine-backend itk, or report the scan")
     return AffineResult(affine_to_itk(matrix, fixed_centre.numpy()), matrix, initial, stages)
 
 

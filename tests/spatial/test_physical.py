@@ -187,6 +187,31 @@ def test_affine_itk_round_trip_with_centre(tmp_path):
     assert "AffineTransform_double_3_3" in (tmp_path / "a.tfm").read_text()
 
 
+def test_bad_transform_file_suffix(tmp_path):
+    with pytest.raises(ValueError, match=r"expected a \.tfm or \.txt path"):
+        write_transform(tmp_path / "a.h5", affine_to_itk(_affine()))
+
+
+def test_bad_non_finite_transform_is_not_written(tmp_path):
+    matrix = _affine().copy()
+    matrix[0, 3] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        write_transform(tmp_path / "a.tfm", affine_to_itk(matrix))
+    assert not list(tmp_path.iterdir())
+
+
+def test_rigid_transform_is_written_as_an_equivalent_affine(tmp_path):
+    rigid = itk.VersorRigid3DTransform[itk.D].New()
+    rigid.SetCenter([1.0, -2.0, 3.0])
+    versor = itk.Versor[itk.D]()
+    versor.Set([0.0, 0.0, 1.0], 0.3)  # 0.3 rad about S
+    rigid.SetRotation(versor)
+    rigid.SetTranslation([4.0, 5.0, -6.0])
+    write_transform(tmp_path / "r.tfm", rigid)
+    read = itk.transformread(str(tmp_path / "r.tfm"))[0]
+    np.testing.assert_allclose(affine_from_itk(read), affine_from_itk(rigid), atol=1e-12)
+
+
 def test_field_file_stores_lps_millimetres_as_an_itk_vector_image(tmp_path):
     """What ANTs expects: NIfTI intent vector, (X, Y, Z, 1, 3), values = the LPS vectors (no RAS sign flip)."""
     field = voxel_to_mm(_smooth(SHAPE, 3, 2.0, seed=5), _grid())

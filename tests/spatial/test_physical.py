@@ -187,6 +187,15 @@ def test_affine_itk_round_trip_with_centre(tmp_path):
     assert "AffineTransform_double_3_3" in (tmp_path / "a.tfm").read_text()
 
 
+def test_ants_reads_the_transform_file(tmp_path):
+    """ANTs (antspyx, in the bench extra) reads our text affine.tfm and maps a point as we do."""
+    ants = pytest.importorskip("ants")
+    write_transform(tmp_path / "a.tfm", affine_to_itk(_affine(), center=np.array([10.0, -4.0, 2.0])))
+    point = np.array([1.0, 2.0, 3.0])
+    mapped = ants.read_transform(str(tmp_path / "a.tfm")).apply_to_point(point.tolist())
+    np.testing.assert_allclose(mapped, apply_affine(_affine(), point), atol=1e-6)
+
+
 def test_bad_transform_file_suffix(tmp_path):
     with pytest.raises(ValueError, match=r"expected a \.tfm or \.txt path"):
         write_transform(tmp_path / "a.h5", affine_to_itk(_affine()))

@@ -25,7 +25,8 @@ from monai_probreg.utils.files import write_text
 __all__ = ["BATCH_COLUMNS", "BatchItem", "BatchRow", "error_text", "write_batch_summary", "register_batch",
            "print_batch_table"]
 
-BATCH_COLUMNS = ["scan", "status", "mean_dice", "mean_dice_affine_only", "num_jacobian_nonpositive", "time_s", "error"]
+BATCH_COLUMNS = ["scan", "status", "mean_dice", "mean_dice_affine_only", "num_jacobian_nonpositive", "time_s", "error",
+                 "predicted_dice", "failure_probability", "warning"]
 
 
 class BatchItem(NamedTuple):
@@ -44,6 +45,9 @@ class BatchRow(NamedTuple):
     num_jacobian_nonpositive: int | None = None
     time_s: float | None = None
     error: str = ""
+    predicted_dice: float | None = None  # the quality estimate (None: the weights have none)
+    failure_probability: float | None = None
+    warning: str = ""  # the quality estimate's warning: the scan registered ("ok") but probably failed
 
 
 def error_text(err: BaseException) -> str:
@@ -70,9 +74,11 @@ def _register_one(model: LoadedModel, fixed: FixedSpace, item: BatchItem, out: P
         raise InputError(f"--moving {str(item.moving)!r}: no such file")
     summary = register_scan(model, fixed, item.moving, out / item.name, item.moving_label, options, overwrite,
                             report=report)
-    dice = summary["dice"] or {}
+    dice, quality = summary["dice"] or {}, summary.get("quality") or {}
     return BatchRow(item.name, "ok", dice.get("mean"), dice.get("mean_affine_only"),
-                    summary["jacobian"]["num_nonpositive"], summary["timings_s"]["total"])
+                    summary["jacobian"]["num_nonpositive"], summary["timings_s"]["total"],
+                    predicted_dice=quality.get("predicted_dice"),
+                    failure_probability=quality.get("failure_probability"), warning=summary.get("warning") or "")
 
 
 def register_batch(model: LoadedModel, fixed: FixedSpace, items: Sequence[BatchItem], out: str | Path,
@@ -112,7 +118,10 @@ def print_batch_table(rows: Sequence[BatchRow], file=None) -> None:
     def fmt(value, spec: str) -> str:
         return "-" if value is None else format(value, spec)
 
-    print(f"{'scan':<24}{'status':<8}{'Dice':>7}{'affine':>8}{'|J|<=0':>8}{'time (s)':>10}  error", file=file)
+    print(f"{'scan':<24}{'status':<8}{'Dice':>7}{'affine':>8}{'|J|<=0':>8}{'time (s)':>10}{'pred.':>7}  "
+          "error / warning", file=file)
     for r in rows:
+        note = r.error or (f"WARNING: {r.warning}" if r.warning else "")
         print(f"{r.scan:<24}{r.status:<8}{fmt(r.mean_dice, '.3f'):>7}{fmt(r.mean_dice_affine_only, '.3f'):>8}"
-              f"{fmt(r.num_jacobian_nonpositive, 'd'):>8}{fmt(r.time_s, '.1f'):>10}  {r.error}", file=file)
+              f"{fmt(r.num_jacobian_nonpositive, 'd'):>8}{fmt(r.time_s, '.1f'):>10}{fmt(r.predicted_dice, '.2f'):>7}"
+              f"  {note}", file=file)

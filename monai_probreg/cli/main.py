@@ -265,6 +265,9 @@ def _summary_line(summary: dict) -> str:
     if summary.get("dice"):
         parts.append(f"mean Dice {summary['dice']['mean']:.3f} (affine only {summary['dice']['mean_affine_only']:.3f})")
     parts.append(f"|J|<=0: {summary['jacobian']['num_nonpositive']}")
+    if summary.get("quality"):
+        parts.append(f"predicted Dice {summary['quality']['predicted_dice']:.2f}, "
+                     f"failure probability {summary['quality']['failure_probability']:.2f}")
     return "; ".join(parts)
 
 
@@ -295,6 +298,8 @@ def _register(args: argparse.Namespace) -> int:
     summary = register_scan(model, fixed, args.moving, args.out, args.moving_label, options, args.overwrite,
                             report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
     print(f"{args.out}: {_summary_line(summary)}")
+    if summary.get("warning"):  # a warning never changes the exit status
+        print(f"monai-probreg: warning: {args.out}: {summary['warning']}", file=sys.stderr, flush=True)
     return 0
 
 

@@ -19,6 +19,7 @@ from torch import nn
 import monai_probreg
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.uncertainty.calibration import calibration_for
+from monai_probreg.uncertainty.quality import QualityModel, load_quality_model
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.provenance import file_sha256
 from monai_probreg.weights.loading import load_weights
@@ -44,13 +45,15 @@ class LoadedModel:
     bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
     refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement`` (off)
     weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
+    quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
 
 
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
                config_file: str | os.PathLike | None = None, device: str = "cpu", calibrate: bool = True) -> LoadedModel:
     """The trained network: settings from ``configs/inference.yaml``'s ``network_def`` (and ``divisor``), weights
     from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable.
-    ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw."""
+    ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw. The quality
+    estimate (``<weights stem>.quality.json``) is fitted on the calibrated posterior, so it is used only with it."""
     root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
     config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"
     if not config.is_file():
@@ -85,7 +88,8 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
                          f"({first_line(err)})") from None
     try:
         calibration = calibration_for(weights, calibrate)
+        quality = load_quality_model(weights) if calibrate else None
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
     return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration, refinement=refinement,
-                       weights_sha256=file_sha256(weights))
+                       weights_sha256=file_sha256(weights), quality=quality)

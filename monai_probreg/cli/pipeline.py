@@ -52,6 +52,8 @@ from monai_probreg.cli.output_dir import (
 from monai_probreg.cli.qc import QCData, save_qc
 from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.engines.refinement import RefinementSettings, refine_registration
+from monai_probreg.uncertainty.quality import QualityEstimate
+from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
@@ -215,6 +217,28 @@ def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.nda
     return maps
 
 
+def _quality(model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, maps: _ModelMaps
+             ) -> tuple[QualityFeatures, QualityEstimate] | None:
+    """The label-free quality estimate on the model grid (:mod:`monai_probreg.uncertainty.quality`), or None when
+    the weights have no quality model."""
+    if model.quality is None:
+        return None
+    t = torch.from_numpy
+    features = quality_features(t(moving_input), t(fixed.model_input), t(maps.warped), t(maps.displacement),
+                                t(maps.entropy), fixed.grid.spacing, jacobian=t(maps.jacobian))
+    return features, model.quality.estimate(features)
+
+
+def _quality_summary(model: LoadedModel, quality: tuple[QualityFeatures, QualityEstimate] | None) -> dict | None:
+    if quality is None:
+        return None
+    features, estimate = quality
+    return {"predicted_dice": estimate.predicted_dice, "failure_probability": estimate.failure_probability,
+            "warning_threshold": model.quality.threshold, "features": features._asdict(),
+            "definition": model.quality.definition,
+            "model": Path(model.model_file).stem + ".quality.json"}
+
+
 @dataclass
 class _Composed:
     """Everything on the fixed grid (and the inverse on the moving grid) that is written."""
@@ -283,14 +307,14 @@ def _write(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transform
 
 
 def _qc_data(fixed: FixedSpace, moving_input: np.ndarray, model_maps: _ModelMaps, composed: _Composed,
-             title: str) -> QCData:
+             title: str, warning: str | None = None) -> QCData:
     to_model, labels = fixed.grid.to_model, composed.labels
     sampled = model_maps.std is not None
     return QCData(fixed=fixed.model_input, moving=moving_input, warped=model_maps.warped,
                   displacement=model_maps.displacement, jacobian=model_maps.jacobian,
                   uncertainty=model_maps.std if sampled else model_maps.entropy,
                   uncertainty_name="displacement std (mm)" if sampled else "velocity entropy",
-                  spacing=tuple(fixed.grid.spacing), title=title,
+                  spacing=tuple(fixed.grid.spacing), title=title, warning=warning,
                   fixed_label=to_model(fixed.label.array) if fixed.label is not None else None,
                   moving_label=to_model(labels["affine_label"]) if "affine_label" in labels else None,
                   warped_label=to_model(labels["warped_label"]) if "warped_label" in labels else None)
@@ -325,6 +349,11 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
                                        background)
         moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
     model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report)
+    quality = None
+    if model.quality is not None:  # weights without a quality model: no stage, "quality": null
+        with _timed(timings, "quality", report):
+            quality = _quality(model, moving_input, fixed, model_maps)
+    warning = quality[1].warning if quality is not None else None
     with _timed(timings, "compose", report):
         composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points, options.inverse)
         stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
@@ -335,9 +364,11 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         title = Path(moving.path).name + (f"   mean Dice {dice['mean']:.3f} (affine only "
                                           f"{dice['mean_affine_only']:.3f})" if dice else "")
         title += f"   |J| <= 0: {stats.num_folding} voxels"
+        if quality is not None:
+            title += f"   predicted Dice {quality[1].predicted_dice:.2f}"
         if options.qc:
             with _timed(timings, "qc", report):
-                save_qc(stage / "qc.png", _qc_data(fixed, moving_input, model_maps, composed, title))
+                save_qc(stage / "qc.png", _qc_data(fixed, moving_input, model_maps, composed, title, warning))
         timings["total"] = round(time.perf_counter() - start, 3)
         jacobian, std = composed.maps["jacobian"], model_maps.std
         summary = {
@@ -358,6 +389,8 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
                          "std_log_jacobian": stats.std_log_jacobian, "min": float(jacobian.min()),
                          "max": float(jacobian.max())},
             "dice": dice,
+            "quality": _quality_summary(model, quality),
+            "warning": warning,
             "uncertainty": {"samples": options.samples, "seed": options.seed,
                             "mean_displacement_std_mm": None if std is None else float(std.mean())},
             "outputs": sorted(p.name for p in stage.iterdir()) + ["summary.json", "README.txt"],

@@ -57,6 +57,7 @@ class QCData:
     warped_label: np.ndarray | None = None
     title: str = ""
     grid_mm: float = 5.0
+    warning: str | None = None  # the quality estimate's warning, drawn in red under the title
 
 
 def _centre(image: np.ndarray) -> tuple[int, ...]:
@@ -140,8 +141,11 @@ def qc_figure(data: QCData) -> plt.Figure:
         bar = fig.colorbar(mappables[key], ax=list(axes[:, col]), location="bottom", shrink=0.9, label=label)
         bar.formatter = FormatStrFormatter("%.3g")
         bar.update_ticks()
-    if data.title:
-        fig.suptitle(data.title, fontsize=12)
+    title = "\n".join(t for t in (data.title, f"WARNING: {data.warning}" if data.warning else "") if t)
+    if title:
+        text = fig.suptitle(title, fontsize=12)
+        if data.warning:
+            text.set_color("red")
     return fig
 
 

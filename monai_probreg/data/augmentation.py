@@ -1,5 +1,5 @@
-"""Training-time spatial augmentation of the moving scan, scan-to-atlas: a random affine (MONAI ``RandAffined``)
-or a random smooth diffeomorphism (:class:`RandDiffeomorphicd`).
+"""Training-time augmentation: spatial, of the moving scan (a random affine, MONAI ``RandAffined``, or a random smooth
+diffeomorphism, :class:`RandDiffeomorphicd`), and intensity, of the network's inputs (:func:`intensity_augmentation`).
 
 Only the moving side is augmented: the fixed image is the atlas, the one space every output lives in, so moving it
 would change the task. The moving image and its label map get the *same* random affine (MONAI draws it once per
@@ -26,16 +26,30 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from monai.transforms import Compose, EnsureTyped, MapTransform, RandAffined, RandomizableTransform
+from monai.transforms import (
+    Compose,
+    CopyItemsd,
+    EnsureTyped,
+    MapTransform,
+    RandAdjustContrastd,
+    RandAffined,
+    RandBiasFieldd,
+    RandGaussianNoised,
+    RandGaussianSmoothd,
+    RandomizableTransform,
+    ScaleIntensityRangePercentilesd,
+)
 
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.warp import warp_image, warp_labels
 from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS
+from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 
-__all__ = ["RandDiffeomorphicd", "moving_augmentation"]
+__all__ = ["INPUT_SUFFIX", "RandDiffeomorphicd", "intensity_augmentation", "moving_augmentation"]
 
 _MOVING_IMAGE = IMAGE_KEYS[0]
 _MOVING_LABEL = LABEL_KEYS[0]
+INPUT_SUFFIX = "_input"  # "moving_input"/"fixed_input": what the network sees when they differ from the images
 _MAX_AXES = 3  # rotation and shift parameters MONAI reads per axis; a 2-d grid uses the first one (rotation) or two
 
 
@@ -167,5 +181,67 @@ def moving_augmentation(
         chain.append(EnsureTyped(keys=[_MOVING_LABEL], dtype=torch.int16, track_meta=True))
     augmentation = Compose(chain)
     if seed is not None:  # after Compose: its constructor re-seeds the transforms it holds
+        augmentation.set_random_state(seed=seed)
+    return augmentation
+
+
+def intensity_augmentation(
+    prob: float = 0.0,
+    bias_coeff: float = 0.2,
+    gamma: Sequence[float] = (0.6, 1.6),
+    smooth_sigma: Sequence[float] = (0.25, 1.0),
+    noise_std: float = 0.03,
+    seed: int | None = None,
+) -> Compose:
+    """Independent random intensity changes of the moving and the fixed image, as *network inputs* only.
+
+    Each image of the pair is copied to ``<key>_input`` (:data:`INPUT_SUFFIX`) and the copy gets, each with
+    probability ``prob`` and drawn independently per image: a smooth multiplicative bias field (MONAI
+    ``RandBiasFieldd``, degree 3), a gamma change of contrast (``RandAdjustContrastd``), a Gaussian blur (resolution
+    loss, ``RandGaussianSmoothd``) and Gaussian noise (``RandGaussianNoised``); it is then scaled to [0, 1] by the
+    same percentiles as the preprocessing (:data:`~monai_probreg.data.transforms.LOWER_PERCENTILE`), as a scan
+    from another scanner would be at inference. The clean images stay under ``moving``/``fixed``:
+    :func:`~monai_probreg.engines.training.prepare_registration_batch` feeds the ``_input`` copies to the network
+    and :class:`~monai_probreg.engines.training.RegistrationLoss` scores the clean moving image warped by the
+    predicted displacement against the clean fixed one. So the likelihood keeps its meaning (one noise level
+    ``image_sigma``, the same contrast on both sides) while the network learns not to depend on one scanner's
+    intensity profile (the issue "Robust to the scans users bring").
+
+    Args:
+        prob: probability of each change, per image (0: no ``_input`` keys are made, training is unchanged).
+        bias_coeff: bias-field polynomial coefficients are drawn in ``[0, bias_coeff]``.
+        gamma: range of the contrast exponent (1 = unchanged).
+        smooth_sigma: range of the blur's standard deviation, voxels of the grid the transform sees.
+        noise_std: maximum standard deviation of the noise, in the [0, 1] intensity units.
+        seed: seed of the transforms' random state (``None``: set by MONAI's ``set_determinism``).
+
+    Raises:
+        ValueError: ``prob`` outside [0, 1], a negative coefficient or noise, or a range not ``(low <= high)``.
+    """
+    if not 0.0 <= float(prob) <= 1.0:
+        raise ValueError(f"prob must be in [0, 1], got {prob!r}")
+    if bias_coeff < 0 or noise_std < 0:
+        raise ValueError(f"bias_coeff and noise_std must be >= 0, got {bias_coeff!r} and {noise_std!r}")
+    for name, pair, low in (("gamma", gamma, 1e-3), ("smooth_sigma", smooth_sigma, 0.0)):
+        if len(pair) != 2 or not low <= float(pair[0]) <= float(pair[1]):
+            raise ValueError(f"{name} must be a range (low, high) with {low} <= low <= high, got {pair!r}")
+    if prob == 0:
+        return Compose([])
+    chain: list = []
+    for key in IMAGE_KEYS:  # one set of transforms per image: independent draws for moving and fixed
+        name = key + INPUT_SUFFIX
+        sigma = (float(smooth_sigma[0]), float(smooth_sigma[1]))
+        chain += [
+            CopyItemsd(keys=[key], names=[name]),
+            RandBiasFieldd(keys=[name], prob=float(prob), degree=3, coeff_range=(0.0, float(bias_coeff))),
+            RandAdjustContrastd(keys=[name], prob=float(prob), gamma=(float(gamma[0]), float(gamma[1]))),
+            RandGaussianSmoothd(keys=[name], prob=float(prob), sigma_x=sigma, sigma_y=sigma, sigma_z=sigma),
+            RandGaussianNoised(keys=[name], prob=float(prob), mean=0.0, std=float(noise_std)),
+            ScaleIntensityRangePercentilesd(keys=[name], lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE,
+                                            b_min=0.0, b_max=1.0, clip=True),
+            EnsureTyped(keys=[name], dtype=torch.float32, track_meta=True),
+        ]
+    augmentation = Compose(chain)
+    if seed is not None:
         augmentation.set_random_state(seed=seed)
     return augmentation

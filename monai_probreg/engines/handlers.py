@@ -11,6 +11,7 @@ writes ``scores.csv`` / ``summary.json`` when the run completes.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -25,6 +26,7 @@ from torch import Tensor
 
 from monai_probreg.data.screening import InputFailures
 from monai_probreg.engines.outputs import OUTPUT_NAMES, OUTPUTS_README, SAMPLED_NAMES, write_outputs
+from monai_probreg.engines.quality_check import QualityCheck, QualityRecord
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.engines.registration import timed_register_pair
 from monai_probreg.engines.score_files import summary_table, write_scores
@@ -96,11 +98,13 @@ class RegistrationWriter(_PerSubjectHandler):
 
     With ``network`` given, the uncertainty maps are :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` of the
     posterior calibrated by ``std_scale`` and ``bias_fraction`` (1 and 0 = raw), from ``num_samples`` seeded samples
-    (needed, >= 2, for :data:`~monai_probreg.engines.outputs.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's."""
+    (needed, >= 2, for :data:`~monai_probreg.engines.outputs.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's.
+    With ``quality``, each subject's quality estimate is written as ``<id>/quality.json`` (and a probable failure
+    logged as a warning)."""
 
     def __init__(self, output_dir: str | os.PathLike, names: Sequence[str] = OUTPUT_NAMES,
                  network: torch.nn.Module | None = None, num_samples: int = 0, std_scale: float = 1.0,
-                 seed: int = 0, bias_fraction: float = 0.0) -> None:
+                 seed: int = 0, bias_fraction: float = 0.0, quality: QualityCheck | None = None) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
             raise ValueError(f"unknown output names {sorted(unknown)}; choose from {list(OUTPUT_NAMES)}")
@@ -111,6 +115,7 @@ class RegistrationWriter(_PerSubjectHandler):
         self.output_dir, self.names = Path(output_dir), tuple(names)
         self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
         self.bias_fraction = float(bias_fraction)
+        self.quality = quality
 
     def start(self, engine: Engine) -> None:
         write_text(self.output_dir / "README.txt", OUTPUTS_README)
@@ -126,6 +131,9 @@ class RegistrationWriter(_PerSubjectHandler):
                                   self.num_samples if sampled else 0, self.std_scale, label, self.seed,
                                   self.bias_fraction)
         write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
+        record = self.quality(sid, pair, targets) if self.quality is not None else None
+        if record is not None:
+            write_text(self.output_dir / sid / "quality.json", json.dumps(record, indent=2) + "\n")
         _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: {runtime:.2f} s "
                   f"-> {self.output_dir / sid}")
 
@@ -133,16 +141,19 @@ class RegistrationWriter(_PerSubjectHandler):
 class RegistrationScorer(_PerSubjectHandler):
     """Scores every subject with :func:`score_pair` (and the identity), then :func:`write_scores` and prints
     the summary table. ``config`` is stored in summary.json; ``labels`` default to the atlas' non-zero ids;
-    ``failures`` (subjects skipped for bad input) are listed in summary.json."""
+    ``failures`` (subjects skipped for bad input) are listed in summary.json; with ``quality``, each subject's quality
+    estimate goes into scores.csv and summary.json (and a probable failure is logged as a warning)."""
 
     def __init__(self, output_dir: str | os.PathLike, config: Mapping[str, Any] | None = None,
-                 labels: Sequence[int] | None = None, failures: InputFailures | None = None) -> None:
+                 labels: Sequence[int] | None = None, failures: InputFailures | None = None,
+                 quality: QualityCheck | None = None) -> None:
         self.output_dir, self.config, self.labels = Path(output_dir), dict(config or {}), labels
-        self.failures = failures
+        self.failures, self.quality = failures, quality
         self.rows: list[tuple[str, PairScores, PairScores]] = []
+        self.quality_records: dict[str, QualityRecord] = {}
 
     def start(self, engine: Engine) -> None:
-        self.rows = []
+        self.rows, self.quality_records = [], {}
 
     def each(self, engine: Engine, sid: str, pair: RegistrationOutput, targets: dict, runtime: float) -> None:
         if "moving_label" not in targets:
@@ -150,6 +161,9 @@ class RegistrationScorer(_PerSubjectHandler):
         reg = score_pair(pair.displacement, targets["moving_label"], targets["fixed_label"], runtime, self.labels)
         base = score_pair(None, targets["moving_label"], targets["fixed_label"], 0.0, self.labels)
         self.rows.append((sid, reg, base))
+        record = self.quality(sid, pair, targets) if self.quality is not None else None
+        if record is not None:
+            self.quality_records[sid] = record
         _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: Dice {reg.mean_dice:.3f} "
                   f"(no registration {base.mean_dice:.3f}), |J|<=0 {reg.num_folding}, {runtime:.2f} s")
 
@@ -158,5 +172,6 @@ class RegistrationScorer(_PerSubjectHandler):
         if not self.rows:
             _LOG.error(f"no subject could be scored ({len(failed)} failed); no scores written")
             return
-        summary = write_scores(self.output_dir, self.rows, self.config, failed)
+        summary = write_scores(self.output_dir, self.rows, self.config, failed,
+                               self.quality_records if self.quality is not None and self.quality.enabled else None)
         print(summary_table(summary) + f"\nper-subject scores: {self.output_dir / 'scores.csv'}", flush=True)

@@ -39,21 +39,27 @@ def _label_mean(scores: Sequence[PairScores], label: int) -> float | None:
 
 def write_scores(output_dir: str | os.PathLike, rows: Sequence[tuple[str, PairScores, PairScores]],
                  config: Mapping[str, Any] | None = None,
-                 failed: Sequence[tuple[str, str]] = ()) -> dict[str, Any]:
+                 failed: Sequence[tuple[str, str]] = (),
+                 quality: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, Any]:
     """Write ``scores.csv`` (one row per subject), ``summary.json`` (mean and population std over subjects,
     registered and no-registration, per-label means, ``config``) and ``scores.json`` (every score of every subject,
     :func:`read_scores` reads it back: how sharded runs are merged) into ``output_dir``; return the summary.
     ``failed``: ``(id, reason)`` of the subjects skipped for bad input (:mod:`monai_probreg.data.screening`), listed in
-    summary.json."""
+    summary.json. ``quality``: per subject id, its quality estimate (``predicted_dice``, ``failure_probability``,
+    ``warning``; :mod:`monai_probreg.engines.quality_check`): three more columns in scores.csv, the warnings in
+    summary.json, the whole record in scores.json."""
     if not rows:
         raise ValueError("no scored subjects to summarise")
     labels = sorted({lab for _, reg, _ in rows for lab in reg.dice})
     fields = ["mean_dice", "num_folding", "percent_folding", "std_log_jacobian", "runtime_s"]
     table = io.StringIO()
     writer = csv.writer(table, lineterminator="\n")
-    writer.writerow(["id", *fields, "mean_dice_no_registration", *(f"dice_{lab}" for lab in labels)])
+    quality_fields = ["predicted_dice", "failure_probability", "warning"] if quality is not None else []
+    writer.writerow(["id", *fields, "mean_dice_no_registration", *quality_fields, *(f"dice_{lab}" for lab in labels)])
     for sid, reg, base in rows:
+        estimate = (quality or {}).get(sid, {})
         writer.writerow([sid, *(getattr(reg, f) for f in fields), base.mean_dice,
+                         *(("" if estimate.get(f) is None else estimate[f]) for f in quality_fields),
                          *(reg.dice.get(lab, "") for lab in labels)])
     summary = {
         "num_subjects": len(rows),
@@ -66,10 +72,17 @@ def write_scores(output_dir: str | os.PathLike, rows: Sequence[tuple[str, PairSc
         "failed": [{"id": sid, "reason": reason} for sid, reason in failed],
         "config": {k: _jsonable(v) for k, v in (config or {}).items()},
     }
+    if quality is not None:
+        warned = [{"id": sid, "warning": quality[sid]["warning"]} for sid, _, _ in rows
+                  if sid in quality and quality[sid].get("warning")]
+        summary["quality"] = {
+            "predicted_dice": _mean_std([float(quality[sid]["predicted_dice"]) for sid, _, _ in rows if sid in quality]),
+            "num_warnings": len(warned), "warnings": warned}
     out = Path(output_dir)
     write_text(out / "scores.csv", table.getvalue())
     write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    records = [{"id": sid, "registered": _subject_scores(reg), "no_registration": _subject_scores(base)}
+    records = [{"id": sid, "registered": _subject_scores(reg), "no_registration": _subject_scores(base),
+                **({"quality": _jsonable(quality[sid])} if quality is not None and sid in quality else {})}
                for sid, reg, base in rows]
     write_text(out / "scores.json", json.dumps({"subjects": records, "config": summary["config"]}) + "\n")
     return summary

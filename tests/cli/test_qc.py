@@ -46,3 +46,20 @@ def test_save_writes_a_png_and_closes_the_figure(tmp_path):
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert plt.get_fignums() == before
     assert [p.name for p in tmp_path.iterdir()] == ["qc.png"]  # no temporary file left
+
+
+def test_a_warning_is_drawn_in_red_under_the_title():
+    import dataclasses
+
+    fig = qc_figure(dataclasses.replace(_data(True), warning="this registration probably failed"))
+    try:
+        text = fig._suptitle.get_text()
+        assert text.startswith("S11") and "WARNING: this registration probably failed" in text
+        assert fig._suptitle.get_color() == "red"
+    finally:
+        plt.close(fig)
+    fig = qc_figure(_data(True))
+    try:
+        assert "WARNING" not in fig._suptitle.get_text() and fig._suptitle.get_color() != "red"
+    finally:
+        plt.close(fig)

@@ -7,7 +7,7 @@ import torch
 from monai.data import MetaTensor
 from monai.transforms import Randomizable
 
-from monai_probreg.data.augmentation import moving_augmentation
+from monai_probreg.data.augmentation import INPUT_SUFFIX, intensity_augmentation, moving_augmentation
 from monai_probreg.data.transforms import registration_transforms
 
 
@@ -154,3 +154,53 @@ def test_moving_augmentation_adds_the_deformation_only_when_asked():
     assert len(deform) == 1 and deform[0].label_keys == ("moving_label",) and deform[0].control_spacing == 6.0
     with pytest.raises(ValueError, match="deform_magnitude"):
         moving_augmentation(deform_magnitude=-0.5)
+
+
+# --- intensity augmentation of the network inputs ---------------------------------------------------------------
+
+
+def _intensity_pair(shape=(20, 24, 16)) -> dict:
+    pair = _blob_pair(shape)
+    pair["fixed"] = MetaTensor(pair["fixed"].flip(1))  # another image: the two draws must not be tied to one input
+    return pair
+
+
+def test_intensity_prob_zero_adds_no_input_keys():
+    pair = _intensity_pair()
+    out = intensity_augmentation(prob=0.0)(pair)
+    assert set(out) == set(pair)
+
+
+def test_intensity_inputs_change_the_clean_images_stay():
+    pair = _intensity_pair()
+    clean = {k: v.clone() for k, v in pair.items()}
+    out = intensity_augmentation(prob=1.0, seed=3)(pair)
+    for key in ("moving", "fixed"):
+        assert torch.equal(out[key], clean[key])  # the likelihood's images are untouched
+        made = out[key + INPUT_SUFFIX]
+        assert made.shape == clean[key].shape and made.dtype == torch.float32
+        assert float(made.min()) >= 0.0 and float(made.max()) <= 1.0  # scaled as the preprocessing scales
+        assert float((made - clean[key]).abs().mean()) > 0.01
+    assert torch.equal(out["moving_label"], clean["moving_label"])
+
+
+def test_intensity_draws_are_independent_per_image_and_seeded():
+    image = _blob_pair((20, 24, 16))["moving"]
+    pair = {"moving": image, "fixed": MetaTensor(image.clone())}  # the same image on both sides
+    out = intensity_augmentation(prob=1.0, seed=5)(pair)
+    assert not torch.allclose(out["moving_input"], out["fixed_input"], atol=1e-3)
+    again = intensity_augmentation(prob=1.0, seed=5)({k: v.clone() for k, v in pair.items()})
+    assert torch.equal(out["moving_input"], again["moving_input"])
+    other = intensity_augmentation(prob=1.0, seed=6)({k: v.clone() for k, v in pair.items()})
+    assert not torch.equal(out["moving_input"], other["moving_input"])
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"prob": 1.5}, "prob"), ({"prob": -0.1}, "prob"),
+    ({"bias_coeff": -1.0}, "bias_coeff"), ({"noise_std": -0.1}, "noise_std"),
+    ({"gamma": (1.5, 0.5)}, "gamma"), ({"gamma": (0.0, 1.0)}, "gamma"), ({"gamma": (1.0,)}, "gamma"),
+    ({"smooth_sigma": (1.0, 0.5)}, "smooth_sigma"), ({"smooth_sigma": (-1.0, 0.5)}, "smooth_sigma"),
+])
+def test_bad_intensity_arguments_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        intensity_augmentation(**{"prob": 0.5, **kwargs})

@@ -1,0 +1,338 @@
+"""Does the quality estimate warn when a registration failed? Fit on training subjects, score on validation ones.
+
+Registrations (bundle path: evaluate.yaml's network, preprocessing and calibrated posterior, on the dataset grid):
+- normal: every ordered pair of the validation subjects and each validation subject -> atlas (S01);
+- the failure set (``failure_set.py``): each validation subject, perturbed by each perturbation, onto the atlas and
+  onto another validation subject (seeded).
+The detector (:mod:`monai_probreg.uncertainty.quality`) is fitted on the same kinds of registrations of the
+*training* subjects only (each to the atlas and to another training subject, and each perturbed by every
+perturbation onto the atlas or another training subject), never on a validation subject.
+
+The native scans (``--native-dir``, default ``../shared/data/lpba40-native``) go through the whole command
+(``monai-probreg register`` onto the atlas, affine stage included), as users bring them: as they are, and with their
+orientation header turned by 90 and by 180 degrees about the S axis (the case that gave Dice 0.001 and no warning
+before); reported with their Dice where they have labels, not part of the scored set (a handful of cases).
+
+A registration *failed* when its Dice is below the Dice before the deformable step or below no registration + 0.05
+(on this path the moving scan is already affinely aligned, so both "before" Dice are the identity's). Reported:
+Spearman(predicted, actual Dice) over the normal validation pairs (between subjects, to the atlas, both), AUROC of
+the failure probability for "failed" over every validation registration, false warnings on the normal validation
+pairs, and per perturbation: Dice before and after, the share that failed and the share warned.
+
+    python benchmarks/failure_detection.py --threads 2 --fit    # fits and writes <weights>.quality.json too
+    python benchmarks/failure_detection.py --records benchmarks/results/failure_detection.json --fit  # refit only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from monai.data import Dataset
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import nibabel as nib
+from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser
+from failure_set import PERTURBATIONS
+
+from monai_probreg.data.dataset import index_dataset
+from monai_probreg.data.pairs import ATLAS_ID, scan_dicts
+from monai_probreg.data.transforms import registration_transforms
+from monai_probreg.engines.registration import register_pair
+from monai_probreg.metrics.calibration import auroc, spearman
+from monai_probreg.metrics.jacobian import jacobian_determinant
+from monai_probreg.metrics.scores import score_pair
+from monai_probreg.uncertainty.calibration import calibration_for
+from monai_probreg.uncertainty.posterior_maps import posterior_maps
+from monai_probreg.uncertainty.quality import failed, fit_quality_model, save_quality_model
+from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
+from monai_probreg.utils.files import write_text
+from monai_probreg.utils.tensors import plain_tensor
+from monai_probreg.weights.loading import load_weights
+
+NORMAL = "none"
+DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
+HEADER_TURNS = (0, 90, 180)  # degrees about the S axis through the scan's centre, applied to its header only
+TRAIN_PARTNERS = 2  # normal training registrations per subject besides the atlas
+
+
+def _scans(dataset_dir: Path, ids: list[str], divisor: int) -> dict[str, dict]:
+    index = index_dataset(dataset_dir)
+    transform = registration_transforms(with_labels=True, divisor=divisor, image_keys=["image"], label_keys=["label"])
+    out = {}
+    for item in Dataset(scan_dicts(index, ids, include_atlas=True, require_labels=True), transform=transform):
+        image = item["image"]
+        spacing = np.linalg.norm(np.asarray(image.affine)[:3, :3], axis=0).tolist()
+        out[item["id"]] = {"image": plain_tensor(image)[None].float(), "label": plain_tensor(item["label"])[None],
+                           "spacing": spacing}
+    return out
+
+
+def cases_for(ids: list[str], seed: int, training: bool) -> list[dict[str, Any]]:
+    """The registrations of one split: (moving, fixed, perturbation, seed) dicts, normal ones first. Validation:
+    every ordered pair, every subject to the atlas, each perturbation onto the atlas and onto another subject.
+    Training (many more subjects): each subject to the atlas and to ``TRAIN_PARTNERS`` others, each perturbation
+    onto the atlas or another subject, alternately."""
+    cases = []
+    for n, sid in enumerate(ids):
+        cases.append({"moving": sid, "fixed": ATLAS_ID, "perturbation": NORMAL})
+        others = [o for o in ids[n + 1:] + ids[:n]]
+        for other in others[:TRAIN_PARTNERS] if training else others:
+            cases.append({"moving": sid, "fixed": other, "perturbation": NORMAL})
+    for n, sid in enumerate(ids):
+        others = [o for o in ids[n + 1:] + ids[:n]] or [ATLAS_ID]
+        for k, name in enumerate(PERTURBATIONS):
+            other = others[k % len(others)]
+            targets = [(ATLAS_ID, other)[(n + k) % 2]] if training else [ATLAS_ID, other]
+            for fixed in dict.fromkeys(targets):
+                cases.append({"moving": sid, "fixed": fixed, "perturbation": name})
+    return [{**c, "seed": seed + i} for i, c in enumerate(cases)]
+
+
+def run_case(network, calibration, scans: dict, case: dict) -> dict:
+    moving, fixed = scans[case["moving"]], scans[case["fixed"]]
+    image, label = moving["image"], moving["label"]
+    if case["perturbation"] != NORMAL:
+        g = torch.Generator().manual_seed(case["seed"])
+        image, label = PERTURBATIONS[case["perturbation"]](image, label, g)
+    output = register_pair(network, image, fixed["image"])
+    shape = output.displacement.shape[2:]
+    entropy = posterior_maps(network, output.velocity_mean, output.velocity_log_var, shape,
+                             std_scale=calibration.std_scale, bias_fraction=calibration.bias_fraction).velocity_entropy
+    features = quality_features(image[0, 0], fixed["image"][0, 0], output.warped[0, 0], output.displacement[0],
+                                entropy, fixed["spacing"], jacobian=jacobian_determinant(output.displacement)[0])
+    after = score_pair(output.displacement, label, fixed["label"]).mean_dice
+    identity = score_pair(None, label, fixed["label"]).mean_dice
+    return {**case, "dice": after, "dice_identity": identity, "failed": failed(after, identity, identity),
+            "features": features._asdict()}
+
+
+def _features(records: list[dict]) -> list[QualityFeatures]:
+    return [QualityFeatures(**r["features"]) for r in records]
+
+
+def score(model, records: list[dict]) -> dict[str, Any]:
+    dice_hat, probability = model.predict(_features(records))
+    for r, d, p in zip(records, dice_hat, probability):
+        r["predicted_dice"], r["failure_probability"], r["warned"] = float(d), float(p), bool(p >= model.threshold)
+    normal = [r for r in records if r["perturbation"] == NORMAL]
+    between = [r for r in normal if r["fixed"] != ATLAS_ID]
+    to_atlas = [r for r in normal if r["fixed"] == ATLAS_ID]
+
+    def rho(rs):
+        return (spearman(np.asarray([r["predicted_dice"] for r in rs]), np.asarray([r["dice"] for r in rs]))
+                if len(rs) > 2 else math.nan)
+
+    outcome = [r["failed"] for r in records]
+    per = {}
+    for name in [NORMAL, *PERTURBATIONS]:
+        rs = [r for r in records if r["perturbation"] == name]
+        if rs:
+            per[name] = {"n": len(rs), "dice_before": float(np.mean([r["dice_identity"] for r in rs])),
+                         "dice_after": float(np.mean([r["dice"] for r in rs])),
+                         "failed": float(np.mean([r["failed"] for r in rs])),
+                         "warned": float(np.mean([r["warned"] for r in rs])),
+                         "warned_of_failed": (float(np.mean([r["warned"] for r in rs if r["failed"]]))
+                                              if any(r["failed"] for r in rs) else None)}
+    return {
+        "spearman_normal_pairs": rho(normal), "spearman_between_subjects": rho(between), "spearman_to_atlas": rho(to_atlas),
+        "auroc_failure": auroc(np.asarray([r["failure_probability"] for r in records]), np.asarray(outcome))
+        if 0 < sum(outcome) < len(outcome)
+        else math.nan,
+        "false_warnings_normal": float(np.mean([r["warned"] for r in normal])) if normal else math.nan,
+        "num_registrations": len(records), "num_failed": int(sum(outcome)),
+        "warned_of_failed": float(np.mean([r["warned"] for r in records if r["failed"]])) if any(outcome) else None,
+        "per_perturbation": per,
+    }
+
+
+def markdown(result: dict[str, Any], threshold: float) -> str:
+    lines = ["| what | value | target |", "|---|---|---|",
+             (f"| Spearman(predicted, actual Dice), normal validation pairs (to atlas and between subjects) | "
+              f"{result['spearman_normal_pairs']:.3f} (between subjects {result['spearman_between_subjects']:.3f}, to "
+              f"atlas {result['spearman_to_atlas']:.3f}) | >= 0.5 |"),
+             (f"| failure detection AUROC ({result['num_failed']} failed of {result['num_registrations']}) | "
+              f"{result['auroc_failure']:.3f} | >= 0.9 |"),
+             (f"| false warnings on normal validation pairs (threshold {threshold:.2f}) | "
+              f"{100 * result['false_warnings_normal']:.1f}% | <= 5% |"), "",
+             "| perturbation of the moving scan | n | Dice before | Dice after | failed | warned | warned, of the failed |",
+             "|---|---|---|---|---|---|---|"]
+    for name, p in result["per_perturbation"].items():
+        wf = "–" if p["warned_of_failed"] is None else f"{100 * p['warned_of_failed']:.0f}%"
+        lines.append(f"| {name} | {p['n']} | {p['dice_before']:.3f} | {p['dice_after']:.3f} | {100 * p['failed']:.0f}% "
+                     f"| {100 * p['warned']:.0f}% | {wf} |")
+    return "\n".join(lines)
+
+
+def figure(records: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 5.5))
+    names = [NORMAL, *PERTURBATIONS]
+    colours = plt.cm.tab10(np.linspace(0, 1, len(names)))
+    for name, colour in zip(names, colours):
+        rs = [r for r in records if r["perturbation"] == name]
+        if rs:
+            ax.scatter([r["dice"] for r in rs], [r["failure_probability"] for r in rs], s=18, color=colour,
+                       marker="o" if name == NORMAL else "x", label=name)
+    ax.set_xlabel("actual mean Dice")
+    ax.set_ylabel("estimated probability of failure")
+    ax.set_title("validation registrations: the quality estimate (fitted on training subjects)")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def turned_header(scan: Path, degrees: float, out: Path, reference: Path | None = None) -> Path:
+    """``scan`` with its header turned by ``degrees`` about the world S axis through the centre of ``reference``'s
+    grid (default: its own; the voxels untouched): what a wrong orientation header does to a scan (and its labels)."""
+    image = nib.load(scan)
+    grid = nib.load(reference) if reference is not None else image
+    centre = grid.affine @ np.r_[(np.asarray(grid.shape[:3]) - 1) / 2, 1.0]
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    turn = np.eye(4)
+    turn[:2, :2] = [[c, -s], [s, c]]
+    turn[:3, 3] = centre[:3] - turn[:3, :3] @ centre[:3]
+    turned = nib.Nifti1Image(np.asanyarray(image.dataobj), turn @ image.affine, image.header)
+    turned.set_qform(turn @ image.affine, code=1)
+    turned.set_sform(turn @ image.affine, code=1)
+    nib.save(turned, out)
+    return out
+
+
+def native_cases(native_dir: Path, dataset_dir: Path, threads: int) -> list[dict]:
+    """The whole command on each native scan, as it is and with a turned header; its quality estimate and Dice."""
+    index = index_dataset(dataset_dir)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="failure_native_") as tmp:
+        for scan in sorted(p for p in native_dir.glob("*.nii.gz") if not p.name.endswith("_labels.nii.gz")):
+            sid = scan.name[: -len(".nii.gz")]
+            labels = native_dir / f"{sid}_labels.nii.gz"
+            for degrees in HEADER_TURNS:
+                moving, moving_labels = scan, labels
+                if degrees:  # the labels share the scan's (wrong) header
+                    moving = turned_header(scan, degrees, Path(tmp) / f"{sid}_turn{degrees}.nii.gz")
+                    if labels.is_file():
+                        moving_labels = turned_header(labels, degrees, Path(tmp) / f"{sid}_labels_turn{degrees}.nii.gz",
+                                                      reference=scan)
+                out = Path(tmp) / f"{sid}_{degrees}"
+                cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register", "--moving", str(moving), "--fixed",
+                       str(index.atlas_image), "--out", str(out), "--threads", str(threads), "--quiet", "--no-qc",
+                       "--no-inverse"]
+                if labels.is_file():
+                    cmd += ["--moving-label", str(moving_labels), "--fixed-label", str(index.atlas_label)]
+                done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                if done.returncode != 0:
+                    raise RuntimeError(f"{' '.join(cmd)} failed: {done.stderr[-1500:]}")
+                summary = json.loads((out / "summary.json").read_text())
+                dice, quality = summary["dice"] or {}, summary["quality"] or {}
+                rows.append({"scan": sid, "header_turn_deg": degrees, "dice": dice.get("mean"),
+                             "dice_affine_only": dice.get("mean_affine_only"),
+                             "predicted_dice": quality.get("predicted_dice"),
+                             "failure_probability": quality.get("failure_probability"),
+                             "warning": summary["warning"], "printed": "warning:" in done.stderr})
+                print(f"native {sid}, header turned {degrees} deg: Dice {rows[-1]['dice']}, predicted "
+                      f"{rows[-1]['predicted_dice']}, failure probability {rows[-1]['failure_probability']}, "
+                      f"{'WARNED' if rows[-1]['warning'] else 'no warning'}", flush=True)
+    return rows
+
+
+def native_markdown(rows: list[dict]) -> str:
+    def num(v):
+        return "–" if v is None else f"{v:.3f}"
+    lines = [("| native scan (whole command) | header turned | Dice (affine only) | predicted Dice | failure probability "
+              "| warning |"), "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scan']} | {r['header_turn_deg']} deg | {num(r['dice'])} ({num(r['dice_affine_only'])}) | "
+                     f"{num(r['predicted_dice'])} | {num(r['failure_probability'])} | {'yes' if r['warning'] else 'no'} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET)
+    ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
+    ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
+    ap.add_argument("--train-subjects", type=int, default=None, help="use only the first N training subjects")
+    ap.add_argument("--subjects", nargs="+", default=None, help="validation subjects (default: val_ids of train.yaml)")
+    ap.add_argument("--records", type=Path, default=None, help="reuse the registrations of an earlier run's JSON")
+    ap.add_argument("--fit", action="store_true", help="write the fitted model next to the weights")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE,
+                    help="native scans for the whole-command check (after --fit; absent: skipped)")
+    args = ap.parse_args(argv)
+    if args.records is None and not args.dataset_dir.is_dir():
+        print(f"skipped: dataset not found at {args.dataset_dir}")
+        return 0
+    torch.set_num_threads(args.threads)
+    start = time.time()
+    bundle_root = args.bundle_root.resolve()
+    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
+    model_file = (args.model_file or Path(evaluate.get_parsed_content("model_file"))).resolve()
+    if args.records is not None:
+        stored = json.loads(args.records.read_text())
+        train_records, val_records = stored["train_records"], stored["val_records"]
+    else:
+        network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
+        calibration = calibration_for(model_file)
+        val_ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+        index = index_dataset(args.dataset_dir)
+        train_ids = [i for i in index.ids if i not in val_ids][: args.train_subjects]
+        scans = _scans(args.dataset_dir, train_ids + val_ids, int(evaluate.get_parsed_content("divisor")))
+        records = {}
+        for split, ids, seed in (("train", train_ids, args.seed), ("val", val_ids, args.seed + 100_000)):
+            cases = cases_for(ids, seed, training=split == "train")
+            records[split] = []
+            for n, case in enumerate(cases):
+                r = run_case(network, calibration, scans, case)
+                records[split].append(r)
+                print(f"[{split} {n + 1}/{len(cases)}] {r['moving']} -> {r['fixed']} ({r['perturbation']}): Dice "
+                      f"{r['dice_identity']:.3f} -> {r['dice']:.3f}{' FAILED' if r['failed'] else ''}  "
+                      f"ncc {r['features']['ncc_before']:.2f} -> {r['features']['ncc_after']:.2f}", flush=True)
+        train_records, val_records = records["train"], records["val"]
+        args.out_dir.mkdir(parents=True, exist_ok=True)  # the registrations first: a refit needs only these
+        write_text(args.out_dir / "failure_detection.json", json.dumps(
+            {"model_file": str(model_file), "train_records": train_records, "val_records": val_records}) + "\n")
+    fitted_on = sorted({r["moving"] for r in train_records})
+    model = fit_quality_model(_features(train_records), [r["dice"] for r in train_records],
+                              [r["failed"] for r in train_records], fitted_on=fitted_on)
+    train_result, result = score(model, train_records), score(model, val_records)
+    table = markdown(result, model.threshold)
+    print(table)
+    print(f"(training registrations, the fit itself: AUROC {train_result['auroc_failure']:.3f}, Spearman normal "
+          f"{train_result['spearman_normal_pairs']:.3f}, false warnings {100 * train_result['false_warnings_normal']:.1f}%)")
+    native = []
+    if args.fit:
+        print(f"wrote {save_quality_model(model, model_file)}")
+        if args.native_dir.is_dir() and args.dataset_dir.is_dir():
+            native = native_cases(args.native_dir, args.dataset_dir, args.threads)
+            table += "\n\n" + native_markdown(native)
+            print(native_markdown(native))
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    write_text(args.out_dir / "failure_detection.json", json.dumps({
+        "model_file": str(model_file), "validation": result, "training_fit": train_result, "markdown": table,
+        "native": native,
+        "model": {k: v for k, v in model.__dict__.items()}, "seconds": round(time.time() - start, 1),
+        "train_records": train_records, "val_records": val_records}, indent=1) + "\n")
+    figure(val_records, args.out_dir / "failure_detection.png")
+    print(f"wrote {args.out_dir / 'failure_detection.json'} and failure_detection.png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,83 @@
+"""The quality estimate in the bundle's workflows: one :class:`QualityCheck` shared by the engine handlers.
+
+``RegistrationWriter`` (inference.yaml) and ``RegistrationScorer`` (evaluate.yaml) call it per subject: it computes
+the label-free features of the registration (:mod:`monai_probreg.uncertainty.quality_features`) from the batch
+(``moving``/``fixed``: the network inputs) and the network's output, on the calibrated posterior, applies the
+weights' quality model (``<weights stem>.quality.json``, :mod:`monai_probreg.uncertainty.quality`) and logs one
+warning line for a registration that probably failed. The writer stores the estimate as ``<id>/quality.json``; the
+scorer adds it to ``scores.csv`` and ``summary.json``. Weights without a quality model: no estimate, said once.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+import torch
+from torch import nn
+
+from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.uncertainty.posterior_maps import posterior_maps
+from monai_probreg.uncertainty.quality import QualityEstimate, QualityModel, load_quality_model, quality_path
+from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
+from monai_probreg.utils.tensors import plain_tensor
+
+__all__ = ["QualityCheck", "QualityRecord"]
+
+_LOG = logging.getLogger(__name__)
+
+
+class QualityRecord(dict):
+    """``{"predicted_dice", "failure_probability", "warning", "features"}`` of one registration (JSON-ready)."""
+
+    @classmethod
+    def of(cls, features: QualityFeatures, estimate: QualityEstimate) -> QualityRecord:
+        return cls(predicted_dice=estimate.predicted_dice, failure_probability=estimate.failure_probability,
+                   warning=estimate.warning, features=features._asdict())
+
+
+class QualityCheck:
+    """Per-subject quality estimate of a bundle workflow.
+
+    Args:
+        network: the registration network (its ``velocity_to_displacement`` is not needed: the entropy alone).
+        model_file: the weights; their ``<stem>.quality.json`` is loaded (None: no estimate).
+        std_scale, bias_fraction: the posterior calibration in use (the quality model is fitted on it).
+        calibrate: False (raw posterior): no estimate, since the model was fitted on the calibrated one.
+        quality_model: a model to use instead of the sidecar (tests).
+    """
+
+    def __init__(self, network: nn.Module, model_file: str | os.PathLike, std_scale: float = 1.0,
+                 bias_fraction: float = 0.0, calibrate: bool = True, quality_model: QualityModel | None = None) -> None:
+        self.network, self.std_scale, self.bias_fraction = network, float(std_scale), float(bias_fraction)
+        self.model = quality_model if quality_model is not None else (
+            load_quality_model(model_file) if calibrate else None)
+        if self.model is None:
+            why = "raw posterior (calibrate: false)" if not calibrate else f"no {quality_path(model_file).name}"
+            _LOG.info(f"no quality estimate for {model_file}: {why}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.model is not None
+
+    def __call__(self, sid: str, pair: RegistrationOutput, targets: dict) -> QualityRecord | None:
+        """The estimate of the first registration of the batch (the workflows run one pair per batch)."""
+        if self.model is None:
+            return None
+        moving, fixed = plain_tensor(targets["moving"])[0, 0], plain_tensor(targets["fixed"])[0, 0]
+        affine = targets["fixed"].affine if hasattr(targets["fixed"], "affine") else None
+        spacing = None
+        if affine is not None:
+            matrix = np.asarray(affine[0] if affine.ndim == 3 else affine, dtype=np.float64)
+            spacing = np.linalg.norm(matrix[:3, :3], axis=0).tolist()
+        shape = pair.displacement.shape[2:]
+        entropy = posterior_maps(self.network, pair.velocity_mean[:1], pair.velocity_log_var[:1], shape,
+                                 std_scale=self.std_scale, bias_fraction=self.bias_fraction).velocity_entropy
+        with torch.inference_mode():
+            features = quality_features(moving, fixed, plain_tensor(pair.warped)[0, 0],
+                                        plain_tensor(pair.displacement)[0], entropy, spacing)
+        estimate = self.model.estimate(features)
+        if estimate.warning:  # a warning never stops the workflow
+            _LOG.warning(f"{sid}: WARNING: {estimate.warning}")
+        return QualityRecord.of(features, estimate)

@@ -1,0 +1,193 @@
+"""A per-registration quality estimate: a predicted Dice and a probability that the registration failed.
+
+Two small models on the label-free features of :mod:`monai_probreg.uncertainty.quality_features`, clipped to the
+range the fit saw (a linear model must not extrapolate: a registration better aligned before the deformable step than
+any training pair, e.g. after the command line's full affine, is predicted as the best of them, not beyond) and
+standardised with the training set's mean and spread:
+
+- predicted Dice: ridge regression of the actual mean Dice;
+- failure probability: L2-regularised logistic regression of "failed", where a registration *failed* when its Dice
+  is below the Dice before the deformable step (the affine alone) or below no registration + ``FAILURE_MARGIN``
+  (the issue "Uncertainty that warns": the definition the detector is scored on).
+
+A registration gets a warning when its failure probability is at least the model's ``threshold``. Both are fitted
+by ``benchmarks/failure_detection.py`` on *training* subjects only (normal pairs and a failure set: wrong
+orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast) and stored next to the
+weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration (the entropy feature is
+the calibrated one). Written by hand: ten lines of closed-form ridge and Newton's method, where scikit-learn would be
+a dependency for two linear models.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from monai_probreg.uncertainty.quality_features import QualityFeatures
+from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import file_sha256
+
+__all__ = [
+    "FAILURE_MARGIN",
+    "QualityEstimate",
+    "QualityModel",
+    "failed",
+    "fit_quality_model",
+    "load_quality_model",
+    "quality_path",
+    "save_quality_model",
+]
+
+FAILURE_MARGIN = 0.05       # Dice below no registration + this counts as a failure (the issue's definition)
+RIDGE = 1e-2                # L2 penalty of both fits, on standardised features (numerical safety, not tuning)
+NEWTON_STEPS = 50           # logistic fit: Newton iterations (converges in < 15 on the failure set)
+DEFAULT_THRESHOLD = 0.5     # failure probability from which a registration is flagged
+
+
+def failed(dice: float, dice_before: float, dice_identity: float, margin: float = FAILURE_MARGIN) -> bool:
+    """The failure definition: Dice below the affine-only Dice or below no registration + ``margin``."""
+    return bool(dice < dice_before or dice < dice_identity + margin)
+
+
+class QualityEstimate(NamedTuple):
+    """The estimate of one registration: predicted mean Dice, probability of failure, and the warning (None = no)."""
+
+    predicted_dice: float
+    failure_probability: float
+    warning: str | None
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.clip(x, -40.0, 40.0)))
+
+
+@dataclass
+class QualityModel:
+    """Standardisation and the two linear models; :meth:`estimate` applies them to :class:`QualityFeatures`."""
+
+    feature_names: list[str]
+    low: list[float]   # per feature: the training range, features are clipped to it
+    high: list[float]
+    mean: list[float]
+    scale: list[float]
+    dice_coef: list[float]
+    dice_intercept: float
+    failure_coef: list[float]
+    failure_intercept: float
+    threshold: float = DEFAULT_THRESHOLD
+    dice_range: list[float] = field(default_factory=lambda: [0.0, 1.0])  # the fit's Dice range: predictions stay in it
+    weights_file: str = ""
+    weights_sha256: str = ""
+    fitted_on: list[str] = field(default_factory=list)
+    definition: str = (f"failed = Dice < Dice before the deformable step, or Dice < no registration + "
+                       f"{FAILURE_MARGIN}")
+
+    def __post_init__(self) -> None:
+        n = len(self.feature_names)
+        if list(self.feature_names) != list(QualityFeatures._fields):
+            raise ValueError(f"feature_names must be {list(QualityFeatures._fields)}; got {self.feature_names}")
+        for name in ("low", "high", "mean", "scale", "dice_coef", "failure_coef"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"{name} must have {n} values (one per feature); got {len(getattr(self, name))}")
+        if any(not s > 0 for s in self.scale):
+            raise ValueError(f"scale must be positive; got {self.scale}")
+        if any(not lo <= hi for lo, hi in zip(self.low, self.high)):
+            raise ValueError(f"low must be <= high per feature; got {self.low} and {self.high}")
+        if len(self.dice_range) != 2 or not 0.0 <= self.dice_range[0] <= self.dice_range[1] <= 1.0:
+            raise ValueError(f"dice_range must be [low, high] within [0, 1]; got {self.dice_range}")
+        if not 0.0 < self.threshold < 1.0:
+            raise ValueError(f"threshold must be in (0, 1); got {self.threshold}")
+
+    def _standardise(self, features: Sequence[QualityFeatures]) -> np.ndarray:
+        x = np.asarray([list(f) for f in features], dtype=np.float64).reshape(len(features), len(self.mean))
+        x = np.clip(x, np.asarray(self.low), np.asarray(self.high))
+        return (x - np.asarray(self.mean)) / np.asarray(self.scale)
+
+    def predict(self, features: Sequence[QualityFeatures]) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted Dice and failure probability of each registration (arrays of len(features))."""
+        z = self._standardise(features)
+        dice = np.clip(z @ np.asarray(self.dice_coef) + self.dice_intercept, *self.dice_range)
+        probability = _sigmoid(z @ np.asarray(self.failure_coef) + self.failure_intercept)
+        return dice, probability
+
+    def estimate(self, features: QualityFeatures) -> QualityEstimate:
+        """The estimate of one registration, with a one-line warning when it probably failed."""
+        if not all(math.isfinite(v) for v in features):
+            return QualityEstimate(math.nan, 1.0, "the registration's quality features are not finite "
+                                   "(an empty or constant image?): do not trust this registration")
+        dice, probability = (float(a[0]) for a in self.predict([features]))
+        warning = None
+        if probability >= self.threshold:
+            warning = (f"this registration probably failed (estimated probability {probability:.2f}, predicted Dice "
+                       f"{dice:.2f}): check the QC figure, the input's orientation header, field of view and contrast")
+        return QualityEstimate(dice, probability, warning)
+
+
+def fit_quality_model(features: Sequence[QualityFeatures], dice: Sequence[float], failures: Sequence[bool],
+                      threshold: float = DEFAULT_THRESHOLD, fitted_on: Sequence[str] = ()) -> QualityModel:
+    """Fit both models on registrations with known outcome (training subjects only)."""
+    x = np.asarray([list(f) for f in features], dtype=np.float64)
+    y = np.asarray(dice, dtype=np.float64)
+    t = np.asarray(failures, dtype=np.float64)
+    if x.ndim != 2 or len(x) < 2 or len(y) != len(x) or len(t) != len(x):
+        raise ValueError(f"need >= 2 registrations with one Dice and one failure flag each; got {len(x)} feature "
+                         f"rows, {len(y)} Dice values, {len(t)} flags")
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise ValueError("features and Dice must be finite")
+    mean, scale = x.mean(0), x.std(0)
+    scale[scale < 1e-8] = 1.0  # a constant feature carries nothing: keep it, with weight fitted to ~0
+    z = np.hstack([(x - mean) / scale, np.ones((len(x), 1))])
+    penalty = RIDGE * np.eye(z.shape[1])
+    penalty[-1, -1] = 0.0  # no penalty on the intercept
+    dice_w = np.linalg.solve(z.T @ z + penalty, z.T @ y)
+    fail_w = np.zeros(z.shape[1])
+    for _ in range(NEWTON_STEPS):  # Newton's method on the penalised log-likelihood (convex)
+        p = _sigmoid(z @ fail_w)
+        gradient = z.T @ (p - t) + penalty @ fail_w
+        hessian = (z * (p * (1 - p))[:, None]).T @ z + penalty + 1e-9 * np.eye(z.shape[1])
+        step = np.linalg.solve(hessian, gradient)
+        fail_w -= step
+        if np.abs(step).max() < 1e-8:
+            break
+    return QualityModel(list(QualityFeatures._fields), x.min(0).tolist(), x.max(0).tolist(), mean.tolist(),
+                        scale.tolist(), dice_w[:-1].tolist(),
+                        float(dice_w[-1]), fail_w[:-1].tolist(), float(fail_w[-1]), float(threshold),
+                        dice_range=[float(y.min()), float(y.max())], fitted_on=list(fitted_on))
+
+
+def quality_path(weights_file: str | os.PathLike) -> Path:
+    """``models/model.pt`` -> ``models/model.quality.json``."""
+    path = Path(weights_file)
+    return path.with_name(path.stem + ".quality.json")
+
+
+def save_quality_model(model: QualityModel, weights_file: str | os.PathLike) -> Path:
+    """Write ``model`` as the sidecar of ``weights_file`` (atomically), stamped with the weights' SHA-256."""
+    model.weights_file, model.weights_sha256 = Path(weights_file).name, file_sha256(weights_file)
+    target = quality_path(weights_file)
+    write_text(target, json.dumps(asdict(model), indent=2) + "\n")
+    return target
+
+
+def load_quality_model(weights_file: str | os.PathLike) -> QualityModel | None:
+    """The sidecar of ``weights_file``, or None when it has none; refuses one fitted for other weights."""
+    path = quality_path(weights_file)
+    if not path.is_file():
+        return None
+    try:
+        model = QualityModel(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(f"{path}: not a quality model ({err})") from None
+    actual = file_sha256(weights_file)
+    if model.weights_sha256 != actual:
+        raise ValueError(f"{path} was fitted for weights with SHA-256 {model.weights_sha256[:12]}..., but "
+                         f"{weights_file} has {actual[:12]}...; refit it (benchmarks/failure_detection.py --fit)")
+    return model
+

@@ -1,0 +1,108 @@
+"""The quality estimate on the command line: summary.json, the printed warning, the batch table; never the exit status.
+
+The weights of the tiny bundle are random, so the quality model here is made by hand: all weights 0 and an intercept
+that puts the failure probability near 1 (always warns) or near 0 (never warns). What is tested is the plumbing;
+the estimate itself is tested in tests/uncertainty and scored by benchmarks/failure_detection.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from types import SimpleNamespace
+
+import pytest
+from conftest import BUNDLE_DIR, FAST_AFFINE, FIXED_LPS, moved_phantom, run_cli, save_lps, tiny_bundle
+
+from monai_probreg.uncertainty.quality import QualityModel, quality_path, save_quality_model
+from monai_probreg.uncertainty.quality_features import QualityFeatures
+
+N = len(QualityFeatures._fields)
+
+
+def _quality_model(failure_intercept: float) -> QualityModel:
+    return QualityModel(list(QualityFeatures._fields), [-1e9] * N, [1e9] * N, [0.0] * N, [1.0] * N, [0.0] * N, 0.61, [0.0] * N,
+                        failure_intercept)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> SimpleNamespace:
+    root = tmp_path_factory.mktemp("quality")
+    case = moved_phantom([6.0, -4.0, 5.0], [2.0, -1.0, 1.5])
+    bundle = tiny_bundle(root / "bundle", BUNDLE_DIR)
+    s = SimpleNamespace(root=root, bundle=bundle, weights=bundle / "models" / "model_anypair.pt",
+                        fixed=save_lps(root / "fixed.nii.gz", case.image, FIXED_LPS),
+                        moving=save_lps(root / "moving.nii.gz", case.moved, case.grid))
+    s.common = ["--fixed", str(s.fixed), "--bundle-root", str(s.bundle), *FAST_AFFINE]
+    return s
+
+
+def _register(scene, out, failure_intercept: float, *extra: str):
+    save_quality_model(_quality_model(failure_intercept), scene.weights)
+    try:
+        return run_cli("register", "--moving", str(scene.moving), "--out", str(out), *scene.common, *extra)
+    finally:
+        quality_path(scene.weights).unlink()
+
+
+def test_a_probable_failure_is_reported_but_the_run_succeeds(scene):
+    out = scene.root / "warned"
+    result = _register(scene, out, 20.0)
+    assert result.rc == 0, result.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["warning"] and "probably failed" in summary["warning"]
+    assert summary["quality"]["failure_probability"] > 0.99
+    assert summary["quality"]["predicted_dice"] == pytest.approx(0.61)
+    assert set(summary["quality"]["features"]) == set(QualityFeatures._fields)
+    assert "quality" in summary["timings_s"]
+    assert f"warning: {out}" in result.err and "probably failed" in result.err
+    assert "predicted Dice 0.61" in result.out
+    assert (out / "qc.png").is_file()
+
+
+def test_no_warning_for_a_probable_success(scene):
+    out = scene.root / "fine"
+    result = _register(scene, out, -20.0)
+    assert result.rc == 0, result.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["warning"] is None and summary["quality"]["failure_probability"] < 0.01
+    assert "warning" not in result.err
+
+
+def test_weights_without_a_quality_model_give_no_estimate(scene):
+    out = scene.root / "none"
+    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--no-qc", *scene.common)
+    assert result.rc == 0, result.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["quality"] is None and summary["warning"] is None and "quality" not in summary["timings_s"]
+
+
+def test_a_quality_model_of_other_weights_is_refused(scene, tmp_path):
+    save_quality_model(_quality_model(0.0), scene.weights)
+    path = quality_path(scene.weights)
+    record = json.loads(path.read_text())
+    record["weights_sha256"] = "0" * 64
+    path.write_text(json.dumps(record))
+    try:
+        result = run_cli("register", "--moving", str(scene.moving), "--out", str(tmp_path / "o"), *scene.common)
+    finally:
+        path.unlink()
+    assert result.rc == 1 and "refit" in result.err and "--model-file" in result.err
+
+
+def test_the_batch_lists_the_warning_and_the_scan_stays_ok(scene, tmp_path):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    shutil.copy(scene.moving, scans / "A.nii.gz")
+    save_quality_model(_quality_model(20.0), scene.weights)
+    try:
+        result = run_cli("register-batch", "--moving", str(scans), "--out", str(tmp_path / "out"), "--no-qc",
+                         *scene.common)
+    finally:
+        quality_path(scene.weights).unlink()
+    assert result.rc == 0, result.err
+    row = next(csv.DictReader((tmp_path / "out" / "batch_summary.csv").open()))
+    assert row["status"] == "ok" and "probably failed" in row["warning"]
+    assert float(row["failure_probability"]) > 0.99 and float(row["predicted_dice"]) == pytest.approx(0.61)
+    assert "WARNING" in result.out

@@ -1,0 +1,152 @@
+"""monai_probreg.uncertainty.quality: the failure definition, the fits, the warning and the sidecar."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from monai_probreg.uncertainty.quality import (
+    FAILURE_MARGIN,
+    QualityModel,
+    failed,
+    fit_quality_model,
+    load_quality_model,
+    quality_path,
+    save_quality_model,
+)
+from monai_probreg.uncertainty.quality_features import QualityFeatures
+
+N = len(QualityFeatures._fields)
+
+
+def _features(ncc_after: float, rng: np.random.Generator) -> QualityFeatures:
+    noise = rng.normal(0, 0.01, N)
+    return QualityFeatures(*(float(v) for v in np.r_[0.5, ncc_after, 0.4, ncc_after - 0.1, 1.0, 2.0, 0.2, 0.0] + noise))
+
+
+def _training_set(seed: int = 0):
+    """Synthetic registrations whose Dice is a known linear function of ncc_after; failures below 0.4."""
+    rng = np.random.default_rng(seed)
+    ncc = rng.uniform(-0.3, 0.9, 120)
+    features = [_features(float(c), rng) for c in ncc]
+    dice = 0.2 + 0.5 * ncc
+    return features, dice, dice < 0.4
+
+
+@pytest.mark.parametrize("dice, before, identity, expected", [
+    (0.70, 0.60, 0.55, False),
+    (0.59, 0.60, 0.50, True),                      # below the affine alone
+    (0.58, 0.50, 0.55, True),                      # below no registration + margin
+    (0.55 + FAILURE_MARGIN, 0.50, 0.55, False),    # exactly at the margin is not a failure
+])
+def test_the_failure_definition(dice, before, identity, expected):
+    assert failed(dice, before, identity) is expected
+
+
+def test_the_fits_recover_a_known_relation():
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures, fitted_on=["A", "B"])
+    test_features, test_dice, test_failures = _training_set(seed=1)
+    predicted, probability = model.predict(test_features)
+    assert np.abs(predicted - test_dice).max() < 0.05
+    assert (probability[test_failures] > 0.5).mean() > 0.9 and (probability[~test_failures] < 0.5).mean() > 0.9
+    assert model.fitted_on == ["A", "B"]
+
+
+def test_estimate_warns_only_above_the_threshold():
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    rng = np.random.default_rng(3)
+    good, bad = model.estimate(_features(0.85, rng)), model.estimate(_features(-0.25, rng))
+    assert good.warning is None and good.failure_probability < 0.5 and good.predicted_dice > 0.55
+    assert bad.warning is not None and "probably failed" in bad.warning and bad.failure_probability >= 0.5
+
+
+def test_non_finite_features_warn():
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    estimate = model.estimate(QualityFeatures(*([math.nan] + [0.0] * (N - 1))))
+    assert estimate.failure_probability == 1.0 and "not finite" in estimate.warning
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"features": [], "dice": [], "failures": []}, ">= 2 registrations"),
+    ({"dice": [0.5]}, ">= 2 registrations"),
+    ({"failures": [True]}, ">= 2 registrations"),
+])
+def test_bad_fit_inputs_are_refused(kwargs, match):
+    features, dice, failures = _training_set()
+    args = {"features": features, "dice": dice, "failures": failures, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        fit_quality_model(**args)
+
+
+def test_non_finite_training_features_are_refused():
+    features, dice, failures = _training_set()
+    features[3] = QualityFeatures(*([math.inf] + list(features[3])[1:]))
+    with pytest.raises(ValueError, match="finite"):
+        fit_quality_model(features, dice, failures)
+
+
+def _model(**changes) -> dict:
+    features, dice, failures = _training_set()
+    data = fit_quality_model(features, dice, failures).__dict__.copy()
+    data.update(changes)
+    return data
+
+
+@pytest.mark.parametrize("changes, match", [
+    ({"feature_names": ["a"] * N}, "feature_names"),
+    ({"mean": [0.0]}, "mean must have"),
+    ({"scale": [0.0] * N}, "scale must be positive"),
+    ({"low": [1.0] * N, "high": [0.0] * N}, "low must be <= high"),
+    ({"threshold": 1.0}, "threshold"),
+    ({"dice_range": [0.8, 0.2]}, "dice_range"),
+])
+def test_bad_model_values_are_refused(changes, match):
+    with pytest.raises(ValueError, match=match):
+        QualityModel(**_model(**changes))
+
+
+def test_sidecar_round_trip_and_weights_check(tmp_path):
+    weights = tmp_path / "model.pt"
+    torch.save({"w": torch.zeros(2)}, weights)
+    assert load_quality_model(weights) is None  # none yet
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    path = save_quality_model(model, weights)
+    assert path == quality_path(weights) == tmp_path / "model.quality.json"
+    loaded = load_quality_model(weights)
+    assert loaded == model and loaded.weights_file == "model.pt"
+    torch.save({"w": torch.ones(2)}, weights)  # retrained weights: the old sidecar must not be used
+    with pytest.raises(ValueError, match="refit"):
+        load_quality_model(weights)
+    path.write_text(json.dumps({"not": "a model"}))
+    with pytest.raises(ValueError, match="not a quality model"):
+        load_quality_model(weights)
+
+
+def test_features_outside_the_training_range_are_not_extrapolated():
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    rng = np.random.default_rng(5)
+    edge, beyond = _features(0.9, rng), _features(5.0, rng)  # ncc_after far above anything seen
+    assert model.predict([beyond])[0][0] == pytest.approx(model.predict([edge])[0][0], abs=0.02)
+    assert model.predict([beyond])[0][0] < 0.7
+    assert model.dice_range == [pytest.approx(min(dice)), pytest.approx(max(dice))]
+    assert np.all(model.predict(features)[0] <= max(dice) + 1e-12)
+
+
+def test_the_shipped_default_weights_carry_their_own_quality_model():
+    """New default weights need a refitted quality model (benchmarks/failure_detection.py --fit): a stale one would be
+    refused at inference time; this catches it before release."""
+    from pathlib import Path
+
+    weights = Path(__file__).resolve().parents[2] / "bundle" / "models" / "model_anypair.pt"
+    model = load_quality_model(weights)  # raises when the SHA-256 does not match the weights
+    assert model is not None and len(model.fitted_on) >= 2
+    assert not {"S11", "S14", "S16", "S21", "S28", "S29"} & set(model.fitted_on)  # never a validation subject

@@ -1,0 +1,93 @@
+"""monai_probreg.uncertainty.quality_features: closed-form cases of each feature, 2-d and 3-d, and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from monai_probreg.uncertainty.quality_features import FOREGROUND_LEVEL, quality_features
+
+
+def _blob(shape, centre=(0.2, -0.1, 0.05)):
+    axes = torch.meshgrid(*[torch.linspace(-1, 1, n) for n in shape], indexing="ij")
+    r2 = sum((a - c) ** 2 for a, c in zip(axes, centre))
+    texture = 0.2 * torch.sin(7 * axes[0]) * torch.cos(5 * axes[1])  # structure inside, for the local NCC
+    return (torch.exp(-r2 / 0.3) * (0.8 + texture)).clamp(0, 1)
+
+
+@pytest.mark.parametrize("shape", [(20, 24, 18), (28, 24)])
+def test_a_perfect_match_and_no_deformation(shape):
+    fixed = _blob(shape)
+    zero = torch.zeros((len(shape), *shape))
+    f = quality_features(fixed, fixed, fixed, zero, torch.full(shape, 0.7))
+    assert f.ncc_before == pytest.approx(1.0, abs=1e-5) and f.ncc_after == pytest.approx(1.0, abs=1e-5)
+    assert f.lncc_before == pytest.approx(1.0, abs=0.05) and f.lncc_after == pytest.approx(1.0, abs=0.05)
+    assert f.entropy == pytest.approx(0.7, abs=1e-6)
+    assert f.displacement_mm == 0.0 and f.folding_percent == 0.0 and f.std_log_jacobian == pytest.approx(0, abs=1e-6)
+
+
+def test_inverted_contrast_correlates_negatively():
+    fixed = _blob((20, 24, 18))
+    inverted = torch.where(fixed > FOREGROUND_LEVEL, 1 - fixed, fixed)
+    f = quality_features(inverted, fixed, fixed, torch.zeros((3, 20, 24, 18)), torch.zeros(20, 24, 18))
+    assert f.ncc_before < -0.5 and f.ncc_after == pytest.approx(1.0, abs=1e-5)
+    assert f.lncc_before < f.lncc_after
+
+
+def test_displacement_length_is_in_mm_per_axis_spacing():
+    shape = (20, 24, 18)
+    fixed = _blob(shape)
+    displacement = torch.zeros((3, *shape))
+    displacement[0], displacement[2] = 2.0, 1.0  # voxels: a translation
+    f = quality_features(fixed, fixed, fixed, displacement, torch.zeros(shape), spacing=(1.5, 1.0, 2.0))
+    assert f.displacement_mm == pytest.approx(math.hypot(3.0, 2.0), rel=1e-5)
+    assert f.folding_percent == 0.0 and f.std_log_jacobian == pytest.approx(0, abs=1e-6)
+
+
+def test_folding_is_counted_inside_the_foreground():
+    shape = (20, 24, 18)
+    fixed = _blob(shape)
+    displacement = torch.zeros((3, *shape))
+    displacement[0] = -1.5 * torch.arange(shape[0]).view(-1, 1, 1).float()  # du/dx = -1.5: det = -0.5 everywhere
+    f = quality_features(fixed, fixed, fixed, displacement, torch.zeros(shape))
+    assert f.folding_percent == pytest.approx(100.0)
+
+
+def test_a_given_jacobian_is_used():
+    shape = (12, 14, 10)
+    fixed = _blob(shape)
+    jacobian = torch.ones(shape)
+    jacobian[fixed > FOREGROUND_LEVEL] = -1.0
+    f = quality_features(fixed, fixed, fixed, torch.zeros((3, *shape)), torch.zeros(shape), jacobian=jacobian)
+    assert f.folding_percent == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("name, value, match", [
+    ("moving", torch.zeros(10, 12, 8), "moving must have shape"),
+    ("warped", torch.zeros(12, 14, 10, 1), "warped must have shape"),
+    ("displacement", torch.zeros(2, 12, 14, 10), "displacement must have shape"),
+    ("entropy", torch.zeros(12, 14), "entropy must have shape"),
+    ("jacobian", torch.zeros(12, 14, 11), "jacobian must have shape"),
+])
+def test_shapes_that_do_not_match_are_refused(name, value, match):
+    shape = (12, 14, 10)
+    fixed = _blob(shape)
+    args = {"moving": fixed, "fixed": fixed, "warped": fixed, "displacement": torch.zeros((3, *shape)),
+            "entropy": torch.zeros(shape), "jacobian": None, name: value}
+    with pytest.raises(ValueError, match=match):
+        quality_features(**args)
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0), (1.0, 0.0, 1.0), (1.0, -2.0, 1.0)])
+def test_bad_spacing_is_refused(spacing):
+    fixed = _blob((12, 14, 10))
+    with pytest.raises(ValueError, match="spacing"):
+        quality_features(fixed, fixed, fixed, torch.zeros((3, 12, 14, 10)), torch.zeros(12, 14, 10), spacing)
+
+
+def test_an_empty_fixed_image_is_refused():
+    empty = torch.zeros(12, 14, 10)
+    with pytest.raises(ValueError, match="voxels above"):
+        quality_features(empty, empty, empty, torch.zeros((3, 12, 14, 10)), empty)

@@ -60,7 +60,7 @@ def missing_block(image: torch.Tensor, label: torch.Tensor, g: torch.Generator) 
     size = int(_uniform(g, 30, 45))
     centre = _brain_centre(image, g, size // 2)
     out = image.clone()
-    out[(..., *[slice(c - size // 2, c + size // 2) for c in centre])] = 0.0
+    out[(..., *[slice(max(c - size // 2, 0), c + size // 2) for c in centre])] = 0.0
     return out, label
 
 

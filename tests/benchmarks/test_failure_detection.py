@@ -1,0 +1,62 @@
+"""benchmarks/failure_detection.py, failure_set.py and robustness.py: the cases, the header turn and the perturbations."""
+
+from __future__ import annotations
+
+import math
+
+import nibabel as nib
+import numpy as np
+import pytest
+import torch
+from bench_helpers import load_benchmark
+
+detection = load_benchmark("failure_detection")
+failure_set = load_benchmark("failure_set")
+robustness = load_benchmark("robustness")
+
+
+def test_cases_never_pair_a_scan_with_itself_and_cover_every_perturbation():
+    ids = ["A", "B", "C", "D"]
+    for training in (True, False):
+        cases = detection.cases_for(ids, 0, training)
+        assert all(c["moving"] != c["fixed"] for c in cases)
+        assert {c["perturbation"] for c in cases} == {detection.NORMAL, *failure_set.PERTURBATIONS}
+        assert len({c["seed"] for c in cases}) == len(cases)
+    validation = detection.cases_for(ids, 0, False)
+    normal = [c for c in validation if c["perturbation"] == detection.NORMAL]
+    assert len(normal) == len(ids) * len(ids)  # every ordered pair and every subject to the atlas
+
+
+def test_a_turned_header_turns_the_world_and_keeps_the_voxels(tmp_path):
+    data = np.arange(4 * 6 * 5, dtype=np.int16).reshape(4, 6, 5)
+    affine = np.diag([1.5, 1.0, 2.0, 1.0])
+    affine[:3, 3] = [10.0, -20.0, 5.0]
+    nib.save(nib.Nifti1Image(data, affine), tmp_path / "scan.nii.gz")
+    out = detection.turned_header(tmp_path / "scan.nii.gz", 180.0, tmp_path / "turned.nii.gz")
+    turned = nib.load(out)
+    assert np.array_equal(np.asanyarray(turned.dataobj), data)
+    centre = affine @ np.r_[1.5, 2.5, 2.0, 1.0]
+    assert np.allclose(turned.affine @ np.r_[1.5, 2.5, 2.0, 1.0], centre)  # about the grid centre
+    corner, turned_corner = affine @ np.r_[0, 0, 0, 1.0], turned.affine @ np.r_[0, 0, 0, 1.0]
+    assert np.allclose(turned_corner[:2] - centre[:2], -(corner[:2] - centre[:2]))  # R and A flip, S stays
+    assert math.isclose(turned_corner[2], corner[2])
+
+
+@pytest.mark.parametrize("name", list(failure_set.PERTURBATIONS))
+def test_failure_perturbations_keep_the_grid_and_move_labels_only_for_turns(name):
+    axes = torch.meshgrid(*[torch.linspace(-1, 1, n) for n in (40, 44, 36)], indexing="ij")
+    image = (1 - ((axes[0] - 0.2) ** 2 + (axes[1] + 0.1) ** 2 + axes[2] ** 2)).clamp(0, 1)[None, None]  # off-centre
+    label = (axes[0] > 0.3).to(torch.int16)[None, None]  # an asymmetric label: a turn must move it
+    out_image, out_label = failure_set.PERTURBATIONS[name](image, label, torch.Generator().manual_seed(0))
+    assert out_image.shape == image.shape and out_label.shape == label.shape and out_label.dtype == label.dtype
+    assert not torch.equal(out_image, image)
+    assert torch.equal(out_label, label) != name.startswith("turn")
+
+
+@pytest.mark.parametrize("name", [*robustness.PERTURBATIONS, "all"])
+def test_robustness_perturbations_are_seeded_and_scaled(name):
+    image = torch.rand((1, 1, 20, 24, 16), generator=torch.Generator().manual_seed(0))
+    out = robustness.perturb(image, name, 3)
+    assert out.shape == image.shape and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    assert torch.equal(out, robustness.perturb(image, name, 3))
+    assert not torch.equal(out, image)

@@ -52,8 +52,6 @@ from monai_probreg.cli.output_dir import (
 from monai_probreg.cli.qc import QCData, save_qc
 from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.engines.refinement import RefinementSettings, refine_registration
-from monai_probreg.uncertainty.quality import QualityEstimate
-from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
@@ -71,6 +69,8 @@ from monai_probreg.spatial.physical import (
 from monai_probreg.spatial.point_sampling import continuous_index, sample_linear, sample_nearest
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
+from monai_probreg.uncertainty.quality import QualityEstimate
+from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
@@ -233,8 +233,10 @@ def _quality_summary(model: LoadedModel, quality: tuple[QualityFeatures, Quality
     if quality is None:
         return None
     features, estimate = quality
-    return {"predicted_dice": estimate.predicted_dice, "failure_probability": estimate.failure_probability,
-            "warning_threshold": model.quality.threshold, "features": features._asdict(),
+    predicted = None if math.isnan(estimate.predicted_dice) else estimate.predicted_dice  # JSON has no NaN
+    return {"predicted_dice": predicted, "failure_probability": estimate.failure_probability,
+            "warning_threshold": model.quality.threshold,
+            "features": {k: None if math.isnan(v) else v for k, v in features._asdict().items()},
             "definition": model.quality.definition,
             "model": Path(model.model_file).stem + ".quality.json"}
 

@@ -11,6 +11,7 @@ scorer adds it to ``scores.csv`` and ``summary.json``. Weights without a quality
 from __future__ import annotations
 
 import logging
+import math
 import os
 
 import numpy as np
@@ -33,8 +34,10 @@ class QualityRecord(dict):
 
     @classmethod
     def of(cls, features: QualityFeatures, estimate: QualityEstimate) -> QualityRecord:
-        return cls(predicted_dice=estimate.predicted_dice, failure_probability=estimate.failure_probability,
-                   warning=estimate.warning, features=features._asdict())
+        predicted = None if math.isnan(estimate.predicted_dice) else estimate.predicted_dice  # JSON has no NaN
+        return cls(predicted_dice=predicted, failure_probability=estimate.failure_probability,
+                   warning=estimate.warning,
+                   features={k: None if math.isnan(v) else v for k, v in features._asdict().items()})
 
 
 class QualityCheck:

@@ -76,7 +76,9 @@ def write_scores(output_dir: str | os.PathLike, rows: Sequence[tuple[str, PairSc
         warned = [{"id": sid, "warning": quality[sid]["warning"]} for sid, _, _ in rows
                   if sid in quality and quality[sid].get("warning")]
         summary["quality"] = {
-            "predicted_dice": _mean_std([float(quality[sid]["predicted_dice"]) for sid, _, _ in rows if sid in quality]),
+            "predicted_dice": _mean_std([math.nan if quality[sid].get("predicted_dice") is None
+                                         else float(quality[sid]["predicted_dice"]) for sid, _, _ in rows
+                                         if sid in quality]),
             "num_warnings": len(warned), "warnings": warned}
     out = Path(output_dir)
     write_text(out / "scores.csv", table.getvalue())

@@ -65,7 +65,8 @@ HEADER_TURNS = (0, 90, 180)  # degrees about the S axis through the scan's centr
 TRAIN_PARTNERS = 2  # normal training registrations per subject besides the atlas
 
 
-def _scans(dataset_dir: Path, ids: list[str], divisor: int) -> dict[str, dict]:
+def load_scans(dataset_dir: Path, ids: list[str], divisor: int) -> dict[str, dict]:
+    """Each scan (the subjects ``ids`` and the atlas) once through the preprocessing: image, label (1, 1, *S), spacing."""
     index = index_dataset(dataset_dir)
     transform = registration_transforms(with_labels=True, divisor=divisor, image_keys=["image"], label_keys=["label"])
     out = {}
@@ -293,7 +294,7 @@ def main(argv=None) -> int:
         val_ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
         index = index_dataset(args.dataset_dir)
         train_ids = [i for i in index.ids if i not in val_ids][: args.train_subjects]
-        scans = _scans(args.dataset_dir, train_ids + val_ids, int(evaluate.get_parsed_content("divisor")))
+        scans = load_scans(args.dataset_dir, train_ids + val_ids, int(evaluate.get_parsed_content("divisor")))
         records = {}
         for split, ids, seed in (("train", train_ids, args.seed), ("val", val_ids, args.seed + 100_000)):
             cases = cases_for(ids, seed, training=split == "train")

@@ -42,7 +42,7 @@ from monai.transforms import (
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser, ants_register
-from failure_detection import _scans
+from failure_detection import load_scans
 
 from monai_probreg.data.pairs import ATLAS_ID
 from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     networks = {name: load_weights(evaluate.get_parsed_content("network_def", lazy=False), p, "cpu")
                 for name, p in zip(names, model_files)}
     ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
-    scans = _scans(args.dataset_dir, ids, int(evaluate.get_parsed_content("divisor")))
+    scans = load_scans(args.dataset_dir, ids, int(evaluate.get_parsed_content("divisor")))
     conditions = [("clean", "none")] + [(p, side) for p in [*PERTURBATIONS, "all"] for side in SIDES]
     records: list[dict[str, Any]] = []
     for c, (name, side) in enumerate(conditions):

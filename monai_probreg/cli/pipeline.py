@@ -69,7 +69,7 @@ from monai_probreg.spatial.physical import (
 from monai_probreg.spatial.point_sampling import continuous_index, sample_linear, sample_nearest
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
-from monai_probreg.uncertainty.quality import QualityEstimate
+from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
@@ -232,13 +232,10 @@ def _quality(model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, ma
 def _quality_summary(model: LoadedModel, quality: tuple[QualityFeatures, QualityEstimate] | None) -> dict | None:
     if quality is None:
         return None
-    features, estimate = quality
-    predicted = None if math.isnan(estimate.predicted_dice) else estimate.predicted_dice  # JSON has no NaN
-    return {"predicted_dice": predicted, "failure_probability": estimate.failure_probability,
-            "warning_threshold": model.quality.threshold,
-            "features": {k: None if math.isnan(v) else v for k, v in features._asdict().items()},
-            "definition": model.quality.definition,
-            "model": Path(model.model_file).stem + ".quality.json"}
+    record = quality_record(*quality)  # strict JSON, the same record as the bundle's
+    del record["warning"]  # summary.json has it at the top level
+    return {**record, "warning_threshold": model.quality.threshold, "definition": model.quality.definition,
+            "model": quality_path(model.model_file).name}
 
 
 @dataclass

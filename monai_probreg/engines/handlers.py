@@ -26,7 +26,7 @@ from torch import Tensor
 
 from monai_probreg.data.screening import InputFailures
 from monai_probreg.engines.outputs import OUTPUT_NAMES, OUTPUTS_README, SAMPLED_NAMES, write_outputs
-from monai_probreg.engines.quality_check import QualityCheck, QualityRecord
+from monai_probreg.engines.quality_check import QualityCheck
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.engines.registration import timed_register_pair
 from monai_probreg.engines.score_files import summary_table, write_scores
@@ -150,7 +150,7 @@ class RegistrationScorer(_PerSubjectHandler):
         self.output_dir, self.config, self.labels = Path(output_dir), dict(config or {}), labels
         self.failures, self.quality = failures, quality
         self.rows: list[tuple[str, PairScores, PairScores]] = []
-        self.quality_records: dict[str, QualityRecord] = {}
+        self.quality_records: dict[str, dict] = {}  # per subject: uncertainty.quality.quality_record
 
     def start(self, engine: Engine) -> None:
         self.rows, self.quality_records = [], {}

@@ -11,7 +11,6 @@ scorer adds it to ``scores.csv`` and ``summary.json``. Weights without a quality
 from __future__ import annotations
 
 import logging
-import math
 import os
 
 import numpy as np
@@ -20,24 +19,13 @@ from torch import nn
 
 from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
-from monai_probreg.uncertainty.quality import QualityEstimate, QualityModel, load_quality_model, quality_path
-from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
+from monai_probreg.uncertainty.quality import QualityModel, load_quality_model, quality_path, quality_record
+from monai_probreg.uncertainty.quality_features import quality_features
 from monai_probreg.utils.tensors import plain_tensor
 
-__all__ = ["QualityCheck", "QualityRecord"]
+__all__ = ["QualityCheck"]
 
 _LOG = logging.getLogger(__name__)
-
-
-class QualityRecord(dict):
-    """``{"predicted_dice", "failure_probability", "warning", "features"}`` of one registration (JSON-ready)."""
-
-    @classmethod
-    def of(cls, features: QualityFeatures, estimate: QualityEstimate) -> QualityRecord:
-        predicted = None if math.isnan(estimate.predicted_dice) else estimate.predicted_dice  # JSON has no NaN
-        return cls(predicted_dice=predicted, failure_probability=estimate.failure_probability,
-                   warning=estimate.warning,
-                   features={k: None if math.isnan(v) else v for k, v in features._asdict().items()})
 
 
 class QualityCheck:
@@ -64,7 +52,7 @@ class QualityCheck:
     def enabled(self) -> bool:
         return self.model is not None
 
-    def __call__(self, sid: str, pair: RegistrationOutput, targets: dict) -> QualityRecord | None:
+    def __call__(self, sid: str, pair: RegistrationOutput, targets: dict) -> dict | None:
         """The estimate of the first registration of the batch (the workflows run one pair per batch)."""
         if self.model is None:
             return None
@@ -83,4 +71,4 @@ class QualityCheck:
         estimate = self.model.estimate(features)
         if estimate.warning:  # a warning never stops the workflow
             _LOG.warning(f"{sid}: WARNING: {estimate.warning}")
-        return QualityRecord.of(features, estimate)
+        return quality_record(features, estimate)  # strict JSON, the same record as the command line's

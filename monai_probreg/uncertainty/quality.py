@@ -42,6 +42,7 @@ __all__ = [
     "fit_quality_model",
     "load_quality_model",
     "quality_path",
+    "quality_record",
     "save_quality_model",
 ]
 
@@ -62,6 +63,15 @@ class QualityEstimate(NamedTuple):
     predicted_dice: float
     failure_probability: float
     warning: str | None
+
+
+def quality_record(features: QualityFeatures, estimate: QualityEstimate) -> dict:
+    """The estimate and its features as strict JSON (NaN -> null): what ``summary.json``, ``quality.json`` and
+    ``scores.json`` store, on the command line and in the bundle alike."""
+    def finite(v: float) -> float | None:
+        return None if math.isnan(v) else float(v)
+    return {"predicted_dice": finite(estimate.predicted_dice), "failure_probability": estimate.failure_probability,
+            "warning": estimate.warning, "features": {k: finite(v) for k, v in features._asdict().items()}}
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:

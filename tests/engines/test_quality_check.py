@@ -7,14 +7,14 @@ import math
 
 import torch
 
-from monai_probreg.engines.quality_check import QualityCheck, QualityRecord
-from monai_probreg.uncertainty.quality import QualityEstimate
+from monai_probreg.engines.quality_check import QualityCheck
+from monai_probreg.uncertainty.quality import QualityEstimate, quality_record
 from monai_probreg.uncertainty.quality_features import QualityFeatures
 
 
 def test_a_record_without_a_finite_prediction_is_valid_json():
     features = QualityFeatures(*([math.nan] * len(QualityFeatures._fields)))
-    record = QualityRecord.of(features, QualityEstimate(math.nan, 1.0, "not finite"))
+    record = quality_record(features, QualityEstimate(math.nan, 1.0, "not finite"))
     assert record["predicted_dice"] is None and record["failure_probability"] == 1.0
     assert set(record["features"]) == set(QualityFeatures._fields)
     json.loads(json.dumps(record, allow_nan=False))  # no NaN anywhere: strict JSON

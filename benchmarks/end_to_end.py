@@ -64,7 +64,10 @@ DEFAULT_REFINE_ITERATIONS = 20  # as benchmarks/accuracy_table.py's refined row
 ANTS_TYPES = {"ants_affine": "Affine", "ants_syn": "SyN"}
 LEAN = ("--no-inverse", "--no-maps", "--no-qc")
 DEFAULT_BATCH_SIZE = 8  # register-batch throughput over this many scans (the issue asks for >= 8)
-STAGES = ("read", "affine", "resample", "model", "refine", "maps", "samples", "compose", "write", "qc")
+STAGES = ("read", "affine", "resample", "model", "refine", "maps", "samples", "quality", "compose", "qc", "write")
+# the floor of start-up: fresh processes that only import (each is timed from process start to exit)
+IMPORT_FLOOR = {"python": "pass", "torch": "import torch", "monai": "import monai",
+                "the command's modules": "import monai_probreg.cli.pipeline"}
 REPRODUCED_FILES = ("warp.nii.gz", "affine.tfm")  # compared byte for byte between "ours" and "ours, again"
 
 
@@ -170,6 +173,20 @@ def run_batch(dataset_dir: Path, atlas: Path, threads: int, size: int) -> dict |
         totals = [json.loads(p.read_text())["timings_s"]["total"] for p in Path(tmp, "out").glob("*/summary.json")]
     return {"num_scans": len(totals), "wall_s": wall, "scan_totals_s": totals,
             "scans_per_minute": 60.0 * len(totals) / sum(totals), "scans_per_minute_whole": 60.0 * len(totals) / wall}
+
+
+def import_floor(repeats: int = 3) -> dict[str, float]:
+    """Seconds (median of ``repeats`` fresh processes) to start Python, import a module and exit: what the
+    command pays before its first stage, whatever it does (:data:`IMPORT_FLOOR`)."""
+    floor = {}
+    for name, code in IMPORT_FLOOR.items():
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            subprocess.run([sys.executable, "-c", code], check=True)
+            times.append(time.perf_counter() - start)
+        floor[name] = float(np.median(times))
+    return floor
 
 
 def row_names(refine_iterations: int) -> dict[str, str]:
@@ -310,8 +327,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         lines.append(f"| {batch['num_scans']} aligned scans | register-batch: {batch['scans_per_minute']:.1f} scans/min "
                      f"after start-up ({batch['scans_per_minute_whole']:.1f} over the whole process) | | | | "
                      f"{batch['wall_s']:.1f} |")
+    floor = import_floor()
+    lines.append("| floor | fresh process, import and exit: " + ", ".join(f"{k} {v:.1f} s" for k, v in floor.items())
+                 + " | | | | |")
     table = "\n".join(lines)
-    result = {"atlas": str(atlas), "atlas_label": str(atlas_label), "scans": [str(s) for _, s, _ in scans],
+    result = {"import_floor_s": floor, "atlas": str(atlas), "atlas_label": str(atlas_label), "scans": [str(s) for _, s, _ in scans],
               "threads": args.threads, "refine_iterations": args.refine_iterations, "rows": rows, "batch": batch,
               "markdown": table,
               "versions": {"python": platform.python_version(), "torch": torch.__version__,

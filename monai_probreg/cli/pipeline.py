@@ -11,11 +11,13 @@ Stages, timed under these names in ``summary.json["timings_s"]``:
   (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS, padded to the bundle's divisor);
 - ``model``: the network's posterior mean velocity -> displacement and the warped scan (network, integration, warp);
 - ``refine``: with ``refinement`` enabled, that mean refined for the pair (:mod:`monai_probreg.engines.refinement`);
-- ``maps``: the inverse displacement (``exp(-v)``), Jacobian, velocity entropy;
+- ``maps``: the inverse displacement (``exp(-v)``; unless ``inverse`` is off), Jacobian, velocity entropy;
 - ``samples``: with ``samples = K >= 2``, K posterior samples -> displacement standard deviation;
 - ``compose``: affine + deformable -> one field fixed -> moving and its inverse (:mod:`monai_probreg.spatial.physical`);
   the original moving scan and labels resampled once through it; Dice;
-- ``write``, ``qc``: the files, in a staging folder moved into place at the end (:mod:`monai_probreg.cli.output_dir`).
+- ``qc``, ``write``: the files, in a staging folder moved into place at the end (:mod:`monai_probreg.cli.output_dir`),
+  compressed in parallel threads while the QC figure is drawn: ``qc`` times the drawing, ``write`` the wait for the
+  files after it.
 
 The model is loaded once (:func:`monai_probreg.cli.model.load_model`) and the fixed image prepared once
 (:func:`prepare_fixed`), so a batch pays for them once; neither is counted in a scan's stages.
@@ -23,6 +25,7 @@ The model is loaded once (:func:`monai_probreg.cli.model.load_model`) and the fi
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -72,7 +75,7 @@ from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.errors import InputError
-from monai_probreg.utils.files import write_text
+from monai_probreg.utils.files import parallel_writes, write_text
 from monai_probreg.utils.provenance import library_versions
 
 __all__ = ["FixedSpace", "prepare_fixed", "RegistrationOptions",
@@ -183,7 +186,7 @@ class _ModelMaps:
     """The network's results on the model grid: displacement and inverse (3, *S) voxels, maps (*S)."""
 
     displacement: np.ndarray
-    inverse: np.ndarray
+    inverse: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse)
     jacobian: np.ndarray
     entropy: np.ndarray | None  # velocity entropy, filled in by _run_model (with the samples when there are any)
     warped: np.ndarray
@@ -201,9 +204,11 @@ def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.nda
         with _timed(timings, "refine", report), eval_mode(model.network):
             output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement)
     with _timed(timings, "maps", report):
-        with eval_mode(model.network), torch.inference_mode():
-            inverse = model.network.velocity_to_displacement(-output.velocity_mean, shape)  # exp(-v)
-        maps = _ModelMaps(_numpy(output.displacement[0]), _numpy(inverse[0]),
+        inverse = None
+        if options.inverse:
+            with eval_mode(model.network), torch.inference_mode():
+                inverse = _numpy(model.network.velocity_to_displacement(-output.velocity_mean, shape)[0])  # exp(-v)
+        maps = _ModelMaps(_numpy(output.displacement[0]), inverse,
                           _numpy(jacobian_determinant(output.displacement)[0]), None, _numpy(output.warped[0, 0]))
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
             posterior = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape,
@@ -290,19 +295,27 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
 _MAP_FILES = ("jacobian", "entropy", "displacement_std")  # left out by RegistrationOptions.maps = False
 
 
-def _write(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transform, composed: _Composed,
-           options: RegistrationOptions) -> None:
+def _writers(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transform, composed: _Composed,
+             options: RegistrationOptions) -> list[Callable[[], object]]:
+    """One call per output file (run in parallel by :func:`~monai_probreg.utils.files.parallel_writes`), largest
+    first so that the pool's last file is a small one."""
+    writers: list[tuple[int, Callable[[], object]]] = []
+    if composed.inverse_warp is not None:
+        writers.append((composed.inverse_warp.size, functools.partial(
+            write_field, stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps)))
+    writers.append((composed.warp.size, functools.partial(
+        write_field, stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps)))
     for name, array in composed.maps.items():
         if options.maps or name not in _MAP_FILES:
-            write_volume(stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32)))
-    write_field(stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps)
-    if composed.inverse_warp is not None:
-        write_field(stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps)
-    write_transform(stage / "affine.tfm", affine)
+            writers.append((array.size, functools.partial(
+                write_volume, stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32)))))
     for name, grid in (("warped_label", fixed.image), ("fixed_label_in_moving", moving)):
         if name in composed.labels:
             array = composed.labels[name]
-            write_volume(stage / f"{name}.nii.gz", grid.with_array(array), label_dtype(array))
+            writers.append((array.size // 4, functools.partial(  # bytes, roughly: 1-2 per label voxel, 4 per float
+                write_volume, stage / f"{name}.nii.gz", grid.with_array(array), label_dtype(array))))
+    writers.append((0, functools.partial(write_transform, stage / "affine.tfm", affine)))
+    return [write for _, write in sorted(writers, key=lambda item: -item[0])]
 
 
 def _qc_data(fixed: FixedSpace, moving_input: np.ndarray, model_maps: _ModelMaps, composed: _Composed,
@@ -317,6 +330,16 @@ def _qc_data(fixed: FixedSpace, moving_input: np.ndarray, model_maps: _ModelMaps
                   fixed_label=to_model(fixed.label.array) if fixed.label is not None else None,
                   moving_label=to_model(labels["affine_label"]) if "affine_label" in labels else None,
                   warped_label=to_model(labels["warped_label"]) if "warped_label" in labels else None)
+
+
+def _qc_title(moving: Volume, dice: dict | None, num_folding: int,
+              quality: tuple[QualityFeatures, QualityEstimate] | None) -> str:
+    title = Path(moving.path).name + (f"   mean Dice {dice['mean']:.3f} (affine only "
+                                      f"{dice['mean_affine_only']:.3f})" if dice else "")
+    title += f"   |J| <= 0: {num_folding} voxels"
+    if quality is not None:
+        title += f"   predicted Dice {quality[1].predicted_dice:.2f}"
+    return title
 
 
 def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.PathLike, out_dir: str | os.PathLike,
@@ -357,17 +380,20 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points, options.inverse)
         stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
     with staged_output_dir(out, overwrite) as stage:
-        with _timed(timings, "write", report):
-            _write(stage, fixed, moving, affine.transform, composed, options)
-        dice = composed.dice
-        title = Path(moving.path).name + (f"   mean Dice {dice['mean']:.3f} (affine only "
-                                          f"{dice['mean_affine_only']:.3f})" if dice else "")
-        title += f"   |J| <= 0: {stats.num_folding} voxels"
-        if quality is not None:
-            title += f"   predicted Dice {quality[1].predicted_dice:.2f}"
-        if options.qc:
-            with _timed(timings, "qc", report):
-                save_qc(stage / "qc.png", _qc_data(fixed, moving_input, model_maps, composed, title, warning))
+        # the files compress in a pool of threads while this thread draws the QC figure: "qc" is the drawing,
+        # "write" the wait for the files after it (so the stages still add up to the wall time)
+        write_start = time.perf_counter()
+        with parallel_writes(torch.get_num_threads()) as submit:
+            for writer in _writers(stage, fixed, moving, affine.transform, composed, options):
+                submit(writer)
+            if options.qc:
+                with _timed(timings, "qc", report):
+                    save_qc(stage / "qc.png", _qc_data(fixed, moving_input, model_maps, composed,
+                                                       _qc_title(moving, composed.dice, stats.num_folding, quality),
+                                                       warning))
+        timings["write"] = round(time.perf_counter() - write_start - timings.get("qc", 0.0), 3)
+        if report is not None:
+            report("write", timings["write"])
         timings["total"] = round(time.perf_counter() - start, 3)
         jacobian, std = composed.maps["jacobian"], model_maps.std
         summary = {
@@ -387,7 +413,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             "jacobian": {"num_nonpositive": stats.num_folding, "percent_nonpositive": stats.percent_folding,
                          "std_log_jacobian": stats.std_log_jacobian, "min": float(jacobian.min()),
                          "max": float(jacobian.max())},
-            "dice": dice,
+            "dice": composed.dice,
             "quality": _quality_summary(model, quality),
             "warning": warning,
             "uncertainty": {"samples": options.samples, "seed": options.seed,

@@ -28,8 +28,17 @@ def jacobian_determinant(ddf: Tensor) -> Tensor:
     eye = torch.eye(spatial_dims, dtype=ddf.dtype, device=ddf.device).view(1, spatial_dims, spatial_dims,
                                                                           *([1] * spatial_dims))
     jac = jac + eye
-    jac = jac.movedim((1, 2), (-2, -1))  # (B, *S, k, a)
-    return torch.linalg.det(jac)
+    return _determinant(jac)
+
+
+def _determinant(jac: Tensor) -> Tensor:
+    """det of (B, D, D, *S) per voxel by cofactor expansion: elementwise, so several times faster on a CPU than
+    ``torch.linalg.det`` on (B, *S, D, D) (a batched LU per voxel), and the same to rounding (tested)."""
+    if jac.shape[1] == 2:
+        return jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
+    return (jac[:, 0, 0] * (jac[:, 1, 1] * jac[:, 2, 2] - jac[:, 1, 2] * jac[:, 2, 1])
+            - jac[:, 0, 1] * (jac[:, 1, 0] * jac[:, 2, 2] - jac[:, 1, 2] * jac[:, 2, 0])
+            + jac[:, 0, 2] * (jac[:, 1, 0] * jac[:, 2, 1] - jac[:, 1, 1] * jac[:, 2, 0]))
 
 
 class JacobianStats(NamedTuple):

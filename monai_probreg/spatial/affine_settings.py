@@ -23,6 +23,12 @@ class AffineSettings:
     backend's (two levels at 1/4 and 1/2, 20% sampled, as ``antsRegistrationSyNQuick.sh``'s linear stages stop at
     half resolution).
 
+    ``max_samples`` caps the sample points of a level (torch backend): 5% of the full-resolution level is 245,000
+    points on a 1 mm brain grid, eight times the half-resolution level's, for the same alignment. Measured on the
+    native S20 and five validation subjects moved by random rigid transforms (affine-only Dice over their labels, 2
+    threads): no cap 0.6130 in 1.85 s per scan, 50,000 points 0.6122 in 1.15 s, 20,000 points 0.6101 in 0.82 s,
+    dropping the full-resolution level 0.6036 in 0.73 s.
+
     Iterations are maxima (both backends stop a level earlier when converged). ITK backend only: ``max_step_mm``,
     ``convergence`` and ``deterministic`` (the line search's step bound, the stopping threshold, and the metric in
     one work unit; the torch backend is reproducible with any number of threads).
@@ -33,6 +39,7 @@ class AffineSettings:
     rigid_iterations: tuple[int, ...] = (30, 15, 0)
     affine_iterations: tuple[int, ...] = (30, 15, 10)
     sampling_percentage: float = 0.05
+    max_samples: int | None = 50_000  # at most this many sample points per level (None: no cap); torch backend only
     histogram_bins: int = 32
     initializer: str = "moments"
     seed: int = 1
@@ -46,7 +53,8 @@ class AffineSettings:
     def itk_defaults(cls, **changes) -> AffineSettings:
         """The ITK backend's defaults (class docstring), with ``changes``."""
         return cls(**{"shrink_factors": (4, 2), "smoothing_sigmas_mm": (2.0, 1.0), "rigid_iterations": (100, 50),
-                      "affine_iterations": (100, 50), "sampling_percentage": 0.20, "backend": "itk", **changes})
+                      "affine_iterations": (100, 50), "sampling_percentage": 0.20, "max_samples": None, "backend": "itk",
+                    **changes})
 
     def __post_init__(self) -> None:
         levels = len(self.shrink_factors)
@@ -60,6 +68,8 @@ class AffineSettings:
             raise ValueError(f"iterations must be >= 0; got {self.rigid_iterations}, {self.affine_iterations}")
         if levels == 0 or min(self.shrink_factors) < 1:
             raise ValueError(f"shrink_factors must be >= 1, at least one level; got {self.shrink_factors}")
+        if self.max_samples is not None and self.max_samples < 1:
+            raise ValueError(f"max_samples must be >= 1 or None (no cap); got {self.max_samples}")
         if not 0 < self.sampling_percentage <= 1:
             raise ValueError(f"sampling_percentage must be in (0, 1]; got {self.sampling_percentage}")
         if self.initializer not in ("moments", "geometry"):

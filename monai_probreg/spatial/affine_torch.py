@@ -150,7 +150,7 @@ class _Level:
 
     def __init__(self, fixed: Volume, fixed_image: torch.Tensor, moving: Volume, moving_image: torch.Tensor,
                  shrink: int, sigma_mm: float, fraction: float, generator: torch.Generator,
-                 bins: int) -> None:
+                 bins: int, max_samples: int | None = None) -> None:
         fixed_level, fixed_grid = _pooled(fixed_image, fixed.index_to_lps, (shrink,) * 3, sigma_mm)
         level_mm = shrink * float(np.mean(fixed.spacing))
         factors = tuple(max(1, int(level_mm // s)) for s in moving.spacing)
@@ -159,6 +159,7 @@ class _Level:
                                            indexing="ij"), dim=-1).reshape(-1, 3)
         values = fixed_level.reshape(-1)
         count = max(1, round(fraction * values.numel()))
+        count = count if max_samples is None else min(count, max_samples)
         chosen = torch.randperm(values.numel(), generator=generator)[:count]
         g = torch.from_numpy(fixed_grid)
         self.points = index[chosen] @ g[:3, :3].T + g[:3, 3]  # (N, 3) LPS
@@ -218,7 +219,7 @@ def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSetting
     moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, moments))
     radius = float(np.mean(np.asarray(fixed.shape) * fixed.spacing)) / 2  # mm: 1 unit of rotation = 1 mm there
     levels = [_Level(fixed, fixed_image, moving, moving_image, int(shrink), float(sigma),
-                     settings.sampling_percentage, generator, settings.histogram_bins)
+                     settings.sampling_percentage, generator, settings.histogram_bins, settings.max_samples)
               for shrink, sigma in zip(settings.shrink_factors, settings.smoothing_sigmas_mm)]
 
     def matrix_of(linear: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:

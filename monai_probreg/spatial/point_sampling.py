@@ -16,10 +16,13 @@ Points are LPS millimetres, shape (..., 3); the volume maps index -> LPS through
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from monai_probreg.spatial.physical import apply_affine
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = ["continuous_index", "sample_linear", "sample_nearest"]
@@ -27,25 +30,34 @@ __all__ = ["continuous_index", "sample_linear", "sample_nearest"]
 
 def continuous_index(points: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray:
     """LPS points (..., 3) -> continuous voxel indices (..., 3) of the grid ``index_to_lps``."""
-    lps_to_index = np.linalg.inv(np.asarray(index_to_lps, dtype=np.float64))
-    return points @ lps_to_index[:3, :3].T + lps_to_index[:3, 3]
+    return apply_affine(np.linalg.inv(np.asarray(index_to_lps, dtype=np.float64)), points)
 
 
-def _index(points: np.ndarray, volume: Volume, index: np.ndarray | None) -> np.ndarray:
-    if index is not None:
-        if index.shape != np.shape(points):
-            raise ValueError(f"expected an index of the points' shape {np.shape(points)}; got {index.shape}")
-        return index.reshape(-1, 3)
-    return continuous_index(np.asarray(points, dtype=np.float64).reshape(-1, 3), volume.index_to_lps)
+_CHUNK = 1 << 20  # points per step: a step's temporaries stay small (no N x 3 array beyond the caller's own)
 
 
-def _inside(index: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    upper = np.asarray(shape, dtype=np.float64) - 0.5
-    return np.all((index >= -0.5) & (index < upper), axis=-1)
+def _index_chunks(points: np.ndarray, volume: Volume, index: np.ndarray | None, chunk: int
+                  ) -> Iterator[tuple[int, torch.Tensor]]:
+    """(start, continuous indices (n, 3) float64) of ``points`` in ``volume``'s grid, ``chunk`` points at a time:
+    ``index`` when the caller has it (checked to match ``points``), else :func:`continuous_index` per chunk."""
+    if index is not None and index.shape != np.shape(points):
+        raise ValueError(f"expected an index of the points' shape {np.shape(points)}; got {index.shape}")
+    source = (index if index is not None else np.asarray(points, dtype=np.float64)).reshape(-1, 3)
+    lps_to_index = torch.from_numpy(np.linalg.inv(np.asarray(volume.index_to_lps, dtype=np.float64)))
+    for start in range(0, source.shape[0], chunk):
+        part = torch.from_numpy(np.asarray(source[start:start + chunk], dtype=np.float64))
+        yield start, part if index is not None else torch.addmm(lps_to_index[:3, 3][None], part,
+                                                                lps_to_index[:3, :3].T)
+
+
+def _inside(index: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+    """ITK's "inside" (module docstring) per point of ``index`` (n, 3)."""
+    upper = torch.tensor(shape, dtype=index.dtype) - 0.5
+    return ((index >= -0.5) & (index < upper)).all(dim=-1)
 
 
 def sample_linear(volume: Volume, points: np.ndarray, fill: float = 0.0, outside: str = "fill",
-                  chunk: int = 2_000_000, index: np.ndarray | None = None) -> np.ndarray:
+                  chunk: int = _CHUNK, index: np.ndarray | None = None) -> np.ndarray:
     """Trilinear samples of ``volume.array`` (I, J, K[, C]) at ``points`` (..., 3) -> (...[, C]) float64.
 
     ``outside``: ``"fill"`` (ITK: ``fill`` outside the half-voxel-extended grid) or ``"border"`` (clamp).
@@ -57,28 +69,32 @@ def sample_linear(volume: Volume, points: np.ndarray, fill: float = 0.0, outside
     data = np.asarray(volume.array, dtype=np.float64)
     channels = data.shape[3:]
     source = torch.from_numpy(np.ascontiguousarray(data.reshape(*data.shape[:3], -1).transpose(3, 0, 1, 2)))[None]
-    index = _index(points, volume, index)
-    sizes = np.asarray(data.shape[:3], dtype=np.float64)
     # align_corners=True: normalised -1 / +1 are the centres of the first / last voxel; grid order is (x, y, z) =
     # (axis 2, axis 1, axis 0) of the (N, C, D, H, W) input, hence the flip.
-    normalised = 2.0 * index / np.maximum(sizes - 1.0, 1.0) - 1.0
-    out = np.empty((index.shape[0], source.shape[1]), dtype=np.float64)
-    for start in range(0, index.shape[0], chunk):
-        grid = torch.from_numpy(np.ascontiguousarray(normalised[start:start + chunk, ::-1])).view(1, -1, 1, 1, 3)
+    scale = 2.0 / torch.clamp(torch.tensor(data.shape[:3], dtype=torch.float64) - 1.0, min=1.0)
+    num_points = int(np.prod(np.shape(points)[:-1]))
+    out = torch.empty((num_points, source.shape[1]), dtype=torch.float64)
+    for start, index_part in _index_chunks(points, volume, index, chunk):
+        grid = (index_part * scale - 1.0).flip(-1).view(1, -1, 1, 1, 3)
         values = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
-        out[start:start + chunk] = values[0, :, :, 0, 0].T.numpy()
-    if outside == "fill":
-        out[~_inside(index, data.shape[:3])] = fill
-    return out.reshape(*np.shape(points)[:-1], *channels)
+        out[start:start + len(index_part)] = values[0, :, :, 0, 0].T
+        if outside == "fill":
+            out[start:start + len(index_part)][~_inside(index_part, data.shape[:3])] = fill
+    return out.numpy().reshape(*np.shape(points)[:-1], *channels)
 
 
-def sample_nearest(volume: Volume, points: np.ndarray, fill: int = 0, index: np.ndarray | None = None) -> np.ndarray:
+def sample_nearest(volume: Volume, points: np.ndarray, fill: int = 0, index: np.ndarray | None = None,
+                   chunk: int = _CHUNK) -> np.ndarray:
     """Nearest-neighbour samples (ITK rounding, half up) at ``points`` (..., 3); ``fill`` outside; input dtype.
-    ``index``: as :func:`sample_linear`'s."""
-    index = _index(points, volume, index)
-    inside = _inside(index, volume.shape)
-    nearest = np.floor(index + 0.5).astype(np.int64)
-    out = np.full(index.shape[0], fill, dtype=volume.array.dtype)
-    i, j, k = nearest[inside].T
-    out[inside] = volume.array[i, j, k]
-    return out.reshape(np.shape(points)[:-1])
+    ``index``, ``chunk``: as :func:`sample_linear`'s."""
+    _, size_j, size_k = volume.shape
+    flat = torch.from_numpy(np.ascontiguousarray(volume.array).reshape(-1))
+    out = torch.empty(int(np.prod(np.shape(points)[:-1])), dtype=flat.dtype)
+    for start, index_part in _index_chunks(points, volume, index, chunk):
+        inside = _inside(index_part, volume.shape)
+        nearest = torch.floor(index_part + 0.5).to(torch.int64)  # ITK: half up
+        nearest[~inside] = 0  # any voxel: overwritten by ``fill`` below
+        values = flat[(nearest[:, 0] * size_j + nearest[:, 1]) * size_k + nearest[:, 2]]
+        values[~inside] = fill
+        out[start:start + len(values)] = values
+    return out.numpy().reshape(np.shape(points)[:-1])

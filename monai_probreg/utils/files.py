@@ -13,10 +13,13 @@ import logging
 import os
 import re
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["PARTIAL_FILE", "IMAGE_SUFFIXES", "atomic_write", "write_text", "remove_partial_files", "file_stem"]
+__all__ = ["PARTIAL_FILE", "IMAGE_SUFFIXES", "atomic_write", "write_text", "parallel_writes", "remove_partial_files",
+           "file_stem"]
 
 _TOKEN_HEX = 12  # random hex digits in a temporary name
 PARTIAL_FILE = re.compile(rf"\..+\.[0-9a-f]{{{_TOKEN_HEX}}}\.tmp(\.[^.]+)*")
@@ -48,6 +51,23 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
 def write_text(path: str | os.PathLike, text: str) -> Path:
     """Write a text file atomically."""
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
+@contextmanager
+def parallel_writes(threads: int) -> Iterator[Callable[[Callable[[], object]], None]]:
+    """Yield ``submit(writer)``: each writer (a call that writes one file) runs in a pool of ``threads`` threads
+    while the body goes on (e.g. drawing a figure); on leaving, every writer has finished, and the first writer's
+    error is raised. With ``threads <= 1`` each writer runs at once, in order. Worth it where writing releases the GIL
+    (compression, :mod:`monai_probreg.spatial.nifti_write`). An error in the body still waits for the writers, so
+    none is left writing into a folder that the caller then removes."""
+    if threads <= 1:
+        yield lambda write: write()
+        return
+    futures: list[Future] = []
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="write") as pool:
+        yield lambda write: futures.append(pool.submit(write))
+    for future in futures:
+        future.result()
 
 
 def remove_partial_files(folder: str | os.PathLike) -> list[Path]:

@@ -144,8 +144,8 @@ def test_inverse_warp_maps_back(scene, registered):
 
 def test_summary_and_qc(scene, registered):
     summary = json.loads((registered.dir / "summary.json").read_text())
-    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "maps", "samples", "compose", "write",
-                                          "qc", "total"]
+    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "maps", "samples", "compose", "qc",
+                                          "write", "total"]
     assert summary["dice"]["mean"] > 0.85 and set(summary["dice"]["per_label"]) == {str(v) for v in PHANTOM_LABELS}
     assert summary["jacobian"]["num_nonpositive"] == 0
     assert summary["uncertainty"]["samples"] == 2 and summary["uncertainty"]["mean_displacement_std_mm"] >= 0
@@ -230,7 +230,23 @@ def test_console_script_is_declared():
     import tomllib
 
     project = tomllib.loads((BUNDLE_DIR.parent / "pyproject.toml").read_text())["project"]
-    assert project["scripts"]["monai-probreg"] == "monai_probreg.cli.main:main"
+    assert project["scripts"]["monai-probreg"] == "monai_probreg.cli.main:run"
+
+
+@pytest.mark.parametrize("argv, status", [(["--help"], 0), (["register", "--moving", "m.nii.gz"], 2),
+                                          (["register", "--moving", "missing.nii.gz", "--out", "o"], 1)])
+def test_console_entry_point_keeps_the_exit_status_and_the_output(tmp_path, argv, status):
+    """``run`` leaves with os._exit (no interpreter teardown): the status is main's and nothing printed is lost."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "monai_probreg.cli", *argv], capture_output=True, text=True, check=False,
+                            cwd=tmp_path, timeout=300)
+    assert result.returncode == status
+    if status == 0:
+        assert "register-batch" in result.stdout and result.stdout.rstrip().endswith("show this help message and exit")
+    elif status == 1:
+        assert result.stderr.startswith("monai-probreg: error: --moving 'missing.nii.gz': no such file")
 
 
 def test_usage_error_exits_2(capsys):
@@ -391,6 +407,16 @@ def test_bad_output_folder_not_empty(scene, tmp_path):
 def test_bad_nondeterministic_affine_without_the_itk_backend(scene, tmp_path):
     line = _fails(scene, tmp_path, "--nondeterministic-affine")
     assert "--nondeterministic-affine" in line and "--affine-backend itk" in line
+
+
+def test_bad_affine_max_samples_with_the_itk_backend(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--affine-backend", "itk", "--affine-max-samples", "1000")
+    assert "--affine-max-samples" in line and "torch only" in line
+
+
+def test_bad_negative_affine_max_samples(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--affine-max-samples", "-5")
+    assert "--affine-max-samples" in line and "got -5" in line
 
 
 def test_bad_affine_iterations_per_level(scene, tmp_path):

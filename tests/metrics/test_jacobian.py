@@ -189,3 +189,11 @@ def test_stats_empty_mask_raises():
 def test_stats_of_identity_field():
     stats = jacobian_stats(jacobian_determinant(torch.zeros(1, 3, 4, 5, 6))[0])
     assert stats == JacobianStats(0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("ndims", [2, 3])
+def test_determinant_gradcheck_float64(ndims):
+    """The cofactor determinant is differentiable (a Jacobian penalty can be trained through it)."""
+    ddf = (0.3 * torch.randn(1, ndims, *([4] * ndims), generator=torch.Generator().manual_seed(5),
+                             dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(jacobian_determinant, (ddf,))

@@ -77,6 +77,7 @@ def test_rotation_angle():
     ({"shrink_factors": (2, 0), "smoothing_sigmas_mm": (1.0, 0.0)}, "shrink_factors"),
     ({"sampling_percentage": 0.0}, "sampling_percentage"),
     ({"initializer": "landmarks"}, "initializer"),
+    ({"max_samples": 0}, "max_samples"),
     ({"backend": "ants"}, "backend"),
     ({"rigid_iterations": (10, -1, 0)}, "iterations must be >= 0"),
 ])

@@ -99,3 +99,13 @@ def test_same_transform_with_one_or_two_threads():
     finally:
         torch.set_num_threads(threads)
     np.testing.assert_allclose(one, two, atol=1e-5)
+
+
+@pytest.mark.parametrize("max_samples, expected", [(None, 16 * 16 * 16 // 2), (300, 300), (10_000, 16 * 16 * 16 // 2)])
+def test_max_samples_caps_a_levels_sample_points(max_samples, expected):
+    from monai_probreg.spatial.affine_torch import _Level
+
+    volume = Volume(np.random.default_rng(0).random((16, 16, 16)).astype(np.float32), np.eye(4))
+    image = torch.from_numpy(volume.array)
+    level = _Level(volume, image, volume, image, 1, 0.0, 0.5, torch.Generator().manual_seed(0), BINS, max_samples)
+    assert level.points.shape == (expected, 3) and level.fixed_bins.shape == (expected,)

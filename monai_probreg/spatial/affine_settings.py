@@ -25,9 +25,9 @@ class AffineSettings:
 
     ``max_samples`` caps the sample points of a level (torch backend): 5% of the full-resolution level is 245,000
     points on a 1 mm brain grid, eight times the half-resolution level's, for the same alignment. Measured on the
-    native S20 and five validation subjects moved by random rigid transforms (affine-only Dice over their labels, 2
-    threads): no cap 0.6130 in 1.85 s per scan, 50,000 points 0.6122 in 1.15 s, 20,000 points 0.6101 in 0.82 s,
-    dropping the full-resolution level 0.6036 in 0.73 s.
+    native S20 and five validation subjects moved by random rigid transforms (``benchmarks/affine_levers.py``: mean
+    affine-only Dice over their labels, 2 threads): no cap 0.6130 in 1.59 s per scan, 50,000 points 0.6122 in 0.95 s,
+    20,000 points 0.6101 in 0.75 s, dropping the full-resolution level 0.6036 in 0.64 s.
 
     Iterations are maxima (both backends stop a level earlier when converged). ITK backend only: ``max_step_mm``,
     ``convergence`` and ``deterministic`` (the line search's step bound, the stopping threshold, and the metric in

@@ -276,8 +276,9 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
         inverse_warp = compose_inverse(Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
                                        affine, moving.shape, moving.index_to_lps)
         if fixed.label is not None:
-            moving_points = grid_points(moving.shape, moving.index_to_lps)
-            labels["fixed_label_in_moving"] = sample_nearest(fixed.label, moving_points + inverse_warp)
+            phi_inverse = grid_points(moving.shape, moving.index_to_lps)
+            phi_inverse += inverse_warp  # q + D_inv(q), in place: one array of the moving grid's points, not two
+            labels["fixed_label_in_moving"] = sample_nearest(fixed.label, phi_inverse)
     dice = None
     if moving_label is not None and fixed.label is not None:
         # the structures both label maps have (a moving map of another protocol, e.g. LPBA40's 48 cortical labels

@@ -85,7 +85,8 @@ def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, a
 
 def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[int, ...],
                     moving_index_to_lps: np.ndarray, rows_per_chunk: int | None = None) -> np.ndarray:
-    """Composed inverse on the moving grid, ``D_inv(q) = a + d_inv(a) - q`` with ``a = A^-1(q)`` (*S_moving, 3) mm.
+    """Composed inverse on the moving grid, ``D_inv(q) = a + d_inv(a) - q`` with ``a = A^-1(q)`` (*S_moving, 3) mm,
+    float32 (the precision of the field file it becomes).
 
     ``inverse_mm``: ``d_inv`` (*S, 3) in mm on its grid (the fixed or model grid), as a :class:`Volume`; linear,
     border-extended outside it (:func:`~monai_probreg.spatial.point_sampling.sample_linear`'s ``"border"``).
@@ -110,18 +111,22 @@ def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[
     rows = rows_per_chunk or max(1, 2_000_000 // max(1, shape[1] * shape[2]))
     j = np.arange(shape[1], dtype=np.float64)[None, :, None]
     k = np.arange(shape[2], dtype=np.float64)[None, None, :]
-    out = np.empty((*shape, 3), dtype=np.float64)
+    # a - q per component as three broadcast terms, added in place to the sampled field (no full-size temporary)
+    shift_j = [torch.from_numpy((shift[c, 1] * j).astype(np.float32)) for c in range(3)]
+    shift_k = [torch.from_numpy((shift[c, 2] * k).astype(np.float32)) for c in range(3)]
+    out = torch.empty((*shape, 3), dtype=torch.float32)
     for start in range(0, shape[0], rows):
         i = np.arange(start, min(start + rows, shape[0]), dtype=np.float64)[:, None, None]
         # grid_sample's grid is (x, y, z) = (axis 2, axis 1, axis 0) of the field: channels in reverse order
         grid = np.stack([normalise[c, 0] * i + normalise[c, 1] * j + normalise[c, 2] * k + normalise[c, 3]
                          for c in (2, 1, 0)], axis=-1).astype(np.float32)
         values = F.grid_sample(source, torch.from_numpy(grid)[None], mode="bilinear", padding_mode="border",
-                               align_corners=True)[0].numpy()  # (3, rows, J, K)
+                               align_corners=True)[0]  # (3, rows, J, K)
         for c in range(3):
-            out[start:start + len(i), ..., c] = (shift[c, 0] * i + shift[c, 1] * j + shift[c, 2] * k + shift[c, 3]
-                                                 + values[c])
-    return out
+            values[c].add_(torch.from_numpy((shift[c, 0] * i + shift[c, 3]).astype(np.float32)))
+            values[c].add_(shift_j[c]).add_(shift_k[c])
+        out[start:start + len(i)] = values.permute(1, 2, 3, 0)
+    return out.numpy()
 
 
 def affine_to_itk(matrix: np.ndarray, center: np.ndarray | None = None) -> itk.AffineTransform:

@@ -7,7 +7,14 @@ from pathlib import Path
 import pytest
 
 from monai_probreg.utils.errors import InputError, UntrustedFileError, first_line
-from monai_probreg.utils.files import PARTIAL_FILE, atomic_write, file_stem, remove_partial_files, write_text
+from monai_probreg.utils.files import (
+    PARTIAL_FILE,
+    atomic_write,
+    file_stem,
+    parallel_writes,
+    remove_partial_files,
+    write_text,
+)
 
 
 def test_atomic_write_replaces_the_file_only_when_complete(tmp_path):
@@ -38,6 +45,56 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
     assert target.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["model.pt"]
     assert remove_partial_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_parallel_writes_run_every_writer_while_the_body_goes_on(tmp_path, threads):
+    import threading
+
+    started = threading.Event()  # the first writer waits for the body: writers and body overlap with threads
+
+    def writer(index: int) -> None:
+        if index == 0 and threads > 1:
+            assert started.wait(timeout=30)
+        write_text(tmp_path / f"{index}.txt", str(index))
+
+    with parallel_writes(threads) as submit:
+        for index in range(5):
+            submit(lambda index=index: writer(index))
+        started.set()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{i}.txt" for i in range(5)]
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_parallel_writes_raise_a_writers_error_after_all_writers_finished(tmp_path, threads):
+    import time
+
+    def slow() -> None:
+        time.sleep(0.2)
+        write_text(tmp_path / "slow.txt", "done")
+
+    def failing() -> None:
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        with parallel_writes(threads) as submit:
+            submit(slow)
+            submit(failing)  # threads: finishes first, raised only once the slow one is done
+    assert (tmp_path / "slow.txt").read_text() == "done"  # not left running into a folder the caller removes
+
+
+def test_parallel_writes_wait_for_the_writers_when_the_body_fails(tmp_path):
+    import time
+
+    def slow() -> None:
+        time.sleep(0.2)
+        write_text(tmp_path / "slow.txt", "done")
+
+    with pytest.raises(RuntimeError, match="figure"):
+        with parallel_writes(2) as submit:
+            submit(slow)
+            raise RuntimeError("figure failed")
+    assert (tmp_path / "slow.txt").read_text() == "done"
 
 
 @pytest.mark.parametrize("name, stem", [("S01.nii.gz", "S01"), ("a.b.nii", "a.b"), ("scan.nrrd", "scan"),

@@ -76,10 +76,9 @@ def test_parallel_writes_raise_a_writers_error_after_all_writers_finished(tmp_pa
     def failing() -> None:
         raise OSError("disk full")
 
-    with pytest.raises(OSError, match="disk full"):
-        with parallel_writes(threads) as submit:
-            submit(slow)
-            submit(failing)  # threads: finishes first, raised only once the slow one is done
+    with pytest.raises(OSError, match="disk full"), parallel_writes(threads) as submit:
+        submit(slow)
+        submit(failing)  # threads: finishes first, raised only once the slow one is done
     assert (tmp_path / "slow.txt").read_text() == "done"  # not left running into a folder the caller removes
 
 
@@ -90,10 +89,9 @@ def test_parallel_writes_wait_for_the_writers_when_the_body_fails(tmp_path):
         time.sleep(0.2)
         write_text(tmp_path / "slow.txt", "done")
 
-    with pytest.raises(RuntimeError, match="figure"):
-        with parallel_writes(2) as submit:
-            submit(slow)
-            raise RuntimeError("figure failed")
+    with pytest.raises(RuntimeError, match="figure"), parallel_writes(2) as submit:
+        submit(slow)
+        raise RuntimeError("figure failed")
     assert (tmp_path / "slow.txt").read_text() == "done"
 
 

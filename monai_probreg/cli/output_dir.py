@@ -24,7 +24,7 @@ import itk
 import numpy as np
 
 from monai_probreg.spatial.nifti_write import is_nifti_path, write_nifti
-from monai_probreg.spatial.physical import affine_from_itk, field_to_itk
+from monai_probreg.spatial.physical import field_to_itk
 from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import atomic_write, write_text
@@ -130,17 +130,18 @@ def write_field(path: str | os.PathLike, field: np.ndarray, index_to_lps: np.nda
     return atomic_write(path, lambda tmp: itk.imwrite(image, tmp, compression=True))
 
 
-def write_transform(path: str | os.PathLike, transform: itk.Transform) -> Path:
-    """Write an ITK matrix-offset transform (affine, rigid, versor) as ITK's text transform file, atomically:
-    ``AffineTransform_double_3_3`` with its 12 parameters (matrix row by row, translation) and its centre.
+def write_transform(path: str | os.PathLike, matrix: np.ndarray, center: np.ndarray | None = None) -> Path:
+    """Write an affine map (4, 4; fixed LPS -> moving LPS) as ITK's text transform file, atomically:
+    ``AffineTransform_double_3_3`` with its 12 parameters (matrix row by row, translation) about ``center`` (LPS mm,
+    default the origin; ITK's ``FixedParameters``: the map is the same for any centre).
 
     Written as text here, not with ``itk.transformwrite``: ITK's transform writer loads every wrapped transform
     type on first use (about 6 s, more than the rest of the writing), for a file of five lines in ITK's
     documented ``#Insight Transform File V1.0`` format. Read back by ``itk.transformread`` and ANTs (tested)."""
     if Path(path).suffix not in (".tfm", ".txt"):
         raise ValueError(f"expected a .tfm or .txt path (ITK's text transform format); got {str(path)!r}")
-    matrix = affine_from_itk(transform)
-    center = np.asarray(transform.GetCenter(), dtype=np.float64)
+    matrix = np.asarray(matrix, dtype=np.float64)
+    center = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
     translation = matrix[:3, 3] - center + matrix[:3, :3] @ center  # T(p) = M (p - c) + c + t
     numbers = [*matrix[:3, :3].reshape(-1), *translation]
     if not np.isfinite([*numbers, *center]).all():

@@ -62,7 +62,6 @@ from monai_probreg.spatial.affine import AffineResult, AffineSettings, align
 from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask, hide_outside
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import (
-    affine_to_itk,
     apply_affine,
     compose_forward,
     compose_inverse,
@@ -296,7 +295,7 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
 _MAP_FILES = ("jacobian", "entropy", "displacement_std")  # left out by RegistrationOptions.maps = False
 
 
-def _writers(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transform, composed: _Composed,
+def _writers(stage: Path, fixed: FixedSpace, moving: Volume, affine: AffineResult, composed: _Composed,
              options: RegistrationOptions) -> list[Callable[[], object]]:
     """One call per output file (run in parallel by :func:`~monai_probreg.utils.files.parallel_writes`), largest
     first so that the pool's last file is a small one."""
@@ -315,7 +314,7 @@ def _writers(stage: Path, fixed: FixedSpace, moving: Volume, affine: itk.Transfo
             array = composed.labels[name]
             writers.append((array.size // 4, functools.partial(  # bytes, roughly: 1-2 per label voxel, 4 per float
                 write_volume, stage / f"{name}.nii.gz", grid.with_array(array), label_dtype(array))))
-    writers.append((0, functools.partial(write_transform, stage / "affine.tfm", affine)))
+    writers.append((0, functools.partial(write_transform, stage / "affine.tfm", affine.matrix, affine.center)))
     return [write for _, write in sorted(writers, key=lambda item: -item[0])]
 
 
@@ -362,7 +361,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             check_same_grid(moving_label, moving, "--moving-label", "--moving")
     with _timed(timings, "affine", report):
         if options.affine is None:
-            affine = AffineResult(affine_to_itk(np.eye(4)), np.eye(4), np.eye(4), [])
+            affine = AffineResult(np.eye(4), np.zeros(3), np.eye(4), [])
         else:
             affine = align(fixed.image, moving, options.affine, fixed.itk_image)
     with _timed(timings, "resample", report):
@@ -385,7 +384,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         # "write" the wait for the files after it (so the stages still add up to the wall time)
         write_start = time.perf_counter()
         with parallel_writes(torch.get_num_threads()) as submit:
-            for writer in _writers(stage, fixed, moving, affine.transform, composed, options):
+            for writer in _writers(stage, fixed, moving, affine, composed, options):
                 submit(writer)
             if options.qc:
                 with _timed(timings, "qc", report):

@@ -34,6 +34,7 @@ transform ``itk.ResampleImageFilter`` and ``antsApplyTransforms`` use to bring t
 from __future__ import annotations
 
 import itk
+import numpy as np
 
 from monai_probreg.spatial.affine_settings import (
     BACKENDS,
@@ -152,4 +153,5 @@ def register_affine(fixed: itk.Image, moving: itk.Image, settings: AffineSetting
         affine.SetTranslation(rigid.GetTranslation())
         stages.append(_run_stage("affine", fixed, moving, affine, settings.affine_iterations, settings))
         result = affine
-    return AffineResult(result, affine_from_itk(result), initial, stages)
+    return AffineResult(affine_from_itk(result), np.asarray(result.GetCenter(), dtype=np.float64), initial, stages,
+                        result)

@@ -8,6 +8,8 @@ from dataclasses import asdict, dataclass, field
 import itk
 import numpy as np
 
+from monai_probreg.spatial.physical import affine_to_itk
+
 __all__ = ["BACKENDS", "AffineResult", "AffineSettings", "StageReport", "rotation_angle_deg"]
 
 BACKENDS = ("torch", "itk")
@@ -91,13 +93,23 @@ class StageReport:
 
 @dataclass
 class AffineResult:
-    """``transform``: the ITK transform (fixed LPS -> moving LPS); ``matrix``: the same as (4, 4); ``initial``:
-    the initializer's (4, 4); ``stages``: per-stage reports."""
+    """``matrix``: fixed LPS -> moving LPS (4, 4); ``center``: the centre of its ITK form (LPS mm: the file's
+    ``FixedParameters``; the map itself does not depend on it); ``initial``: the initializer's (4, 4); ``stages``:
+    per-stage reports. :attr:`transform`: the same map as an ITK ``AffineTransform``, built on first use (the ITK
+    backend passes its own): loading ITK's transform modules costs about 0.85 s, which the torch backend's command
+    path does not need (affine.tfm is written from the matrix and centre)."""
 
-    transform: itk.Transform
     matrix: np.ndarray
+    center: np.ndarray
     initial: np.ndarray
     stages: list[StageReport]
+    itk_transform: itk.Transform | None = field(default=None, repr=False)
+
+    @property
+    def transform(self) -> itk.Transform:
+        if self.itk_transform is None:
+            self.itk_transform = affine_to_itk(self.matrix, self.center)
+        return self.itk_transform
 
     def summary(self) -> dict:
         return {

@@ -44,7 +44,6 @@ from monai.utils import convert_to_tensor
 
 from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.spatial.affine_settings import AffineResult, AffineSettings, StageReport
-from monai_probreg.spatial.physical import affine_to_itk
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = ["mutual_information", "register_affine_torch", "rotation_matrix"]
@@ -248,7 +247,7 @@ def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSetting
     if not np.isfinite(matrix).all():
         raise RuntimeError(f"the torch affine registration diverged (non-finite matrix); settings {settings}. "
                            "Try --affine-backend itk, or report the scan")
-    return AffineResult(affine_to_itk(matrix, fixed_centre.numpy()), matrix, initial, stages)
+    return AffineResult(matrix, fixed_centre.numpy(), initial, stages)
 
 
 def _stage(name: str, levels: list[_Level], iterations: tuple[int, ...], parameters: torch.Tensor,

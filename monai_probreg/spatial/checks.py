@@ -18,6 +18,7 @@ Every problem raises :class:`InputError` with one line ``<role> '<path>': expect
 from __future__ import annotations
 
 import gzip
+import io
 import os
 import zlib
 from collections.abc import Sequence
@@ -25,10 +26,12 @@ from pathlib import Path
 
 import nibabel as nib
 import numpy as np
+from isal import igzip
+from isal.igzip_lib import IsalError
 
 from monai_probreg.utils.errors import InputError, first_line
 
-__all__ = ['MAX_VOXELS_ENV', 'DEFAULT_MAX_VOXELS', 'max_voxels', 'is_nifti', 'check_size', 'corrupt_file_error', 'check_nifti_header', 'check_finite', 'check_nifti_voxels', 'check_image_values', 'check_label_values']
+__all__ = ['MAX_VOXELS_ENV', 'DEFAULT_MAX_VOXELS', 'max_voxels', 'is_nifti', 'check_size', 'corrupt_file_error', 'check_nifti_header', 'load_nifti', 'check_finite', 'check_nifti_voxels', 'check_image_values', 'check_label_values']
 
 
 MAX_VOXELS_ENV = "MONAI_PROBREG_MAX_VOXELS"
@@ -36,6 +39,7 @@ MAX_VOXELS_ENV = "MONAI_PROBREG_MAX_VOXELS"
 
 DEFAULT_MAX_VOXELS = 512**3  # 134M voxels (0.5 GiB per float32 copy): a 0.5 mm whole head fits, 0.25 mm does not
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+_NIFTI1_HEADER_BYTES = 348
 
 
 _READ_ERRORS = (EOFError, OSError, ValueError, zlib.error, gzip.BadGzipFile, OverflowError)
@@ -106,12 +110,49 @@ def check_nifti_header(path: str | os.PathLike, role: str, limit: int | None = N
     """Open a NIfTI file with nibabel and check its header: size and voxel limit first (nothing else is read for a
     refused size), then voxel type, affine and byte count (a ``.nii.gz`` is streamed through once for this; no voxel
     array is built)."""
-    path, where = Path(path), f"{role} {str(path)!r}"
+    path = Path(path)
     try:
         image = nib.load(str(path))
     except _READ_ERRORS + (nib.filebasedimages.ImageFileError,) as err:
         raise corrupt_file_error(path, role, err) from None
     check_size(image.shape, path, role, limit)
+    try:
+        stored = _stream_length(path)
+    except _READ_ERRORS as err:
+        raise corrupt_file_error(path, role, err) from None
+    return _check_loaded_header(image, stored, path, role)
+
+
+def load_nifti(path: str | os.PathLike, role: str, limit: int | None = None) -> tuple[nib.Nifti1Image, np.ndarray] | None:
+    """:func:`check_nifti_header` and :func:`check_nifti_voxels` in one pass over the bytes: the size checked from the
+    header alone (nothing more is decompressed for a refused size), then the whole file decompressed once by ISA-L's
+    igzip (which checks the CRC) and held in memory, the same header checks, and the voxels as stored (scaled).
+    Returns (image, voxels), or None for a file that is not a single-file NIfTI-1 (``.nii``/``.nii.gz`` with a
+    NIfTI-2 or Analyze header): :func:`check_nifti_header` handles those."""
+    path = Path(path)
+    gz = path.name.lower().endswith(".gz")
+    errors = _READ_ERRORS + (IsalError, nib.filebasedimages.ImageFileError, nib.spatialimages.HeaderDataError)
+    try:
+        with (igzip.open(path, "rb") if gz else open(path, "rb")) as stream:
+            head = stream.read(_NIFTI1_HEADER_BYTES)
+        header = nib.Nifti1Header.from_fileobj(io.BytesIO(head), check=False)
+    except errors as err:
+        raise corrupt_file_error(path, role, err) from None
+    if int(header["sizeof_hdr"]) != _NIFTI1_HEADER_BYTES or header["magic"] != b"n+1":
+        return None
+    check_size(header.get_data_shape(), path, role, limit)
+    try:
+        data = igzip.decompress(path.read_bytes()) if gz else path.read_bytes()
+        image = nib.Nifti1Image.from_bytes(data)
+    except errors as err:
+        raise corrupt_file_error(path, role, err) from None
+    _check_loaded_header(image, len(data), path, role)
+    return image, check_nifti_voxels(image, path, role)
+
+
+def _check_loaded_header(image: nib.Nifti1Image, stored: int, path: Path, role: str) -> nib.Nifti1Image:
+    """Voxel type, affine, and ``stored`` (the bytes of the decompressed stream) against what the header needs."""
+    where = f"{role} {str(path)!r}"
     dtype = image.header.get_data_dtype()
     if dtype.kind == "c" or dtype.fields is not None:
         raise InputError(f"{where}: expected one real value per voxel, got {dtype} voxels (complex or RGB)")
@@ -123,10 +164,6 @@ def check_nifti_header(path: str | os.PathLike, role: str, limit: int | None = N
     offset = getattr(image.dataobj, "offset", None)  # where the voxels start (the loaded header's is reset to 0)
     needed = int(offset if offset is not None else image.header.get_data_offset()) + \
         int(np.prod(image.header.get_data_shape(), dtype=np.int64)) * dtype.itemsize
-    try:
-        stored = _stream_length(path)
-    except _READ_ERRORS as err:
-        raise corrupt_file_error(path, role, err) from None
     if stored < needed:
         raise InputError(f"{where}: expected {needed:,} bytes for the header's size {tuple(image.shape)} ({dtype}), "
                          f"got {stored:,}: the file is truncated; was a download or copy interrupted?")
@@ -145,9 +182,10 @@ def check_finite(values: np.ndarray, path: str | os.PathLike, role: str) -> None
                          "replace them (e.g. with 0) first")
 
 
-def check_nifti_voxels(image: nib.Nifti1Image, path: str | os.PathLike, role: str) -> None:
-    """Read the voxels as stored (nibabel): a truncated file, NaN/Inf, and float64 values beyond float32's range.
-    ITK's NIfTI reader would zero-fill the first and turn NaN into 0 without a warning."""
+def check_nifti_voxels(image: nib.Nifti1Image, path: str | os.PathLike, role: str) -> np.ndarray:
+    """Read the voxels as stored (nibabel, scaled by ``scl_slope``/``scl_inter``): a truncated file, NaN/Inf, and
+    float64 values beyond float32's range; returns them. ITK's NIfTI reader would zero-fill the first and turn NaN
+    into 0 without a warning."""
     try:
         values = np.asanyarray(image.dataobj)
     except MemoryError:
@@ -161,6 +199,7 @@ def check_nifti_voxels(image: nib.Nifti1Image, path: str | os.PathLike, role: st
         if peak > _FLOAT32_MAX:
             raise InputError(f"{role} {str(path)!r}: expected intensities within float32's range (|v| <= 3.4e38), got "
                              f"values up to {peak:.3g}; rescale the image")
+    return values
 
 
 def check_image_values(values: np.ndarray, path: str | os.PathLike, role: str) -> None:

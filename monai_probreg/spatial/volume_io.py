@@ -9,7 +9,9 @@ Conventions (the physical-space conventions of the package; :mod:`monai_probreg.
   ``origin + direction @ diag(spacing) @ (i, j, k)``. nibabel's RAS affine is ``diag(-1, -1, 1, 1) @ index_to_lps``.
 - ITK reads the geometry (direction, spacing, origin); images are read as float32, label maps as float64 and
   checked to hold non-negative integers, then stored as int32. NIfTI voxels are also checked as stored, with
-  nibabel: ITK's NIfTI reader zero-fills a truncated file and turns NaN into 0 without a warning.
+  nibabel: ITK's NIfTI reader zero-fills a truncated file and turns NaN into 0 without a warning. A NIfTI file whose
+  header leaves ITK no choice of geometry is read without ITK, placed exactly as ITK places it
+  (:mod:`monai_probreg.spatial.nifti_read`: one decompression instead of three, no ITK IO modules to load).
 
 Every problem with an input raises :class:`InputError` with one line naming the file and the problem, before any
 output is written: missing, unreadable, truncated or corrupt file, a header whose size disagrees with the data, not a
@@ -38,7 +40,9 @@ from monai_probreg.spatial.checks import (
     check_size,
     corrupt_file_error,
     is_nifti,
+    load_nifti,
 )
+from monai_probreg.spatial.nifti_read import itk_geometry
 from monai_probreg.utils.errors import InputError
 
 __all__ = ["Volume", "LPS_TO_RAS", "read_image", "read_label", "check_same_grid", "volume_to_itk",
@@ -121,8 +125,7 @@ def volume_to_itk(volume: Volume, dtype: type = np.float32) -> itk.Image:
     return image
 
 
-def _header(path: Path, role: str) -> tuple[list[int], int]:
-    """(size per dimension, components per voxel) from the file header; InputError if it cannot be read."""
+def _check_file(path: Path, role: str) -> None:
     if not path.exists():
         raise InputError(f"{role} {str(path)!r}: no such file")
     if not path.is_file():
@@ -131,6 +134,11 @@ def _header(path: Path, role: str) -> tuple[list[int], int]:
         raise InputError(f"{role} {str(path)!r}: file is not readable (permissions)")
     if path.stat().st_size == 0:
         raise corrupt_file_error(path, role, EOFError())
+
+
+def _header(path: Path, role: str) -> tuple[list[int], int]:
+    """(size per dimension, components per voxel) from the file header; InputError if it cannot be read."""
+    _check_file(path, role)
     image_io = itk.ImageIOFactory.CreateImageIO(str(path), itk.CommonEnums.IOFileMode_ReadMode)
     if image_io is None:
         if is_nifti(path):  # ITK cannot even identify a damaged .nii.gz; nibabel says what is wrong
@@ -159,8 +167,28 @@ def itk_error_message(err: BaseException) -> str:
     return text[:200]
 
 
-def _read(path: str | os.PathLike, role: str, pixel: type) -> Volume:
+def _read_nifti(path: Path, role: str, dtype: type) -> Volume | None:
+    """The NIfTI fast path (:mod:`monai_probreg.spatial.nifti_read`): the checks of the ITK path on one decompressed
+    copy, voxels by nibabel, geometry by ITK's rule; None when ITK must read the file (that module's docstring)."""
+    _check_file(path, role)
+    loaded = load_nifti(path, role)
+    if loaded is None:
+        return None
+    image, values = loaded
+    index_to_lps = itk_geometry(image.header)
+    if index_to_lps is None:
+        return None
+    return Volume(np.asarray(values, dtype=dtype).reshape(image.shape[:3]), index_to_lps, str(path))
+
+
+def _read(path: str | os.PathLike, role: str, dtype: type) -> Volume:
+    """``dtype``: np.float32 (images) or np.float64 (label maps, checked for integers afterwards)."""
     path = Path(path)
+    if is_nifti(path):
+        volume = _read_nifti(path, role, dtype)
+        if volume is not None:
+            return volume
+    pixel = itk.F if dtype == np.float32 else itk.D
     sizes, components = _header(path, role)
     nifti = check_nifti_header(path, role) if is_nifti(path) else None  # before any voxel is read
     if components != 1:
@@ -186,14 +214,14 @@ def read_image(path: str | os.PathLike, role: str = "image") -> Volume:
     Raises :class:`InputError` for the problems listed in the module docstring, including a constant image
     (nothing to register).
     """
-    volume = _read(path, role, itk.F)
+    volume = _read(path, role, np.float32)
     check_image_values(volume.array, path, role)
     return volume
 
 
 def read_label(path: str | os.PathLike, role: str = "label map") -> Volume:
     """Read a 3-D label map (non-negative integers, 0 = background) as int32 with its geometry."""
-    volume = _read(path, role, itk.D)
+    volume = _read(path, role, np.float64)
     check_label_values(volume.array, path, role)
     return Volume(volume.array.astype(np.int32), volume.index_to_lps, volume.path)
 

@@ -181,7 +181,7 @@ def test_affine_itk_round_trip_with_centre(tmp_path):
     np.testing.assert_allclose(affine_from_itk(transform), _affine(), atol=1e-12)
     point = np.array([1.0, 2.0, 3.0])
     np.testing.assert_allclose(np.asarray(transform.TransformPoint(point.tolist())), apply_affine(_affine(), point))
-    write_transform(tmp_path / "a.tfm", transform)
+    write_transform(tmp_path / "a.tfm", _affine(), np.array([10.0, -4.0, 2.0]))
     read = itk.transformread(str(tmp_path / "a.tfm"))[0]
     np.testing.assert_allclose(affine_from_itk(read), _affine(), atol=1e-9)
     assert "AffineTransform_double_3_3" in (tmp_path / "a.tfm").read_text()
@@ -190,7 +190,7 @@ def test_affine_itk_round_trip_with_centre(tmp_path):
 def test_ants_reads_the_transform_file(tmp_path):
     """ANTs (antspyx, in the bench extra) reads our text affine.tfm and maps a point as we do."""
     ants = pytest.importorskip("ants")
-    write_transform(tmp_path / "a.tfm", affine_to_itk(_affine(), center=np.array([10.0, -4.0, 2.0])))
+    write_transform(tmp_path / "a.tfm", _affine(), np.array([10.0, -4.0, 2.0]))
     point = np.array([1.0, 2.0, 3.0])
     mapped = ants.read_transform(str(tmp_path / "a.tfm")).apply_to_point(point.tolist())
     np.testing.assert_allclose(mapped, apply_affine(_affine(), point), atol=1e-6)
@@ -198,25 +198,26 @@ def test_ants_reads_the_transform_file(tmp_path):
 
 def test_bad_transform_file_suffix(tmp_path):
     with pytest.raises(ValueError, match=r"expected a \.tfm or \.txt path"):
-        write_transform(tmp_path / "a.h5", affine_to_itk(_affine()))
+        write_transform(tmp_path / "a.h5", _affine())
 
 
 def test_bad_non_finite_transform_is_not_written(tmp_path):
     matrix = _affine().copy()
     matrix[0, 3] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
-        write_transform(tmp_path / "a.tfm", affine_to_itk(matrix))
+        write_transform(tmp_path / "a.tfm", matrix)
     assert not list(tmp_path.iterdir())
 
 
 def test_rigid_transform_is_written_as_an_equivalent_affine(tmp_path):
+    """A rigid ITK transform (its matrix and centre) reads back as the same map."""
     rigid = itk.VersorRigid3DTransform[itk.D].New()
     rigid.SetCenter([1.0, -2.0, 3.0])
     versor = itk.Versor[itk.D]()
     versor.Set([0.0, 0.0, 1.0], 0.3)  # 0.3 rad about S
     rigid.SetRotation(versor)
     rigid.SetTranslation([4.0, 5.0, -6.0])
-    write_transform(tmp_path / "r.tfm", rigid)
+    write_transform(tmp_path / "r.tfm", affine_from_itk(rigid), np.asarray(rigid.GetCenter()))
     read = itk.transformread(str(tmp_path / "r.tfm"))[0]
     np.testing.assert_allclose(affine_from_itk(read), affine_from_itk(rigid), atol=1e-12)
 

@@ -91,17 +91,21 @@ def normalise_intensity(array: np.ndarray) -> np.ndarray:
 
 @dataclass
 class FixedSpace:
-    """The fixed image prepared once: geometry, model grid, normalised model input, voxel-centre points."""
+    """The fixed image prepared once: geometry, model grid, normalised model input, voxel-centre points;
+    :attr:`itk_image` (for the ITK affine backend) is converted on first use, once."""
 
     image: Volume
     label: Volume | None
     grid: ModelGrid
-    itk_image: itk.Image
     model_input: np.ndarray
     points: np.ndarray
     label_ids: list[int] = field(default_factory=list)
     brain_mask: np.ndarray | None = None  # where the moving scan stays visible (monai_probreg.spatial.brain_mask)
     brain_mask_margin_mm: float | None = None  # its margin; None = no mask
+
+    @functools.cached_property
+    def itk_image(self) -> itk.Image:
+        return volume_to_itk(self.image)  # loads ITK's core modules (~0.8 s): not on the torch backend's path
 
 
 def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None = None,
@@ -116,7 +120,7 @@ def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None 
     grid = ModelGrid.for_volume(image, divisor)
     ids = [int(v) for v in np.unique(label.array) if v != 0] if label is not None else []
     mask = None if brain_mask_margin_mm is None else fixed_brain_mask(image.array, image.spacing, brain_mask_margin_mm)
-    return FixedSpace(image, label, grid, volume_to_itk(image), grid.to_model(normalise_intensity(image.array)),
+    return FixedSpace(image, label, grid, grid.to_model(normalise_intensity(image.array)),
                       grid_points(image.shape, image.index_to_lps), ids, mask, brain_mask_margin_mm)
 
 
@@ -363,7 +367,8 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         if options.affine is None:
             affine = AffineResult(np.eye(4), np.zeros(3), np.eye(4), [])
         else:
-            affine = align(fixed.image, moving, options.affine, fixed.itk_image)
+            affine = align(fixed.image, moving, options.affine,
+                           fixed.itk_image if options.affine.backend == "itk" else None)
     with _timed(timings, "resample", report):
         affine_points = apply_affine(affine.matrix, fixed.points)
         background = float(moving.array.min())

@@ -50,7 +50,12 @@ from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 __all__ = ["BACKENDS", "AffineResult", "AffineSettings", "StageReport", "align", "load_itk_modules",
            "register_affine", "rotation_angle_deg"]  # the settings and results re-exported from affine_settings
 
-_IMAGE = itk.Image[itk.F, 3]
+
+
+def _image_type():
+    """``itk.Image[itk.F, 3]``, looked up when the ITK backend runs: touching ITK's types at import would load its
+    core modules (about 0.8 s) in every process that imports this module, the torch backend's included."""
+    return itk.Image[itk.F, 3]
 
 def load_itk_modules() -> None:
     """Load ITK's lazily imported registration modules now (several seconds on first use), so that a timed
@@ -65,7 +70,7 @@ def load_itk_modules() -> None:
 def _run_stage(name: str, fixed: itk.Image, moving: itk.Image, transform: itk.Transform,
                iterations: tuple[int, ...], settings: AffineSettings) -> StageReport:
     """Optimise ``transform`` in place with one multi-resolution ImageRegistrationMethodv4 run."""
-    metric = itk.MattesMutualInformationImageToImageMetricv4[_IMAGE, _IMAGE].New()
+    metric = itk.MattesMutualInformationImageToImageMetricv4[_image_type(), _image_type()].New()
     metric.SetNumberOfHistogramBins(settings.histogram_bins)
     metric.SetUseMovingImageGradientFilter(False)  # gradients on the fly at the samples, as antsRegistration does
     metric.SetUseFixedImageGradientFilter(False)
@@ -86,7 +91,7 @@ def _run_stage(name: str, fixed: itk.Image, moving: itk.Image, transform: itk.Tr
     optimizer.SetMinimumConvergenceValue(settings.convergence)
     optimizer.SetConvergenceWindowSize(10)
 
-    registration = itk.ImageRegistrationMethodv4[_IMAGE, _IMAGE].New()
+    registration = itk.ImageRegistrationMethodv4[_image_type(), _image_type()].New()
     registration.SetFixedImage(fixed)
     registration.SetMovingImage(moving)
     registration.SetMetric(metric)
@@ -136,7 +141,7 @@ def register_affine(fixed: itk.Image, moving: itk.Image, settings: AffineSetting
     """
     settings = settings or AffineSettings.itk_defaults()
     rigid = itk.VersorRigid3DTransform[itk.D].New()
-    initializer = itk.CenteredTransformInitializer[type(rigid), _IMAGE, _IMAGE].New(
+    initializer = itk.CenteredTransformInitializer[type(rigid), _image_type(), _image_type()].New(
         Transform=rigid, FixedImage=fixed, MovingImage=moving)
     if settings.initializer == "moments":
         initializer.MomentsOn()

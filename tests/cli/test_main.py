@@ -249,6 +249,23 @@ def test_console_entry_point_keeps_the_exit_status_and_the_output(tmp_path, argv
         assert result.stderr.startswith("monai-probreg: error: --moving 'missing.nii.gz': no such file")
 
 
+def test_the_torch_path_loads_no_itk_module(scene, tmp_path):
+    """NIfTI in, NIfTI out, the torch affine: ITK's modules (about 1.7 s to load) are never needed, so never loaded
+    (a fresh process: this one has ITK loaded by other tests)."""
+    import subprocess
+    import sys
+
+    argv = ["register", "--moving", str(scene.moving), "--moving-label", str(scene.moving_label), "--fixed-label",
+            str(scene.fixed_label), "--out", str(tmp_path / "out"), "--threads", "1", *scene.common, *FAST_AFFINE]
+    code = ("import json, sys\nfrom monai_probreg.cli.main import main\n"
+            f"status = main({argv!r})\n"
+            "print(json.dumps([status, sorted(m for m in sys.modules if m.startswith('itk.') and m.endswith('Python'))]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, timeout=600)
+    status, loaded = json.loads(done.stdout.strip().splitlines()[-1])
+    assert status == 0, done.stderr[-2000:]
+    assert loaded == [] and (tmp_path / "out" / "warp.nii.gz").is_file()
+
+
 def test_usage_error_exits_2(capsys):
     with pytest.raises(SystemExit) as info:
         main(["register", "--moving", "m.nii.gz"])

@@ -22,9 +22,9 @@ __all__ = ["main", "run", "build_parser"]
 
 
 DESCRIPTION = """\
-Register 3-D brain MRI scans to an atlas with the trained VoxelMorph-diff model (Dalca et al. 2018): ITK affine
-pre-alignment (rigid then affine, Mattes mutual information), then the network's diffeomorphic deformation, composed
-into one transform. Scans may come in any orientation, voxel size, field of view and intensity range; they should be
+Register 3-D brain MRI scans to an atlas with the trained VoxelMorph-diff model (Dalca et al. 2018): affine
+pre-alignment (rigid then affine, Mattes mutual information; in torch, or ITK's with --affine-backend itk), then the
+network's diffeomorphic deformation, composed into one transform. Scans may come in any orientation, voxel size, field of view and intensity range; they should be
 skull-stripped T1-weighted brains, like the atlas.
 
   monai-probreg register --moving sub01.nii.gz --fixed atlas.nii.gz --out results/sub01

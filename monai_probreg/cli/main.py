@@ -24,8 +24,8 @@ __all__ = ["main", "run", "build_parser"]
 DESCRIPTION = """\
 Register 3-D brain MRI scans to an atlas with the trained VoxelMorph-diff model (Dalca et al. 2018): affine
 pre-alignment (rigid then affine, Mattes mutual information; in torch, or ITK's with --affine-backend itk), then the
-network's diffeomorphic deformation, composed into one transform. Scans may come in any orientation, voxel size, field of view and intensity range; they should be
-skull-stripped T1-weighted brains, like the atlas.
+network's diffeomorphic deformation, composed into one transform. Scans may come in any orientation, voxel size,
+field of view and intensity range; they should be skull-stripped T1-weighted brains, like the atlas.
 
   monai-probreg register --moving sub01.nii.gz --fixed atlas.nii.gz --out results/sub01
   monai-probreg register --moving sub01.nii.gz --moving-label sub01_seg.nii.gz \\
@@ -232,10 +232,10 @@ def _setup(args: argparse.Namespace):
             from monai_probreg.utils.errors import InputError
             raise InputError(f"--threads must be >= 1; got {args.threads}")
         torch.set_num_threads(args.threads)
-        # ITK reads this when its core first loads; the torch path never loads it (about 0.8 s saved), and a process
-        # where ITK is loaded already (the ITK backend, a library caller) is told directly
+        # ITK reads this when its core first loads (the torch path never loads it: about 0.8 s saved); the ITK
+        # backend, where ITK's threads matter, is told directly (ITK may be loaded already in this process)
         os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)
-        if args.affine_backend == "itk" or "itk.ITKCommonBasePython" in sys.modules:
+        if args.affine_backend == "itk":
             itk.MultiThreaderBase.SetGlobalDefaultNumberOfThreads(args.threads)
     if not args.no_memory_reuse:
         reuse_freed_memory()

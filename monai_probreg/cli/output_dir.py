@@ -23,7 +23,8 @@ from pathlib import Path
 import itk
 import numpy as np
 
-from monai_probreg.spatial.nifti_write import is_nifti_path, write_nifti
+from monai_probreg.spatial.checks import is_nifti
+from monai_probreg.spatial.nifti_write import write_nifti
 from monai_probreg.spatial.physical import field_to_itk
 from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 from monai_probreg.utils.errors import InputError
@@ -110,7 +111,7 @@ def staged_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> It
 def write_volume(path: str | os.PathLike, volume: Volume, dtype: type = np.float32) -> Path:
     """Write a :class:`Volume` (atomic); labels: pass an integer ``dtype`` (int16 when it fits). NIfTI through
     :mod:`monai_probreg.spatial.nifti_write` (ITK's header, compressed 10x faster), other formats with ITK."""
-    if is_nifti_path(path):
+    if is_nifti(path):
         return write_nifti(path, volume.array.astype(dtype, copy=False), volume.index_to_lps)
     image = volume_to_itk(volume, dtype)
     return atomic_write(path, lambda tmp: itk.imwrite(image, tmp, compression=True))
@@ -124,7 +125,7 @@ def label_dtype(array: np.ndarray) -> type:
 
 def write_field(path: str | os.PathLike, field: np.ndarray, index_to_lps: np.ndarray) -> Path:
     """Write a displacement field (*S, 3) in LPS mm as an ITK vector image (NIfTI intent "vector", float32)."""
-    if is_nifti_path(path):
+    if is_nifti(path):
         return write_nifti(path, np.asarray(field, dtype=np.float32), index_to_lps, vector=True)
     image = field_to_itk(field, index_to_lps)
     return atomic_write(path, lambda tmp: itk.imwrite(image, tmp, compression=True))

@@ -51,11 +51,11 @@ __all__ = ["BACKENDS", "AffineResult", "AffineSettings", "StageReport", "align",
            "register_affine", "rotation_angle_deg"]  # the settings and results re-exported from affine_settings
 
 
-
 def _image_type():
     """``itk.Image[itk.F, 3]``, looked up when the ITK backend runs: touching ITK's types at import would load its
     core modules (about 0.8 s) in every process that imports this module, the torch backend's included."""
     return itk.Image[itk.F, 3]
+
 
 def load_itk_modules() -> None:
     """Load ITK's lazily imported registration modules now (several seconds on first use), so that a timed

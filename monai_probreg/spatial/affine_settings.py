@@ -55,8 +55,8 @@ class AffineSettings:
     def itk_defaults(cls, **changes) -> AffineSettings:
         """The ITK backend's defaults (class docstring), with ``changes``."""
         return cls(**{"shrink_factors": (4, 2), "smoothing_sigmas_mm": (2.0, 1.0), "rigid_iterations": (100, 50),
-                      "affine_iterations": (100, 50), "sampling_percentage": 0.20, "max_samples": None, "backend": "itk",
-                    **changes})
+                      "affine_iterations": (100, 50), "sampling_percentage": 0.20, "max_samples": None,
+                      "backend": "itk", **changes})
 
     def __post_init__(self) -> None:
         levels = len(self.shrink_factors)

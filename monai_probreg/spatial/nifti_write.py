@@ -14,7 +14,7 @@ back by ITK): qform and sform from the grid (code 1, "scanner"), units mm and s,
 mm, :mod:`monai_probreg.spatial.physical`) is 5-D ``(I, J, K, 1, C)`` with intent "vector", its components stored as
 they are (LPS), exactly as ITK stores a ``DisplacementFieldTransform``'s field and ANTs reads it.
 
-Only NIfTI is written here (:func:`is_nifti_path`); other formats (``.nrrd``, ``.mha``) keep ITK's writer.
+Only NIfTI is written here (:func:`monai_probreg.spatial.checks.is_nifti`); other formats (``.nrrd``, ``.mha``) keep ITK's writer.
 """
 
 from __future__ import annotations
@@ -26,18 +26,14 @@ import nibabel as nib
 import numpy as np
 from isal import igzip
 
+from monai_probreg.spatial.checks import is_nifti
 from monai_probreg.spatial.volume_io import LPS_TO_RAS
 from monai_probreg.utils.files import atomic_write
 
-__all__ = ["GZIP_LEVEL", "is_nifti_path", "nifti_bytes", "write_nifti"]
+__all__ = ["GZIP_LEVEL", "nifti_bytes", "write_nifti"]
 
 GZIP_LEVEL = 1  # ISA-L levels are 0-3; 1 gives zlib-level-1 sizes at ~10x the speed (module docstring)
-_NIFTI_SUFFIXES = (".nii.gz", ".nii")
 _SCANNER = 1  # NIfTI xform code "scanner", what ITK writes for both qform and sform
-
-
-def is_nifti_path(path: str | os.PathLike) -> bool:
-    return str(path).endswith(_NIFTI_SUFFIXES)
 
 
 def nifti_bytes(array: np.ndarray, index_to_lps: np.ndarray, vector: bool = False) -> bytes:
@@ -62,9 +58,9 @@ def nifti_bytes(array: np.ndarray, index_to_lps: np.ndarray, vector: bool = Fals
 
 def write_nifti(path: str | os.PathLike, array: np.ndarray, index_to_lps: np.ndarray, vector: bool = False) -> Path:
     """Write ``array`` as ``path`` (``.nii.gz``: gzip by ISA-L; ``.nii``: as is), atomically."""
-    if not is_nifti_path(path):
+    if not is_nifti(path):
         raise ValueError(f"expected a .nii or .nii.gz path; got {str(path)!r}")
     data = nifti_bytes(array, index_to_lps, vector)
-    if str(path).endswith(".gz"):
+    if str(path).lower().endswith(".gz"):
         data = igzip.compress(data, GZIP_LEVEL, mtime=0)  # no time stamp: the same voxels give the same bytes
     return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))

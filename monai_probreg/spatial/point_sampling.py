@@ -43,11 +43,9 @@ def _index_chunks(points: np.ndarray, volume: Volume, index: np.ndarray | None, 
     if index is not None and index.shape != np.shape(points):
         raise ValueError(f"expected an index of the points' shape {np.shape(points)}; got {index.shape}")
     source = (index if index is not None else np.asarray(points, dtype=np.float64)).reshape(-1, 3)
-    lps_to_index = torch.from_numpy(np.linalg.inv(np.asarray(volume.index_to_lps, dtype=np.float64)))
     for start in range(0, source.shape[0], chunk):
-        part = torch.from_numpy(np.asarray(source[start:start + chunk], dtype=np.float64))
-        yield start, part if index is not None else torch.addmm(lps_to_index[:3, 3][None], part,
-                                                                lps_to_index[:3, :3].T)
+        part = np.asarray(source[start:start + chunk], dtype=np.float64)
+        yield start, torch.from_numpy(part if index is not None else continuous_index(part, volume.index_to_lps))
 
 
 def _inside(index: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:

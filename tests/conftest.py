@@ -192,13 +192,13 @@ def run_cli(*argv: str, threads: int = 1) -> SimpleNamespace:
 
     from monai_probreg.cli.main import main
 
-    threads = torch.get_num_threads()
+    previous = torch.get_num_threads()
     out, err = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             rc = main([*argv, "--threads", str(threads)])
     finally:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(previous)
     return SimpleNamespace(rc=rc, out=out.getvalue(), err=err.getvalue())
 
 

@@ -1,6 +1,7 @@
 """``monai-probreg``: register raw 3-D scans to an atlas from the command line.
 
-Subcommands ``register`` (one scan) and ``register-batch`` (many scans, model and atlas loaded once); the work is
+Subcommands ``register`` (one scan), ``register-batch`` (many scans, model and atlas loaded once) and ``demo`` (a
+synthetic subject with a known answer, :mod:`monai_probreg.cli.demo`); the work is
 :func:`monai_probreg.cli.pipeline.register_scan`. Exit status: 0 on success; 1 with one line
 ``monai-probreg: error: ...`` on stderr when an input or the registration fails (for a batch: when any scan
 failed); 2 for command-line usage errors (argparse).
@@ -18,7 +19,7 @@ import traceback
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-__all__ = ["main", "run", "build_parser"]
+__all__ = ["build_parser", "main", "run", "run_bundle_demo"]
 
 
 DESCRIPTION = """\
@@ -27,6 +28,7 @@ pre-alignment (rigid then affine, Mattes mutual information; in torch, or ITK's 
 network's diffeomorphic deformation, composed into one transform. Scans may come in any orientation, voxel size,
 field of view and intensity range; they should be skull-stripped T1-weighted brains, like the atlas.
 
+  monai-probreg demo --out demo          # a synthetic subject with a known answer: is the install right?
   monai-probreg register --moving sub01.nii.gz --fixed atlas.nii.gz --out results/sub01
   monai-probreg register --moving sub01.nii.gz --moving-label sub01_seg.nii.gz \\
       --fixed atlas.nii.gz --fixed-label atlas_seg.nii.gz --samples 10 --out results/sub01
@@ -121,7 +123,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="monai-probreg", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    commands = parser.add_subparsers(dest="command", required=True, metavar="{register,register-batch}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="{register,register-batch,demo}")
     one = commands.add_parser("register", help="register one scan to the fixed image",
                               description="Register one scan to the fixed image; outputs in DIR.\n\n" + DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -137,6 +139,17 @@ def build_parser() -> argparse.ArgumentParser:
     many.add_argument("--moving-label-dir", metavar="D", help="folder of label maps named like their scans (a scan "
                       "without one is registered without labels)")
     _add_common(many)
+    demo = commands.add_parser("demo", help="register a synthetic subject with a known answer and score it",
+                               description="Make a subject from the template (--fixed; default: the MNI152 template "
+                               "nilearn ships) with a known random rigid turn and shift, smooth deformation, bias "
+                               "field and noise (drawn from --seed), register it back with the options of register, "
+                               "and print how well the known transform was recovered: the displacement error in mm "
+                               "inside the brain before and after, and the coverage of the calibrated 95% interval. "
+                               "Outputs in DIR as register's, plus subject.nii.gz and true_warp.nii.gz; the scores in "
+                               "DIR/summary.json[\"demo\"]. --samples defaults to 8 here.\n\n" + DESCRIPTION,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_common(demo)
+    demo.set_defaults(samples=None)  # None: monai_probreg.cli.demo.DEMO_SAMPLES (imported when the demo runs)
     return parser
 
 
@@ -318,6 +331,28 @@ def _register(args: argparse.Namespace) -> int:
     return 0
 
 
+def _demo(args: argparse.Namespace) -> int:
+    from monai_probreg.cli.demo import DEMO_SAMPLES, demo_report, run_demo
+    from monai_probreg.cli.output_dir import check_output_dir
+
+    if args.samples is None:
+        args.samples = DEMO_SAMPLES
+    options = _options(args)
+    _require_files(args, ["--fixed", "--fixed-label"])
+    check_output_dir(args.out, args.overwrite)
+    start = time.perf_counter()
+    model, fixed = _setup(args)
+    options = _with_refinement(options, model, args.refine)
+    _say(args, f"model and template ready in {time.perf_counter() - start:.1f} s")
+    summary = run_demo(model, fixed, args.out, args.seed, options=options, overwrite=args.overwrite,
+                       report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
+    print(demo_report(summary))
+    print(f"{args.out}: {_summary_line(summary)}")
+    if summary.get("warning"):
+        print(f"monai-probreg: warning: {args.out}: {summary['warning']}", file=sys.stderr, flush=True)
+    return 0
+
+
 def _register_batch(args: argparse.Namespace) -> int:
     from monai_probreg.cli.batch import BatchItem, print_batch_table, register_batch
     from monai_probreg.cli.output_dir import check_output_dir
@@ -367,7 +402,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ.setdefault("KMP_WARNINGS", "0")
     try:
         with _voxel_limit(args.max_voxels):
-            return _register(args) if args.command == "register" else _register_batch(args)
+            command = {"register": _register, "register-batch": _register_batch, "demo": _demo}[args.command]
+            return command(args)
     except KeyboardInterrupt:
         print("monai-probreg: interrupted; the scan in progress left nothing in its output folder (a batch lists "
               "the scans not run in batch_summary.csv)", file=sys.stderr)
@@ -383,6 +419,23 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"monai-probreg: error: unexpected {type(err).__name__}: {first_line(err)} (rerun with --debug for the "
                   "traceback)", file=sys.stderr)
         return 1
+
+
+def run_bundle_demo(out_dir: str, seed: int = 0, bundle_root: str | None = None, model_file: str | None = None,
+                    template: str | None = None, samples: int | None = None, overwrite: bool = False) -> dict:
+    """The bundle's ``configs/demo.yaml``: ``monai-probreg demo`` with these options (None: the command's default);
+    prints what the command prints and returns the summary. Raises RuntimeError when the demo fails."""
+    import json
+
+    argv = ["demo", "--out", str(out_dir), "--seed", str(seed)]
+    for flag, value in (("--bundle-root", bundle_root), ("--model-file", model_file), ("--fixed", template),
+                        ("--samples", samples)):
+        if value is not None:
+            argv += [flag, str(value)]
+    status = main(argv + (["--overwrite"] if overwrite else []))
+    if status != 0:
+        raise RuntimeError(f"monai-probreg demo failed with exit status {status} (see the error above)")
+    return json.loads((Path(out_dir) / "summary.json").read_text())
 
 
 def run() -> None:

@@ -50,6 +50,9 @@ OUTPUT_FILES = {
     "entropy.nii.gz": "entropy of the velocity posterior q(z) (Dalca et al. 2018, Eq. 8), fixed grid",
     "displacement_std.nii.gz": "std of the displacement over K posterior samples, sqrt(sum of the 3 variances), mm "
                                "[--samples K]",
+    "subject.nii.gz": "the synthetic subject registered (the moving image), made from the template [demo]",
+    "true_warp.nii.gz": "the known field fixed -> moving the subject was made with, LPS mm, on the fixed grid, in "
+                        "warp.nii.gz's convention: the answer warp.nii.gz is scored against [demo]",
     "qc.png": "quality-control figure: three orthogonal slices of each map",
     "summary.json": "timings per stage, affine, |J| <= 0 count, Dice per label, inputs and settings",
     "README.txt": "this list",

@@ -30,10 +30,11 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import itk
 import numpy as np
@@ -77,8 +78,14 @@ from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import parallel_writes, write_text
 from monai_probreg.utils.provenance import library_versions
 
-__all__ = ["FixedSpace", "prepare_fixed", "RegistrationOptions",
-           "normalise_intensity", "register_scan"]
+__all__ = [
+    "FixedSpace",
+    "Registered",
+    "RegistrationOptions",
+    "normalise_intensity",
+    "prepare_fixed",
+    "register_scan",
+]
 
 
 
@@ -194,6 +201,7 @@ class _ModelMaps:
     entropy: np.ndarray | None  # velocity entropy, filled in by _run_model (with the samples when there are any)
     warped: np.ndarray
     std: np.ndarray | None = None
+    variance: np.ndarray | None = None  # (3, *S) mm^2 per model-grid axis, with the samples
 
 
 def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.ndarray, options: RegistrationOptions,
@@ -222,6 +230,7 @@ def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.nda
             sampled = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape, samples,
                                      model.std_scale, seed=seed, bias_fraction=model.bias_fraction, spacing=spacing)
             maps.entropy, maps.std = _numpy(sampled.velocity_entropy), _numpy(sampled.displacement_std)
+            maps.variance = _numpy(sampled.displacement_variance)
     return maps
 
 
@@ -299,6 +308,28 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
 _MAP_FILES = ("jacobian", "entropy", "displacement_std")  # left out by RegistrationOptions.maps = False
 
 
+class Registered(NamedTuple):
+    """What :func:`register_scan` computed, for a caller's own check of the result (its ``check``).
+
+    ``warp`` (*S, 3): the composed ``D(p) = phi(p) - p``, LPS mm on the fixed grid (``warp.nii.gz``); ``affine``
+    (4, 4): the affine stage, fixed LPS -> moving LPS; ``points`` (*S, 3): the fixed grid's LPS points;
+    ``displacement_variance`` (*S, 3): the calibrated posterior's variance of the deformable displacement, mm^2 on
+    the fixed grid, one component per column of ``variance_axes`` (3, 3; unit LPS vectors: the model grid's axes),
+    or None without samples."""
+
+    warp: np.ndarray
+    affine: np.ndarray
+    points: np.ndarray
+    displacement_variance: np.ndarray | None
+    variance_axes: np.ndarray
+
+
+def _registered(fixed: FixedSpace, affine: AffineResult, composed: _Composed, model_maps: _ModelMaps) -> Registered:
+    grid = fixed.grid
+    variance = None if model_maps.variance is None else grid.to_fixed(np.moveaxis(model_maps.variance, 0, -1))
+    return Registered(composed.warp, affine.matrix, fixed.points, variance, grid.index_to_lps[:3, :3] / grid.spacing)
+
+
 def _writers(stage: Path, fixed: FixedSpace, moving: Volume, affine: AffineResult, composed: _Composed,
              options: RegistrationOptions) -> list[Callable[[], object]]:
     """One call per output file (run in parallel by :func:`~monai_probreg.utils.files.parallel_writes`), largest
@@ -346,12 +377,19 @@ def _qc_title(moving: Volume, dice: dict | None, num_folding: int,
     return title
 
 
-def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.PathLike, out_dir: str | os.PathLike,
-                  moving_label_path: str | os.PathLike | None = None, options: RegistrationOptions | None = None,
-                  overwrite: bool = False, report: Callable[[str, float], None] | None = None) -> dict:
+def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.PathLike | Volume,
+                  out_dir: str | os.PathLike, moving_label_path: str | os.PathLike | None = None,
+                  options: RegistrationOptions | None = None, overwrite: bool = False,
+                  report: Callable[[str, float], None] | None = None,
+                  check: Callable[[Registered], dict] | None = None,
+                  extra_outputs: Mapping[str, Callable[[Path], object]] | None = None) -> dict:
     """Register ``moving_path`` to ``fixed`` and write every output into ``out_dir`` (all or nothing).
 
-    ``report(stage, seconds)`` is called after each stage. Returns the summary written to ``summary.json``.
+    ``moving_path`` may be a :class:`~monai_probreg.spatial.volume_io.Volume` already in memory (``monai-probreg
+    demo``'s synthetic subject): the "read" stage then only takes it. ``report(stage, seconds)`` is called after each
+    stage. ``check(registered)``: a caller's check of the result (:class:`Registered`), whose keys are added to the
+    summary; ``extra_outputs``: file name -> writer of that file (given its path in the staging folder), written
+    with the others. Returns the summary written to ``summary.json``.
     Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
     """
     options = options or RegistrationOptions()
@@ -359,7 +397,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
     timings: dict[str, float] = {}
     start = time.perf_counter()
     with _timed(timings, "read", report):
-        moving = read_image(moving_path, "--moving")
+        moving = moving_path if isinstance(moving_path, Volume) else read_image(moving_path, "--moving")
         moving_label = read_label(moving_label_path, "--moving-label") if moving_label_path is not None else None
         if moving_label is not None:
             check_same_grid(moving_label, moving, "--moving-label", "--moving")
@@ -384,6 +422,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
     with _timed(timings, "compose", report):
         composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points, options.inverse)
         stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
+    checked = check(_registered(fixed, affine, composed, model_maps)) if check is not None else {}
     with staged_output_dir(out, overwrite) as stage:
         # the files compress in a pool of threads while this thread draws the QC figure: "qc" is the drawing,
         # "write" the wait for the files after it (so the stages still add up to the wall time)
@@ -391,6 +430,8 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         with parallel_writes(torch.get_num_threads()) as submit:
             for writer in _writers(stage, fixed, moving, affine, composed, options):
                 submit(writer)
+            for name, write in (extra_outputs or {}).items():
+                submit(functools.partial(write, stage / name))
             if options.qc:
                 with _timed(timings, "qc", report):
                     save_qc(stage / "qc.png", _qc_data(fixed, moving_input, model_maps, composed,
@@ -427,6 +468,10 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             "version": monai_probreg.__version__,
             "reproducibility": _reproducibility(model, options),
         }
+        clash = set(checked) & set(summary)
+        if clash:
+            raise ValueError(f"check() returned keys the summary has already: {sorted(clash)}")
+        summary.update(checked)
         write_text(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
         write_text(stage / "README.txt", OUTPUTS_README)
     return summary

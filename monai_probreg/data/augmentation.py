@@ -99,8 +99,9 @@ class RandDiffeomorphicd(RandomizableTransform, MapTransform):
         control = [int(np.ceil((n - 1) / self.control_spacing)) + 1 for n in spatial_size]
         self._noise = self.R.standard_normal((1, len(spatial_size), *control)).astype(np.float32)
 
-    def displacement(self, spatial_size: Sequence[int]) -> torch.Tensor:
-        """The displacement (1, D, *S) of the last drawn velocity on ``spatial_size``, in voxels."""
+    def displacement(self, spatial_size: Sequence[int], inverse: bool = False) -> torch.Tensor:
+        """The displacement (1, D, *S) of the last drawn velocity ``exp(v)`` on ``spatial_size``, in voxels;
+        ``inverse``: of ``exp(-v)``, the inverse transform (integrated the same way)."""
         if self._noise is None:
             raise RuntimeError("randomize() must be called before displacement()")
         full = tuple(int(n) for n in spatial_size)
@@ -108,7 +109,8 @@ class RandDiffeomorphicd(RandomizableTransform, MapTransform):
         velocity = resize_displacement(torch.from_numpy(self._noise), half)
         rms_full = float(resize_displacement(velocity, full).pow(2).sum(1).mean().sqrt().clamp_min(1e-8))
         with torch.no_grad():
-            return resize_displacement(self.integrate(velocity * (self.magnitude / rms_full)), full)
+            scale = (-1.0 if inverse else 1.0) * self.magnitude / rms_full
+            return resize_displacement(self.integrate(velocity * scale), full)
 
     def __call__(self, data: dict) -> dict:  # type: ignore[override]
         d = dict(data)

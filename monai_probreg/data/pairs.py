@@ -29,8 +29,16 @@ from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS, DatasetIndex
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import file_stem
 
-__all__ = ["ATLAS_ID", "SCAN_IMAGE", "SCAN_LABEL", "subject_pairs", "read_pairs_file", "scan_dicts", "ordered_pairs",
-           "PairDataset"]
+__all__ = [
+    "ATLAS_ID",
+    "SCAN_IMAGE",
+    "SCAN_LABEL",
+    "PairDataset",
+    "ordered_pairs",
+    "read_pairs_file",
+    "scan_dicts",
+    "subject_pairs",
+]
 
 ATLAS_ID = "atlas"  # the id of the atlas among the scans of scan_dicts
 SCAN_IMAGE, SCAN_LABEL = "image", "label"  # keys of one preprocessed scan
@@ -130,13 +138,20 @@ def scan_dicts(index: DatasetIndex, ids: Sequence[str], include_atlas: bool = Tr
     return out
 
 
-def ordered_pairs(scan_ids: Sequence[str], atlas_repeats: int = 1, atlas_as_moving: bool = False
-                  ) -> list[tuple[int, int]]:
+def ordered_pairs(scan_ids: Sequence[str], atlas_repeats: int = 1, atlas_as_moving: bool = False,
+                  self_repeats: int = 0) -> list[tuple[int, int]]:
     """Index pairs (moving, fixed) into ``scan_ids``: every ordered pair of distinct subjects, and every subject to
     the atlas (id :data:`ATLAS_ID`) ``atlas_repeats`` times (its weight among the pairs; 0 = none); the atlas is
-    never moving unless ``atlas_as_moving``."""
-    if atlas_repeats < 0:
-        raise ValueError(f"atlas_repeats must be >= 0; got {atlas_repeats}")
+    never moving unless ``atlas_as_moving``.
+
+    ``self_repeats``: every scan (the atlas too) also paired with itself this many times (0 = none). A self pair has
+    one anatomy on both sides, so its answer is known: the identity, or the inverse of the random deformation the
+    moving augmentation draws for it (:func:`~monai_probreg.data.augmentation.moving_augmentation`). Between two
+    subjects no warp matches the images exactly; these pairs teach the network to return nothing where there is
+    nothing to register and to recover a deformation in full where there is one (``monai-probreg demo`` measures
+    both)."""
+    if atlas_repeats < 0 or self_repeats < 0:
+        raise ValueError(f"atlas_repeats and self_repeats must be >= 0; got {atlas_repeats} and {self_repeats}")
     ids = list(scan_ids)
     atlas = ids.index(ATLAS_ID) if ATLAS_ID in ids else None
     subjects = [i for i in range(len(ids)) if i != atlas]
@@ -145,6 +160,7 @@ def ordered_pairs(scan_ids: Sequence[str], atlas_repeats: int = 1, atlas_as_movi
         pairs += [(m, atlas) for m in subjects] * atlas_repeats
         if atlas_as_moving:
             pairs += [(atlas, f) for f in subjects]
+    pairs += [(i, i) for i in range(len(ids))] * self_repeats
     if not pairs:
         raise ValueError(f"no pair can be made of the scans {ids}")
     return pairs
@@ -162,9 +178,9 @@ class PairDataset(Dataset):
 
     def __init__(self, scans: Sequence[Mapping[str, Any]], pairs: Sequence[tuple[int, int]],
                  transform: Callable[[dict], dict] | None = None) -> None:
-        bad = [p for p in pairs if not (0 <= p[0] < len(scans) and 0 <= p[1] < len(scans)) or p[0] == p[1]]
+        bad = [p for p in pairs if not (0 <= p[0] < len(scans) and 0 <= p[1] < len(scans))]
         if bad:
-            raise ValueError(f"pairs must index two different scans of {len(scans)}; got {bad[:3]}")
+            raise ValueError(f"pairs must index scans 0..{len(scans) - 1}; got {bad[:3]}")
         self.scans, self.pairs, self.transform = scans, list(pairs), transform
 
     def __len__(self) -> int:

@@ -32,11 +32,14 @@ SAMPLE_CHUNK = 4  # posterior samples integrated at once (memory: chunk x 3 full
 
 class PosteriorMaps(NamedTuple):
     """(*S) maps on the fixed grid; ``displacement_std`` is None without sampling, ``label_entropy`` also without
-    moving labels."""
+    moving labels. ``displacement_variance`` (D, *S): the sampled variance of each displacement component (along
+    the grid's axis of that channel; squared voxels, or mm^2 with ``spacing``), whose sum ``displacement_std`` is
+    the square root of; None without sampling."""
 
     velocity_entropy: Tensor
     displacement_std: Tensor | None
     label_entropy: Tensor | None
+    displacement_variance: Tensor | None = None
 
 
 @torch.inference_mode()
@@ -85,4 +88,4 @@ def posterior_maps(
         weights = torch.as_tensor([float(v) ** 2 for v in spacing], dtype=variance.dtype, device=variance.device)
         variance = variance * weights.view(1, -1, *([1] * (variance.ndim - 2)))
     std = variance[0].sum(0).sqrt()
-    return PosteriorMaps(entropy, std, label_entropy(torch.stack(labels)) if labels else None)
+    return PosteriorMaps(entropy, std, label_entropy(torch.stack(labels)) if labels else None, variance[0])

@@ -41,7 +41,7 @@ def test_image_and_labels_move_together_and_fixed_stays(shape):
 
 def test_labels_stay_integer_and_no_value_is_invented():
     pair = _blob_pair((20, 24, 20))
-    pair["moving_label"] = MetaTensor((pair["moving_label"] * 7 + (pair["moving"] > 0.2).to(torch.int16) * 3))
+    pair["moving_label"] = MetaTensor(pair["moving_label"] * 7 + (pair["moving"] > 0.2).to(torch.int16) * 3)
     out = _strong()(pair)
     assert out["moving_label"].dtype == torch.int16 and out["moving"].dtype == torch.float32
     assert set(torch.unique(out["moving_label"]).tolist()) <= {0, 3, 10}
@@ -86,9 +86,9 @@ def test_bad_arguments_are_refused(kwargs, match):
 
 # --- RandDiffeomorphicd -------------------------------------------------------------------------------------------
 
-from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
-from monai_probreg.data.augmentation import RandDiffeomorphicd  # noqa: E402
-from monai_probreg.metrics.jacobian import jacobian_determinant  # noqa: E402
+from monai_probreg.blocks.warp import warp_image, warp_labels
+from monai_probreg.data.augmentation import RandDiffeomorphicd
+from monai_probreg.metrics.jacobian import jacobian_determinant
 
 
 def _deform(magnitude: float = 1.5, seed: int = 0, **kwargs) -> RandDiffeomorphicd:
@@ -106,6 +106,19 @@ def test_random_deformation_is_smooth_invertible_and_of_the_asked_size(shape):
     rms = float(ddf.pow(2).sum(1).mean().sqrt())
     assert 1.2 < rms < 1.7  # the velocity's RMS is 1.5; exp(v) of a smooth field stays close to it
     assert float(jacobian_determinant(ddf).min()) > 0  # a diffeomorphism: no folding
+
+
+@pytest.mark.parametrize("shape", [(40, 48, 36), (64, 56)])
+def test_the_inverse_displacement_undoes_the_drawn_one(shape):
+    t = _deform(magnitude=2.0, control_spacing=8.0, seed=5)
+    t.randomize(shape)
+    forward, inverse = t.displacement(shape), t.displacement(shape, inverse=True)
+    # exp(v) o exp(-v) = id: x + inverse(x) + forward(x + inverse(x)) = x, away from the border
+    composed = inverse + warp_image(forward, inverse)
+    inner = (slice(None), slice(None)) + tuple(slice(6, n - 6) for n in shape)
+    error, size = composed[inner].norm(dim=1), forward[inner].norm(dim=1)
+    assert float(error.mean()) < 0.1 * float(size.mean()) and float(error.max()) < 0.25 * float(size.max())
+    assert float(size.mean()) > 1.0
 
 
 def test_the_images_are_pulled_back_through_the_drawn_displacement():

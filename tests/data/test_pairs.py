@@ -55,6 +55,18 @@ def test_ordered_pairs_weights_the_atlas_and_never_moves_it_by_default():
         ordered_pairs(["S1"])
 
 
+def test_ordered_pairs_adds_each_scan_against_itself_self_repeats_times():
+    ids = ["S1", "S2", ATLAS_ID]
+    plain = ordered_pairs(ids, atlas_repeats=1)
+    pairs = ordered_pairs(ids, atlas_repeats=1, self_repeats=3)
+    assert pairs[:len(plain)] == plain
+    extra = pairs[len(plain):]
+    assert sorted(extra) == sorted([(0, 0), (1, 1), (2, 2)] * 3)
+    assert ordered_pairs(["S1"], self_repeats=1) == [(0, 0)]
+    with pytest.raises(ValueError, match="self_repeats"):
+        ordered_pairs(ids, self_repeats=-1)
+
+
 def test_pair_dataset_builds_pairs_from_cached_scans_with_the_pair_keys(four):
     index = index_dataset(four)
     scans = scan_dicts(index, ["T01", "T02"], require_labels=True)
@@ -70,8 +82,10 @@ def test_pair_dataset_builds_pairs_from_cached_scans_with_the_pair_keys(four):
     reference = registration_transforms()(subject_pairs(index, ["T01", "T02"], include_atlas=False)[0])
     for key in ("moving", "fixed", "moving_label", "fixed_label"):
         torch.testing.assert_close(item[key].as_tensor(), reference[key].as_tensor(), rtol=0, atol=0)
-    with pytest.raises(ValueError, match="two different scans"):
-        PairDataset(cached, [(0, 0)])
+    with pytest.raises(ValueError, match=r"index scans 0\.\.2"):
+        PairDataset(cached, [(0, 3)])
+    self_pair = PairDataset(cached, [(1, 1)])[0]  # a self pair: the same scan on both sides
+    assert self_pair["id"] == "T02_to_T02" and torch.equal(self_pair["moving"], self_pair["fixed"])
 
 
 def test_read_pairs_file_csv_and_json_with_relative_paths(four, tmp_path):

@@ -74,7 +74,7 @@ def test_sampling_is_seeded(setup):
 def test_no_samples_gives_entropy_only(setup):
     network, mean, log_var, labels = setup
     maps = posterior_maps(network, mean, log_var, SIZE, 0, moving_label=labels)
-    assert maps.displacement_std is None and maps.label_entropy is None
+    assert maps.displacement_std is None and maps.label_entropy is None and maps.displacement_variance is None
 
 
 @pytest.mark.parametrize("num_samples", [1, -2])
@@ -107,6 +107,10 @@ def test_std_in_mm_matches_displacement_uncertainty_on_all_samples(single_thread
     expected = (variance * torch.as_tensor(spacing**2).view(3, 1, 1, 1)).sum(0).sqrt().numpy()
     assert ours.shape == size and ours.max() > 0.01
     np.testing.assert_allclose(ours, expected, atol=1e-5)
+    # the per-axis variances behind it, in mm^2 (the demo's coverage is per component)
+    per_axis = posterior_maps(network, mean, log_var, size, samples, seed=3, spacing=spacing).displacement_variance
+    np.testing.assert_allclose(per_axis.numpy(), (variance * torch.as_tensor(spacing**2).view(3, 1, 1, 1)).numpy(),
+                               atol=1e-5)
 
 
 def test_spacing_of_the_wrong_length_is_refused(setup):

@@ -66,6 +66,19 @@ def test_estimate_warns_only_above_the_threshold():
     assert bad.warning is not None and "probably failed" in bad.warning and bad.failure_probability >= 0.5
 
 
+def test_a_drop_in_local_similarity_warns_whatever_the_models_say():
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    good = _features(0.85, np.random.default_rng(4))
+    # the same registration, but the deformable step lowered the local NCC (0.4 before): the models, clipped to
+    # their training range, still call it good
+    dropped = good._replace(lncc_before=0.99, lncc_after=0.6)
+    estimate = model.estimate(dropped)
+    assert estimate.failure_probability < 0.5 and estimate.predicted_dice > 0.55
+    assert estimate.warning is not None and "less alike" in estimate.warning and "0.990 -> 0.600" in estimate.warning
+    assert model.estimate(dropped._replace(lncc_after=0.99)).warning is None  # equal is no drop
+
+
 def test_non_finite_features_warn():
     features, dice, failures = _training_set()
     model = fit_quality_model(features, dice, failures)

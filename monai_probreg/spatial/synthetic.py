@@ -13,7 +13,8 @@ centre of brain mass followed by a shift. The subject is the template pulled bac
     subject(q) = template(phi^-1(q)),    phi^-1(q) = a + u_inv(a),   a = rho^-1(q),   u_inv: of exp(-v)
 
 then a smooth multiplicative bias field (MONAI ``RandBiasField``) and Rician noise (MONAI ``RandRicianNoise``), on
-the template's grid. ``exp(v)`` and ``exp(-v)`` come from the same scaling and squaring, so ``phi(phi^-1(q)) = q``
+the template's grid, stored with its axes in another order (``axcodes``, e.g. a sagittal acquisition's "PIR": the
+same voxels, permuted and flipped, with the header that says so), as a scanner would hand it over. ``exp(v)`` and ``exp(-v)`` come from the same scaling and squaring, so ``phi(phi^-1(q)) = q``
 only up to its integration error; :attr:`SyntheticSubject.inverse_error_mm` reports it inside the brain (the
 floor of any error measured against this truth).
 """
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 from monai.transforms import RandBiasField, RandRicianNoise
 from monai.transforms.utils import create_rotate
+from nibabel.orientations import apply_orientation, axcodes2ornt, inv_ornt_aff, io_orientation, ornt_transform
 
 from monai_probreg.data.augmentation import RandDiffeomorphicd
 from monai_probreg.spatial.physical import apply_affine, grid_points, voxel_to_mm
@@ -49,6 +51,7 @@ class SyntheticSettings:
         bias_coeff: coefficients of the degree-3 log-polynomial bias field, drawn in ``[0, bias_coeff]``.
         noise_fraction: standard deviation of the Rician noise, a fraction of the brain's 99th intensity percentile.
         num_steps: scaling-and-squaring steps of ``exp(v)`` and ``exp(-v)``.
+        axcodes: the subject's array orientation (nibabel's RAS codes); None = the template's.
     """
 
     max_rotation_deg: float = 5.0
@@ -58,9 +61,16 @@ class SyntheticSettings:
     bias_coeff: float = 0.15
     noise_fraction: float = 0.03
     num_steps: int = 7
+    axcodes: str | None = "PIR"
 
     def __post_init__(self) -> None:
+        if self.axcodes is not None:
+            codes = self.axcodes.upper()
+            if len(codes) != 3 or sorted(axcodes2ornt(codes, ("LR", "PA", "IS"))[:, 0].tolist()) != [0, 1, 2]:
+                raise ValueError(f"axcodes must name each of the three axes once, e.g. 'PIR'; got {self.axcodes!r}")
         for f in dataclasses.fields(self):
+            if f.name == "axcodes":
+                continue
             value = getattr(self, f.name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{f.name} must be a finite number >= 0; got {value!r}")
@@ -73,7 +83,7 @@ class SyntheticSettings:
 
 
 class SyntheticSubject(NamedTuple):
-    """``image``: the subject, on the template's grid. ``true_warp`` (*S, 3): the known ``D(p) = phi(p) - p``, LPS mm
+    """``image``: the subject, on the template's grid (its axes in ``settings.axcodes`` order). ``true_warp`` (*S, 3): the known ``D(p) = phi(p) - p``, LPS mm
     on the template grid (the convention of ``warp.nii.gz``). ``rigid`` (4, 4): ``rho``, LPS mm.
     ``inverse_error_mm``: median ``|phi(phi^-1(q)) - q|`` inside the brain, the truth's own accuracy."""
 
@@ -83,6 +93,15 @@ class SyntheticSubject(NamedTuple):
     rotation_deg: tuple[float, float, float]
     shift_mm: tuple[float, float, float]
     inverse_error_mm: float
+
+
+def _reoriented(volume: Volume, axcodes: str | None) -> Volume:
+    """The same voxels with the axes in ``axcodes`` order and the header that says so (no interpolation)."""
+    if axcodes is None:
+        return volume
+    ornt = ornt_transform(io_orientation(volume.ras_affine), axcodes2ornt(axcodes.upper()))
+    index_to_lps = volume.index_to_lps @ inv_ornt_aff(ornt, volume.shape)
+    return Volume(np.ascontiguousarray(apply_orientation(volume.array, ornt)), index_to_lps, volume.path)
 
 
 def brain_mask(template: Volume) -> np.ndarray:
@@ -143,6 +162,6 @@ def synthesize_subject(template: Volume, settings: SyntheticSettings | None = No
     bias.set_random_state(seed=seed)
     noise.set_random_state(seed=seed)
     image = np.asarray(torch.as_tensor(noise(bias(image[None])))[0], np.float32)
-    return SyntheticSubject(template.with_array(image), true_warp.astype(np.float32), rigid,
+    return SyntheticSubject(_reoriented(template.with_array(image), settings.axcodes), true_warp.astype(np.float32), rigid,
                             tuple(float(a) for a in rotation), tuple(float(t) for t in shift),
                             float(np.median(round_trip)) if round_trip.size else 0.0)

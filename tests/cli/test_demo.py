@@ -63,8 +63,11 @@ def test_the_outputs_are_complete_and_read_by_itk(result):
     assert {p.name for p in out.iterdir()} == EXPECTED
     assert set(summary["outputs"]) == EXPECTED and EXPECTED <= set(OUTPUT_FILES)
     for name in EXPECTED:
-        if name.endswith(".nii.gz"):
-            assert itk.imread(str(out / name)).GetLargestPossibleRegion().GetSize()[0] == 40
+        if name.endswith(".nii.gz"):  # ITK sizes are index order; the subject (the moving grid) is stored as "PIR"
+            size = tuple(itk.imread(str(out / name)).GetLargestPossibleRegion().GetSize())
+            moving_grid = name in ("subject.nii.gz", "inverse_warp.nii.gz")
+            assert size == ((44, 36, 40) if moving_grid else (40, 44, 36)), name
+    assert read_image(out / "subject.nii.gz", "subject").axcodes == "PIR"
     assert summary["moving"]["path"] == str((out / "subject.nii.gz").resolve())
 
 

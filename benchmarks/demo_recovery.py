@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import platform
 import sys
 import tempfile
 import time
@@ -33,13 +32,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import monai_probreg
 from monai_probreg.cli.demo import DEMO_SAMPLES, run_demo
 from monai_probreg.cli.model import load_model
 from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.spatial.synthetic import SyntheticSettings
 from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import library_versions
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
@@ -102,12 +101,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                      f"{m['after_median_mm']:.2f} / {m['after_p95_mm']:.2f} | {m['coverage']:.3f} | "
                      f"{m['identity_after_median_mm']:.2f} | {m['seconds']:.1f} |")
     table = "\n".join(lines)
-    result = {"seeds": args.seeds, "samples": args.samples, "threads": args.threads,
+    result = {"seeds": args.seeds, "samples": args.samples, "threads": args.threads, "rows": rows,
               "settings": SyntheticSettings().as_dict(), "template": str(mni152_template_path()),
-              "errors": "mean over the seeds of each subject's median (and 95th percentile) error inside the brain, mm", "rows": rows,
-              "markdown": table, "versions": {"python": platform.python_version(), "torch": torch.__version__,
-                                              "monai_probreg": monai_probreg.__version__}}
-    args.out_dir.mkdir(parents=True, exist_ok=True)
+              "errors": "mean over the seeds of each subject's median (and 95th percentile) error in the brain, mm",
+              "markdown": table, "versions": library_versions()}
     path = write_text(args.out_dir / "demo_recovery.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{table}\n\nwrote {path}", flush=True)
     return 0

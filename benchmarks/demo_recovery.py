@@ -85,8 +85,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             name = f"{model.model_file.name}" + (f" + refine {steps}" if steps else "")
             cases = {"identity": one_case(model, fixed, 0, IDENTITY, options)}
             for seed in args.seeds:
-                cases[f"seed {seed}"] = one_case(model, fixed, seed, SyntheticSettings(), dataclasses.replace(
-                    options, seed=seed))
+                seeded = dataclasses.replace(options, seed=seed, affine=dataclasses.replace(options.affine, seed=seed))
+                cases[f"seed {seed}"] = one_case(model, fixed, seed, SyntheticSettings(), seeded)  # as the command
                 c = cases[f"seed {seed}"]
                 print(f"{name}, seed {seed}: before {c['before']['median_mm']:.2f}, affine "
                       f"{c['affine_only']['median_mm']:.2f}, after {c['after']['median_mm']:.2f} mm median; "

@@ -26,6 +26,7 @@ from monai_probreg.cli.model import LoadedModel
 from monai_probreg.cli.output_dir import write_field, write_volume
 from monai_probreg.cli.pipeline import FixedSpace, Registered, RegistrationOptions, register_scan
 from monai_probreg.metrics.recovery import displacement_recovery
+from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.spatial.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 
 __all__ = ["DEMO_SAMPLES", "demo_report", "run_demo"]
@@ -41,7 +42,8 @@ def run_demo(model: LoadedModel, fixed: FixedSpace, out_dir: str | os.PathLike, 
     """Make the subject of ``seed`` from ``fixed`` (the template), register it back, write the outputs into
     ``out_dir`` (all or nothing) and return the summary, whose ``"demo"`` record holds the scores."""
     settings = settings or SyntheticSettings()
-    options = options or RegistrationOptions(samples=DEMO_SAMPLES, seed=seed)
+    # the command line's rule: --seed seeds the affine stage's sampling and the posterior samples alike
+    options = options or RegistrationOptions(samples=DEMO_SAMPLES, seed=seed, affine=AffineSettings(seed=seed))
     template = fixed.image
     start = time.perf_counter()
     subject = synthesize_subject(template, settings, seed)

@@ -258,15 +258,16 @@ def test_any_pair_training_draws_subject_and_atlas_pairs_and_validates_on_both(t
     dataset = make_tiny_dataset(tmp_path / "data", num_subjects=4)
     configs = [str(TRAIN), str(BUNDLE / "configs" / "train_semisupervised.yaml"), str(BUNDLE / "configs" / "train_pairs.yaml")]
     wf = _workflow(tmp_path, dataset, configs, max_epochs=1, val_ids=["T01", "T02"], pairs_per_epoch=5,
-                   init_model_file=None, val_interval=1, augment_prob=0.0)
+                   init_model_file=None, val_interval=1, augment_prob=0.0, self_repeats=2)
     seen_ids, scored = [], []
     wf.trainer.add_event_handler(Events.ITERATION_COMPLETED, lambda e: seen_ids.extend(e.state.batch["id"]))
     wf.evaluator.add_event_handler(Events.ITERATION_COMPLETED, lambda e: scored.extend(e.state.batch["id"]))
     wf.run()
     wf.finalize()
-    train = {"T03_to_T04", "T04_to_T03", "T03_to_atlas", "T04_to_atlas"}
+    train = {"T03_to_T04", "T04_to_T03", "T03_to_atlas", "T04_to_atlas", "T03_to_T03", "T04_to_T04", "atlas_to_atlas"}
     assert len(seen_ids) == 5 and set(seen_ids) <= train
-    assert len(wf.parser.get_parsed_content("train#dataset")) == 2 + 2 * 4  # subject pairs + atlas pairs x repeats
+    # subject pairs + atlas pairs x atlas_repeats + every scan against itself x self_repeats
+    assert len(wf.parser.get_parsed_content("train#dataset")) == 2 + 2 * 4 + 3 * 2
     assert sorted(scored) == ["T01_to_T02", "T01_to_atlas", "T02_to_T01", "T02_to_atlas"]
     assert (tmp_path / "ckpt" / "model_anypair.pt").is_file()
     assert (tmp_path / "ckpt" / "model_anypair.network.json").is_file()

@@ -312,6 +312,14 @@ def _require_files(args: argparse.Namespace, options: Sequence[str]) -> None:
             raise InputError(f"{option} {value!r}: {what}")
 
 
+def _print_result(args: argparse.Namespace, summary: dict) -> int:
+    """The summary line on stdout and the warning, if any, on stderr; 0: a warning never changes the exit status."""
+    print(f"{args.out}: {_summary_line(summary)}")
+    if summary.get("warning"):
+        print(f"monai-probreg: warning: {args.out}: {summary['warning']}", file=sys.stderr, flush=True)
+    return 0
+
+
 def _register(args: argparse.Namespace) -> int:
     from monai_probreg.cli.output_dir import check_output_dir
     from monai_probreg.cli.pipeline import register_scan
@@ -325,10 +333,7 @@ def _register(args: argparse.Namespace) -> int:
     _say(args, f"model and fixed image ready in {time.perf_counter() - start:.1f} s")
     summary = register_scan(model, fixed, args.moving, args.out, args.moving_label, options, args.overwrite,
                             report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
-    print(f"{args.out}: {_summary_line(summary)}")
-    if summary.get("warning"):  # a warning never changes the exit status
-        print(f"monai-probreg: warning: {args.out}: {summary['warning']}", file=sys.stderr, flush=True)
-    return 0
+    return _print_result(args, summary)
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -347,10 +352,7 @@ def _demo(args: argparse.Namespace) -> int:
     summary = run_demo(model, fixed, args.out, args.seed, options=options, overwrite=args.overwrite,
                        report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
     print(demo_report(summary))
-    print(f"{args.out}: {_summary_line(summary)}")
-    if summary.get("warning"):
-        print(f"monai-probreg: warning: {args.out}: {summary['warning']}", file=sys.stderr, flush=True)
-    return 0
+    return _print_result(args, summary)
 
 
 def _register_batch(args: argparse.Namespace) -> int:

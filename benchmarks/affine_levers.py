@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -25,7 +24,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import monai_probreg
 from monai_probreg.cli.pipeline import prepare_fixed
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.metrics.dice import label_dice, mean_dice
@@ -34,6 +32,7 @@ from monai_probreg.spatial.physical import apply_affine
 from monai_probreg.spatial.point_sampling import sample_nearest
 from monai_probreg.spatial.volume_io import read_image, read_label
 from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import library_versions
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
@@ -113,9 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines += [f"| {name} | {r['mean_dice']:.4f} | {r['mean_seconds']:.2f} |" for name, r in rows.items()]
     table = "\n".join(lines)
     result = {"cases": [cid for cid, *_ in cases], "threads": args.threads, "move_seed": MOVE_SEED, "rows": rows,
-              "markdown": table, "versions": {"python": platform.python_version(), "torch": torch.__version__,
-                                              "monai_probreg": monai_probreg.__version__}}
-    args.out_dir.mkdir(parents=True, exist_ok=True)
+              "markdown": table, "versions": library_versions()}  # write_text creates the folder
     path = write_text(args.out_dir / "affine_levers.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{table}\n\nwrote {path}", flush=True)
     return 0

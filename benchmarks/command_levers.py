@@ -36,11 +36,11 @@ import numpy as np
 import torch
 from isal import igzip
 
-import monai_probreg
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.spatial.nifti_write import GZIP_LEVEL
 from monai_probreg.spatial.physical import apply_affine, grid_points
 from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import library_versions
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
@@ -135,9 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               for name, r in rows.items()]
     table = "\n".join(lines)
     result = {"threads": args.threads, "repeats": args.repeats, "rows": rows, "markdown": table,
-              "versions": {"python": platform.python_version(), "torch": torch.__version__,
-                           "monai_probreg": monai_probreg.__version__, "platform": platform.platform()}}
-    args.out_dir.mkdir(parents=True, exist_ok=True)
+              "versions": {**library_versions(), "platform": platform.platform()}}  # write_text creates the folder
     path = write_text(args.out_dir / "command_levers.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{table}\n\nwrote {path}", flush=True)
     return 0

@@ -8,6 +8,14 @@ The detector (:mod:`monai_probreg.uncertainty.quality`) is fitted on the same ki
 *training* subjects only (each to the atlas and to another training subject, and each perturbed by every
 perturbation onto the atlas or another training subject), never on a validation subject.
 
+The whole command path (``--command-cases``, on by default): the features of a registration depend on its path
+(the command line's affine stage undoes part of a wrong header, and its features are taken on the model grid behind
+a brain mask), and a detector fitted on the bundle path alone passed a turned native header as normal for some
+weights. So each subject (training ones for the fit, validation ones for the score; the native scans' subjects are
+left out) also goes through the whole command (:func:`monai_probreg.cli.pipeline.register_scan`) onto the atlas,
+with its header as it is ("command") and turned by 90 and 180 degrees ("command_turn90", "command_turn180"). Its
+"no registration" Dice is the bundle path's (same scan, same atlas grid); "before" is the command's affine-only Dice.
+
 The native scans (``--native-dir``, default ``../shared/data/lpba40-native``) go through the whole command
 (``monai-probreg register`` onto the atlas, affine stage included), as users bring them: as they are, and with their
 orientation header turned by 90 and by 180 degrees about the S axis (the case that gave Dice 0.001 and no warning
@@ -26,6 +34,7 @@ pairs, and per perturbation: Dice before and after, the share that failed and th
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import subprocess
@@ -53,7 +62,7 @@ from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.metrics.scores import score_pair
 from monai_probreg.uncertainty.calibration import calibration_for
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
-from monai_probreg.uncertainty.quality import failed, fit_quality_model, save_quality_model
+from monai_probreg.uncertainty.quality import QualityModel, failed, fit_quality_model, save_quality_model
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.tensors import plain_tensor
@@ -62,6 +71,8 @@ from monai_probreg.weights.loading import load_weights
 NORMAL = "none"
 DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
 HEADER_TURNS = (0, 90, 180)  # degrees about the S axis through the scan's centre, applied to its header only
+COMMAND = "command"  # the whole-command cases' perturbation name; turned ones add "_turn<degrees>"
+COMMAND_NAMES = tuple(f"{COMMAND}_turn{d}" if d else COMMAND for d in HEADER_TURNS)
 TRAIN_PARTNERS = 2  # normal training registrations per subject besides the atlas
 
 
@@ -117,6 +128,41 @@ def run_case(network, calibration, scans: dict, case: dict) -> dict:
             "features": features._asdict()}
 
 
+def command_cases(dataset_dir: Path, ids: list[str], bundle_root: Path, model_file: Path | None,
+                  identity_dice: dict[str, float], seed: int) -> list[dict]:
+    """Each subject through the whole command onto the atlas, its header as it is and turned (module docstring)."""
+    from monai_probreg.cli.model import load_model  # the command line's own loading, calibration and brain mask
+    from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
+
+    index = index_dataset(dataset_dir)
+    # the summary records the features only when the weights have a quality model; the one being fitted has none yet,
+    # so a neutral one (every coefficient 0) stands in: its estimate is ignored, the features are what is kept
+    n = len(QualityFeatures._fields)
+    neutral = QualityModel(list(QualityFeatures._fields), [-math.inf] * n, [math.inf] * n, [0.0] * n, [1.0] * n,
+                           [0.0] * n, 0.5, [0.0] * n, 0.0)
+    model = dataclasses.replace(load_model(bundle_root, model_file), quality=neutral)
+    fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
+    records = []
+    with tempfile.TemporaryDirectory(prefix="failure_command_") as tmp:
+        for sid in ids:
+            for degrees, name in zip(HEADER_TURNS, COMMAND_NAMES):
+                scan, labels = index.images[sid], index.labels[sid]
+                if degrees:
+                    scan = turned_header(scan, degrees, Path(tmp) / f"{sid}_turn{degrees}.nii.gz")
+                    labels = turned_header(labels, degrees, Path(tmp) / f"{sid}_labels_turn{degrees}.nii.gz",
+                                           reference=index.images[sid])
+                summary = register_scan(model, fixed, scan, Path(tmp) / f"{sid}_{degrees}", labels,
+                                        RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed))
+                dice, before = summary["dice"]["mean"], summary["dice"]["mean_affine_only"]
+                records.append({"moving": sid, "fixed": ATLAS_ID, "perturbation": name, "seed": seed,
+                                "dice": dice, "dice_identity": identity_dice[sid], "dice_before": before,
+                                "failed": failed(dice, before, identity_dice[sid]),
+                                "features": summary["quality"]["features"]})
+                print(f"[command] {sid} header turned {degrees} deg: Dice {before:.3f} (affine) -> {dice:.3f}"
+                      f"{' FAILED' if records[-1]['failed'] else ''}", flush=True)
+    return records
+
+
 def _features(records: list[dict]) -> list[QualityFeatures]:
     return [QualityFeatures(**r["features"]) for r in records]
 
@@ -135,7 +181,7 @@ def score(model, records: list[dict]) -> dict[str, Any]:
 
     outcome = [r["failed"] for r in records]
     per = {}
-    for name in [NORMAL, *PERTURBATIONS]:
+    for name in [NORMAL, *PERTURBATIONS, *COMMAND_NAMES]:
         rs = [r for r in records if r["perturbation"] == name]
         if rs:
             per[name] = {"n": len(rs), "dice_before": float(np.mean([r["dice_identity"] for r in rs])),
@@ -181,13 +227,13 @@ def figure(records: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 5.5))
-    names = [NORMAL, *PERTURBATIONS]
+    names = [NORMAL, *PERTURBATIONS, *COMMAND_NAMES]
     colours = plt.cm.tab10(np.linspace(0, 1, len(names)))
     for name, colour in zip(names, colours):
         rs = [r for r in records if r["perturbation"] == name]
         if rs:
             ax.scatter([r["dice"] for r in rs], [r["failure_probability"] for r in rs], s=18, color=colour,
-                       marker="o" if name == NORMAL else "x", label=name)
+                       marker="o" if name in (NORMAL, COMMAND) else "x", label=name)
     ax.set_xlabel("actual mean Dice")
     ax.set_ylabel("estimated probability of failure")
     ax.set_title("validation registrations: the quality estimate (fitted on training subjects)")
@@ -274,6 +320,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--no-command-cases", dest="command_cases", action="store_false",
+                    help="leave out the whole-command registrations (module docstring)")
     ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE,
                     help="native scans for the whole-command check (after --fit; absent: skipped)")
     args = ap.parse_args(argv)
@@ -309,6 +357,14 @@ def main(argv=None) -> int:
         args.out_dir.mkdir(parents=True, exist_ok=True)  # the registrations first: a refit needs only these
         write_text(args.out_dir / "failure_detection.json", json.dumps(
             {"model_file": str(model_file), "train_records": train_records, "val_records": val_records}) + "\n")
+    if (args.command_cases and args.dataset_dir.is_dir()
+            and not any(r["perturbation"] in COMMAND_NAMES for r in train_records)):
+        native_ids = {p.name.split(".")[0] for p in args.native_dir.glob("*.nii.gz")} if args.native_dir.is_dir() else set()
+        identity = {r["moving"]: r["dice_identity"] for r in train_records + val_records
+                    if r["fixed"] == ATLAS_ID and r["perturbation"] == NORMAL}
+        for records, seed in ((train_records, args.seed), (val_records, args.seed + 100_000)):
+            ids = sorted({r["moving"] for r in records} - native_ids)
+            records += command_cases(args.dataset_dir, ids, bundle_root, model_file, identity, seed)
     fitted_on = sorted({r["moving"] for r in train_records})
     model = fit_quality_model(_features(train_records), [r["dice"] for r in train_records],
                               [r["failed"] for r in train_records], fitted_on=fitted_on)

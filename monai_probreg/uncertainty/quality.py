@@ -17,7 +17,9 @@ the linear models whenever the pair is more alike than any training pair (a scan
 demo's synthetic subject), and in ``benchmarks/failure_detection.py``'s records the drop occurs in 26 registrations,
 every one of them a failure, and in none of the 84 normal ones. Both models are fitted
 by ``benchmarks/failure_detection.py`` on *training* subjects only (normal pairs and a failure set: wrong
-orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast) and stored next to the
+orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast), through both paths
+that compute the features (the bundle's, on the dataset grid, and the whole command's, affine stage and model grid
+included, with headers as they are and turned), and stored next to the
 weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration (the entropy feature is
 the calibrated one). Written by hand: ten lines of closed-form ridge and Newton's method, where scikit-learn would be
 a dependency for two linear models.

@@ -9,6 +9,10 @@ import numpy as np
 import pytest
 import torch
 from bench_helpers import load_benchmark
+from conftest import BUNDLE_DIR, make_tiny_dataset, tiny_bundle
+
+from monai_probreg.uncertainty.quality import failed
+from monai_probreg.uncertainty.quality_features import QualityFeatures
 
 detection = load_benchmark("failure_detection")
 failure_set = load_benchmark("failure_set")
@@ -60,3 +64,17 @@ def test_robustness_perturbations_are_seeded_and_scaled(name):
     assert out.shape == image.shape and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
     assert torch.equal(out, robustness.perturb(image, name, 3))
     assert not torch.equal(out, image)
+
+
+def test_command_cases_register_each_scan_as_it_is_and_turned(tmp_path):
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    records = detection.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3)
+    assert [r["perturbation"] for r in records] == list(detection.COMMAND_NAMES)
+    assert detection.COMMAND_NAMES == ("command", "command_turn90", "command_turn180")
+    for r in records:
+        assert (r["moving"], r["fixed"], r["seed"], r["dice_identity"]) == ("T01", "atlas", 3, 0.5)
+        assert set(r["features"]) == set(QualityFeatures._fields)
+        assert all(math.isfinite(v) for v in r["features"].values())
+        assert r["failed"] == failed(r["dice"], r["dice_before"], 0.5)
+    assert records[0]["dice_before"] > 0.5  # as it is: the affine stage finds the phantom

@@ -140,7 +140,7 @@ def command_cases(dataset_dir: Path, ids: list[str], bundle_root: Path, model_fi
     n = len(QualityFeatures._fields)
     neutral = QualityModel(list(QualityFeatures._fields), [-math.inf] * n, [math.inf] * n, [0.0] * n, [1.0] * n,
                            [0.0] * n, 0.5, [0.0] * n, 0.0)
-    model = dataclasses.replace(load_model(bundle_root, model_file), quality=neutral)
+    model = dataclasses.replace(load_model(bundle_root, model_file, quality=False), quality=neutral)
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
     records = []
     with tempfile.TemporaryDirectory(prefix="failure_command_") as tmp:

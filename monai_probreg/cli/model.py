@@ -49,11 +49,13 @@ class LoadedModel:
 
 
 def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
-               config_file: str | os.PathLike | None = None, device: str = "cpu", calibrate: bool = True) -> LoadedModel:
+               config_file: str | os.PathLike | None = None, device: str = "cpu", calibrate: bool = True,
+               quality: bool = True) -> LoadedModel:
     """The trained network: settings from ``configs/inference.yaml``'s ``network_def`` (and ``divisor``), weights
     from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable.
     ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw. The quality
-    estimate (``<weights stem>.quality.json``) is fitted on the calibrated posterior, so it is used only with it."""
+    estimate (``<weights stem>.quality.json``) is fitted on the calibrated posterior, so it is used only with it;
+    ``quality=False`` leaves it out (``benchmarks/failure_detection.py`` while it fits a new one)."""
     root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
     config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"
     if not config.is_file():
@@ -88,8 +90,8 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
                          f"({first_line(err)})") from None
     try:
         calibration = calibration_for(weights, calibrate)
-        quality = load_quality_model(weights) if calibrate else None
+        quality_model = load_quality_model(weights) if calibrate and quality else None
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
     return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration, refinement=refinement,
-                       weights_sha256=file_sha256(weights), quality=quality)
+                       weights_sha256=file_sha256(weights), quality=quality_model)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -78,12 +79,18 @@ def test_weights_without_a_quality_model_give_no_estimate(scene):
     assert summary["quality"] is None and summary["warning"] is None and "quality" not in summary["timings_s"]
 
 
-def test_a_quality_model_of_other_weights_is_refused(scene, tmp_path):
-    save_quality_model(_quality_model(0.0), scene.weights)
-    path = quality_path(scene.weights)
+def _stale_quality_model(weights) -> Path:
+    """A quality sidecar next to ``weights`` stamped with another SHA-256 (fitted for other weights); its path."""
+    save_quality_model(_quality_model(0.0), weights)
+    path = quality_path(weights)
     record = json.loads(path.read_text())
     record["weights_sha256"] = "0" * 64
     path.write_text(json.dumps(record))
+    return path
+
+
+def test_a_quality_model_of_other_weights_is_refused(scene, tmp_path):
+    path = _stale_quality_model(scene.weights)
     try:
         result = run_cli("register", "--moving", str(scene.moving), "--out", str(tmp_path / "o"), *scene.common)
     finally:
@@ -106,3 +113,18 @@ def test_the_batch_lists_the_warning_and_the_scan_stays_ok(scene, tmp_path):
     assert row["status"] == "ok" and "probably failed" in row["warning"]
     assert float(row["failure_probability"]) > 0.99 and float(row["predicted_dice"]) == pytest.approx(0.61)
     assert "WARNING" in result.out
+
+
+def test_load_model_can_leave_a_stale_quality_model_out(scene):
+    """failure_detection.py fits a new quality model with the command line's loading: a stale one must not stop it."""
+    from monai_probreg.cli.model import load_model
+    from monai_probreg.utils.errors import InputError
+
+    path = _stale_quality_model(scene.weights)
+    try:
+        with pytest.raises(InputError, match="refit"):
+            load_model(scene.bundle)
+        assert load_model(scene.bundle, quality=False).quality is None
+    finally:
+        path.unlink()
+    assert load_model(scene.bundle).quality is None  # no sidecar: none either way

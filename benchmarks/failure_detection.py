@@ -8,7 +8,7 @@ The detector (:mod:`monai_probreg.uncertainty.quality`) is fitted on the same ki
 *training* subjects only (each to the atlas and to another training subject, and each perturbed by every
 perturbation onto the atlas or another training subject), never on a validation subject.
 
-The whole command path (``--command-cases``, on by default): the features of a registration depend on its path
+The whole command path (on by default; ``--no-command-cases`` leaves it out): the features of a registration depend on its path
 (the command line's affine stage undoes part of a wrong header, and its features are taken on the model grid behind
 a brain mask), and a detector fitted on the bundle path alone passed a turned native header as normal for some
 weights. So each subject (training ones for the fit, validation ones for the score; the native scans' subjects are

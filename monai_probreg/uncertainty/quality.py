@@ -14,8 +14,8 @@ A registration gets a warning when its failure probability is at least the model
 deformable step lowered the local similarity of the pair (``lncc_after < lncc_before``: the network moved the images
 apart, which no optimiser of its own loss would do). That rule is not fitted: the clipping above hides such a case from
 the linear models whenever the pair is more alike than any training pair (a scan registered to a copy of itself, the
-demo's synthetic subject), and in ``benchmarks/failure_detection.py``'s records the drop occurs in 26 registrations,
-every one of them a failure, and in none of the 84 normal ones. Both models are fitted
+demo's synthetic subject), and in ``benchmarks/failure_detection.py``'s records (0.11.0 weights) the drop occurs in 27
+registrations, every one of them a failure, and in none of the 105 normal ones. Both models are fitted
 by ``benchmarks/failure_detection.py`` on *training* subjects only (normal pairs and a failure set: wrong
 orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast), through both paths
 that compute the features (the bundle's, on the dataset grid, and the whole command's, affine stage and model grid

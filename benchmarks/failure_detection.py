@@ -146,11 +146,7 @@ def command_cases(dataset_dir: Path, ids: list[str], bundle_root: Path, model_fi
     with tempfile.TemporaryDirectory(prefix="failure_command_") as tmp:
         for sid in ids:
             for degrees, name in zip(HEADER_TURNS, COMMAND_NAMES):
-                scan, labels = index.images[sid], index.labels[sid]
-                if degrees:
-                    scan = turned_header(scan, degrees, Path(tmp) / f"{sid}_turn{degrees}.nii.gz")
-                    labels = turned_header(labels, degrees, Path(tmp) / f"{sid}_labels_turn{degrees}.nii.gz",
-                                           reference=index.images[sid])
+                scan, labels = turned_inputs(index.images[sid], index.labels[sid], degrees, Path(tmp))
                 summary = register_scan(model, fixed, scan, Path(tmp) / f"{sid}_{degrees}", labels,
                                         RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed))
                 dice, before = summary["dice"]["mean"], summary["dice"]["mean_affine_only"]
@@ -260,6 +256,18 @@ def turned_header(scan: Path, degrees: float, out: Path, reference: Path | None 
     return out
 
 
+def turned_inputs(scan: Path, labels: Path | None, degrees: float, folder: Path) -> tuple[Path, Path | None]:
+    """``scan`` and its ``labels`` (or None) with their header turned by ``degrees`` (0: the files as they are),
+    written into ``folder``: the labels share the scan's (wrong) header, turned about the scan's grid centre."""
+    if not degrees:
+        return scan, labels
+    stem = scan.name.split(".")[0]
+    turned = turned_header(scan, degrees, folder / f"{stem}_turn{degrees}.nii.gz")
+    if labels is not None:
+        labels = turned_header(labels, degrees, folder / f"{stem}_labels_turn{degrees}.nii.gz", reference=scan)
+    return turned, labels
+
+
 def native_cases(native_dir: Path, dataset_dir: Path, threads: int) -> list[dict]:
     """The whole command on each native scan, as it is and with a turned header; its quality estimate and Dice."""
     index = index_dataset(dataset_dir)
@@ -269,12 +277,7 @@ def native_cases(native_dir: Path, dataset_dir: Path, threads: int) -> list[dict
             sid = scan.name[: -len(".nii.gz")]
             labels = native_dir / f"{sid}_labels.nii.gz"
             for degrees in HEADER_TURNS:
-                moving, moving_labels = scan, labels
-                if degrees:  # the labels share the scan's (wrong) header
-                    moving = turned_header(scan, degrees, Path(tmp) / f"{sid}_turn{degrees}.nii.gz")
-                    if labels.is_file():
-                        moving_labels = turned_header(labels, degrees, Path(tmp) / f"{sid}_labels_turn{degrees}.nii.gz",
-                                                      reference=scan)
+                moving, moving_labels = turned_inputs(scan, labels if labels.is_file() else None, degrees, Path(tmp))
                 out = Path(tmp) / f"{sid}_{degrees}"
                 cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register", "--moving", str(moving), "--fixed",
                        str(index.atlas_image), "--out", str(out), "--threads", str(threads), "--quiet", "--no-qc",

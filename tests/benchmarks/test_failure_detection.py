@@ -78,3 +78,18 @@ def test_command_cases_register_each_scan_as_it_is_and_turned(tmp_path):
         assert all(math.isfinite(v) for v in r["features"].values())
         assert r["failed"] == failed(r["dice"], r["dice_before"], 0.5)
     assert records[0]["dice_before"] > 0.5  # as it is: the affine stage finds the phantom
+
+
+def test_turned_inputs_give_the_labels_the_scans_turned_header(tmp_path):
+    affine = np.diag([1.5, 1.0, 2.0, 1.0])
+    affine[:3, 3] = [10.0, -20.0, 5.0]
+    scan = tmp_path / "S9.nii.gz"
+    labels = tmp_path / "S9_labels.nii.gz"
+    nib.save(nib.Nifti1Image(np.zeros((4, 6, 5), np.float32), affine), scan)
+    nib.save(nib.Nifti1Image(np.ones((4, 6, 5), np.int16), affine), labels)
+    assert detection.turned_inputs(scan, labels, 0, tmp_path) == (scan, labels)
+    turned, turned_labels = detection.turned_inputs(scan, labels, 90, tmp_path)
+    assert turned != scan and turned_labels != labels
+    assert np.allclose(nib.load(turned).affine, nib.load(turned_labels).affine)
+    assert not np.allclose(nib.load(turned).affine, affine)
+    assert detection.turned_inputs(scan, None, 180, tmp_path)[1] is None

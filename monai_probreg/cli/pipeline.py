@@ -60,16 +60,17 @@ from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.spatial.affine import AffineResult, AffineSettings, align
+from monai_probreg.spatial.affine_torch import FixedSamples, fixed_samples
 from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask, hide_outside
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import (
-    apply_affine,
     compose_forward,
     compose_inverse,
     grid_points,
+    mapped_index,
     voxel_to_mm,
 )
-from monai_probreg.spatial.point_sampling import continuous_index, sample_linear, sample_nearest
+from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
@@ -98,14 +99,13 @@ def normalise_intensity(array: np.ndarray) -> np.ndarray:
 
 @dataclass
 class FixedSpace:
-    """The fixed image prepared once: geometry, model grid, normalised model input, voxel-centre points;
-    :attr:`itk_image` (for the ITK affine backend) is converted on first use, once."""
+    """The fixed image prepared once: geometry, model grid, normalised model input; :attr:`itk_image` (for the ITK
+    affine backend) and :attr:`points` (for a caller's ``check``) are computed on first use, once."""
 
     image: Volume
     label: Volume | None
     grid: ModelGrid
     model_input: np.ndarray
-    points: np.ndarray
     label_ids: list[int] = field(default_factory=list)
     brain_mask: np.ndarray | None = None  # where the moving scan stays visible (monai_probreg.spatial.brain_mask)
     brain_mask_margin_mm: float | None = None  # its margin; None = no mask
@@ -113,6 +113,23 @@ class FixedSpace:
     @functools.cached_property
     def itk_image(self) -> itk.Image:
         return volume_to_itk(self.image)  # loads ITK's core modules (~0.8 s): not on the torch backend's path
+
+    affine_samples: dict[AffineSettings, FixedSamples] = field(default_factory=dict, repr=False)  # per settings
+
+    def samples_for(self, settings: AffineSettings) -> FixedSamples | None:
+        """The torch affine backend's fixed-image samples for ``settings``, made on first use and kept (the same
+        for every scan of a batch: 0.3 s each on a 1 mm brain grid); None for the ITK backend."""
+        if settings.backend != "torch":
+            return None
+        if settings not in self.affine_samples:
+            self.affine_samples[settings] = fixed_samples(self.image, settings)
+        return self.affine_samples[settings]
+
+    @functools.cached_property
+    def points(self) -> np.ndarray:
+        """The fixed grid's LPS voxel centres (*S, 3), float64: not used by the registration itself (every sampling
+        goes through :func:`~monai_probreg.spatial.physical.mapped_index`), only by :class:`Registered`."""
+        return grid_points(self.image.shape, self.image.index_to_lps)
 
 
 def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None = None,
@@ -127,8 +144,8 @@ def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None 
     grid = ModelGrid.for_volume(image, divisor)
     ids = [int(v) for v in np.unique(label.array) if v != 0] if label is not None else []
     mask = None if brain_mask_margin_mm is None else fixed_brain_mask(image.array, image.spacing, brain_mask_margin_mm)
-    return FixedSpace(image, label, grid, grid.to_model(normalise_intensity(image.array)),
-                      grid_points(image.shape, image.index_to_lps), ids, mask, brain_mask_margin_mm)
+    return FixedSpace(image, label, grid, grid.to_model(normalise_intensity(image.array)), ids, mask,
+                      brain_mask_margin_mm)
 
 
 @dataclass(frozen=True)
@@ -267,30 +284,30 @@ class _Composed:
 
 
 def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, affine: np.ndarray,
-             model_maps: _ModelMaps, affine_points: np.ndarray, inverse: bool) -> _Composed:
+             model_maps: _ModelMaps, affine_index: np.ndarray, inverse: bool) -> _Composed:
     """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice.
-    Grid points and continuous indices are computed once and shared (the scan and its labels share a grid)."""
-    grid = fixed.grid
+    ``affine_index``: the fixed grid's continuous index in the moving grid through the affine alone (the resample
+    stage's). The fields are float32, the precision of their files, and the scan and labels are sampled at
+    ``p + D(p)`` with that float32 ``D``: exactly where ITK's resampling through ``warp.nii.gz`` samples them."""
+    grid, image = fixed.grid, fixed.image
     warp = compose_forward(grid.to_fixed(voxel_to_mm(model_maps.displacement, grid.index_to_lps)),
-                           fixed.image.index_to_lps, affine, fixed.points)
-    warped_points = fixed.points + warp
-    warped_index = continuous_index(warped_points, moving.index_to_lps).reshape(warped_points.shape)
-    maps = {"warped": sample_linear(moving, warped_points, index=warped_index),
+                           image.index_to_lps, affine).astype(np.float32)
+    warped_index = mapped_index(image.shape, image.index_to_lps, moving.index_to_lps, field=warp)
+    maps = {"warped": sample_linear(moving, None, index=warped_index),
             "jacobian": grid.to_fixed(model_maps.jacobian), "entropy": grid.to_fixed(model_maps.entropy)}
     if model_maps.std is not None:
         maps["displacement_std"] = grid.to_fixed(model_maps.std)
     labels: dict[str, np.ndarray] = {}
     if moving_label is not None:
-        labels["warped_label"] = sample_nearest(moving_label, warped_points, index=warped_index)
-        labels["affine_label"] = sample_nearest(moving_label, affine_points)  # for Dice and QC, not written
+        labels["warped_label"] = sample_nearest(moving_label, None, index=warped_index)
+        labels["affine_label"] = sample_nearest(moving_label, None, index=affine_index)  # Dice and QC, not written
     inverse_warp = None
     if inverse:
         inverse_warp = compose_inverse(Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
                                        affine, moving.shape, moving.index_to_lps)
-        if fixed.label is not None:
-            phi_inverse = grid_points(moving.shape, moving.index_to_lps)
-            phi_inverse += inverse_warp  # q + D_inv(q), in place: one array of the moving grid's points, not two
-            labels["fixed_label_in_moving"] = sample_nearest(fixed.label, phi_inverse)
+        if fixed.label is not None:  # q + D_inv(q) for every voxel q of the moving grid, in the fixed label grid
+            labels["fixed_label_in_moving"] = sample_nearest(fixed.label, None, index=mapped_index(
+                moving.shape, moving.index_to_lps, fixed.label.index_to_lps, field=inverse_warp))
     dice = None
     if moving_label is not None and fixed.label is not None:
         # the structures both label maps have (a moving map of another protocol, e.g. LPBA40's 48 cortical labels
@@ -406,12 +423,13 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             affine = AffineResult(np.eye(4), np.zeros(3), np.eye(4), [])
         else:
             affine = align(fixed.image, moving, options.affine,
-                           fixed.itk_image if options.affine.backend == "itk" else None)
+                           fixed.itk_image if options.affine.backend == "itk" else None,
+                           fixed.samples_for(options.affine))
     with _timed(timings, "resample", report):
-        affine_points = apply_affine(affine.matrix, fixed.points)
+        affine_index = mapped_index(fixed.image.shape, fixed.image.index_to_lps, moving.index_to_lps, affine.matrix)
         background = float(moving.array.min())
-        moving_on_fixed = hide_outside(sample_linear(moving, affine_points, fill=background), fixed.brain_mask,
-                                       background)
+        moving_on_fixed = hide_outside(sample_linear(moving, None, fill=background, index=affine_index),
+                                       fixed.brain_mask, background)
         moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
     model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report)
     quality = None
@@ -420,7 +438,7 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
             quality = _quality(model, moving_input, fixed, model_maps)
     warning = quality[1].warning if quality is not None else None
     with _timed(timings, "compose", report):
-        composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_points, options.inverse)
+        composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_index, options.inverse)
         stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
     checked = check(_registered(fixed, affine, composed, model_maps)) if check is not None else {}
     with staged_output_dir(out, overwrite) as stage:

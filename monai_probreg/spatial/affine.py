@@ -43,7 +43,7 @@ from monai_probreg.spatial.affine_settings import (
     StageReport,
     rotation_angle_deg,
 )
-from monai_probreg.spatial.affine_torch import register_affine_torch
+from monai_probreg.spatial.affine_torch import FixedSamples, register_affine_torch
 from monai_probreg.spatial.physical import affine_from_itk
 from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 
@@ -123,12 +123,13 @@ def _run_stage(name: str, fixed: itk.Image, moving: itk.Image, transform: itk.Tr
 
 
 def align(fixed: Volume, moving: Volume, settings: AffineSettings | None = None,
-          fixed_itk: itk.Image | None = None) -> AffineResult:
+          fixed_itk: itk.Image | None = None, samples: FixedSamples | None = None) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` with the backend of ``settings`` (module
-    docstring); ``fixed_itk``: ``fixed`` already converted for ITK (prepared once for a batch), or None."""
+    docstring). Prepared once for a batch, or None: ``fixed_itk``, ``fixed`` converted for ITK (ITK backend);
+    ``samples``, :func:`~monai_probreg.spatial.affine_torch.fixed_samples` of ``fixed`` and ``settings`` (torch)."""
     settings = settings or AffineSettings()
     if settings.backend == "torch":
-        return register_affine_torch(fixed, moving, settings)
+        return register_affine_torch(fixed, moving, settings, samples)
     return register_affine(fixed_itk if fixed_itk is not None else volume_to_itk(fixed), volume_to_itk(moving),
                            settings)
 

@@ -35,6 +35,7 @@ The result maps a point of the **fixed** space to the **moving** space (LPS mm),
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -46,7 +47,7 @@ from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.spatial.affine_settings import AffineResult, AffineSettings, StageReport
 from monai_probreg.spatial.volume_io import Volume
 
-__all__ = ["mutual_information", "register_affine_torch", "rotation_matrix"]
+__all__ = ["FixedSamples", "fixed_samples", "mutual_information", "register_affine_torch", "rotation_matrix"]
 
 LBFGS_HISTORY = 10  # L-BFGS's memory (curvature pairs)
 GRADIENT_TOLERANCE = 1e-9  # stop a level when the metric's gradient (per mm) or its change falls below these
@@ -141,29 +142,50 @@ def _pooled(image: torch.Tensor, index_to_lps: np.ndarray, factors: tuple[int, .
     return _smoothed(pooled, np.linalg.norm(grid[:3, :3], axis=0), sigma_mm), grid
 
 
+class FixedSamples(NamedTuple):
+    """The fixed image's part of the metric, the same for every moving scan (so a batch prepares it once,
+    :func:`fixed_samples`): its centre (the initializer's) and, per pyramid level, the sample points (N, 3) LPS,
+    their fixed bins (N,) and the level's voxel size in mm."""
+
+    centre: torch.Tensor
+    points: list[torch.Tensor]
+    bins: list[torch.Tensor]
+    level_mm: list[float]
+
+
+def fixed_samples(fixed: Volume, settings: AffineSettings) -> FixedSamples:
+    """Per level of ``settings``: the fixed image averaged over blocks of ``shrink`` voxels and smoothed by
+    ``sigma_mm``; ``sampling_percentage`` of its voxels (at most ``max_samples``) drawn by a generator seeded with
+    ``settings.seed``, and the bin of each (zero-order window, as Mattes et al. and ITK)."""
+    generator = torch.Generator().manual_seed(int(settings.seed))
+    image = _scaled(fixed)
+    centre = torch.from_numpy(_centre(image, fixed.index_to_lps, settings.initializer == "moments"))
+    samples = FixedSamples(centre, [], [], [])
+    bins = settings.histogram_bins
+    for shrink, sigma in zip(settings.shrink_factors, settings.smoothing_sigmas_mm):
+        level, grid = _pooled(image, fixed.index_to_lps, (int(shrink),) * 3, float(sigma))
+        values = level.reshape(-1)
+        count = max(1, round(settings.sampling_percentage * values.numel()))
+        count = count if settings.max_samples is None else min(count, settings.max_samples)
+        chosen = torch.randperm(values.numel(), generator=generator)[:count]
+        index = torch.stack(torch.unravel_index(chosen, level.shape), dim=-1).to(torch.float64)
+        g = torch.from_numpy(grid)
+        samples.points.append(index @ g[:3, :3].T + g[:3, 3])
+        samples.bins.append(torch.clamp((values[chosen] * (bins - 1)).round().long(), 0, bins - 1))
+        samples.level_mm.append(int(shrink) * float(np.mean(fixed.spacing)))
+    return samples
+
+
 class _Level:
-    """The metric at one pyramid level: fixed sample points and their bins, the pooled and smoothed moving image.
+    """The metric at one pyramid level: the fixed sample points and their bins (:func:`fixed_samples`), the moving
+    image averaged over blocks of about the level's voxel size (ITK's registration shrinks both images too) and
+    smoothed by ``sigma_mm``."""
 
-    Both images are averaged over blocks of about the level's voxel size (the fixed grid's voxels times ``shrink``;
-    ITK's registration shrinks both images too), then smoothed by ``sigma_mm``."""
-
-    def __init__(self, fixed: Volume, fixed_image: torch.Tensor, moving: Volume, moving_image: torch.Tensor,
-                 shrink: int, sigma_mm: float, fraction: float, generator: torch.Generator,
-                 bins: int, max_samples: int | None = None) -> None:
-        fixed_level, fixed_grid = _pooled(fixed_image, fixed.index_to_lps, (shrink,) * 3, sigma_mm)
-        level_mm = shrink * float(np.mean(fixed.spacing))
+    def __init__(self, points: torch.Tensor, fixed_bins: torch.Tensor, level_mm: float, moving: Volume,
+                 moving_image: torch.Tensor, sigma_mm: float, bins: int) -> None:
         factors = tuple(max(1, int(level_mm // s)) for s in moving.spacing)
         moving_level, moving_grid = _pooled(moving_image, moving.index_to_lps, factors, sigma_mm)
-        index = torch.stack(torch.meshgrid(*[torch.arange(n, dtype=torch.float64) for n in fixed_level.shape],
-                                           indexing="ij"), dim=-1).reshape(-1, 3)
-        values = fixed_level.reshape(-1)
-        count = max(1, round(fraction * values.numel()))
-        count = count if max_samples is None else min(count, max_samples)
-        chosen = torch.randperm(values.numel(), generator=generator)[:count]
-        g = torch.from_numpy(fixed_grid)
-        self.points = index[chosen] @ g[:3, :3].T + g[:3, 3]  # (N, 3) LPS
-        # the fixed image's bin of each sample (zero-order window, as Mattes et al. and ITK): computed once
-        self.fixed_bins = torch.clamp((values[chosen] * (bins - 1)).round().long(), 0, bins - 1)
+        self.points, self.fixed_bins = points, fixed_bins
         self.moving = moving_level[None, None]
         lps_to_index = torch.from_numpy(np.linalg.inv(moving_grid))
         sizes = torch.tensor(moving_level.shape, dtype=torch.float64)
@@ -208,18 +230,19 @@ def _optimise(levels: list[_Level], iterations: tuple[int, ...], parameters: tor
     return value, done
 
 
-def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSettings) -> AffineResult:
+def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSettings,
+                          samples: FixedSamples | None = None) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` (module docstring). Returns the fixed -> moving
-    transform; the ITK transform in the result is an ``AffineTransform`` centred on the fixed image's centre."""
-    generator = torch.Generator().manual_seed(int(settings.seed))
-    fixed_image, moving_image = _scaled(fixed), _scaled(moving)
-    moments = settings.initializer == "moments"
-    fixed_centre = torch.from_numpy(_centre(fixed_image, fixed.index_to_lps, moments))
-    moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, moments))
+    transform; the ITK transform in the result is an ``AffineTransform`` centred on the fixed image's centre.
+    ``samples``: :func:`fixed_samples` of ``fixed`` and ``settings`` when the caller has them (a batch), else made."""
+    samples = samples if samples is not None else fixed_samples(fixed, settings)
+    fixed_centre = samples.centre
+    moving_image = _scaled(moving)
+    moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, settings.initializer == "moments"))
     radius = float(np.mean(np.asarray(fixed.shape) * fixed.spacing)) / 2  # mm: 1 unit of rotation = 1 mm there
-    levels = [_Level(fixed, fixed_image, moving, moving_image, int(shrink), float(sigma),
-                     settings.sampling_percentage, generator, settings.histogram_bins, settings.max_samples)
-              for shrink, sigma in zip(settings.shrink_factors, settings.smoothing_sigmas_mm)]
+    levels = [_Level(points, bins, level_mm, moving, moving_image, float(sigma), settings.histogram_bins)
+              for points, bins, level_mm, sigma in zip(samples.points, samples.bins, samples.level_mm,
+                                                        settings.smoothing_sigmas_mm)]
 
     def matrix_of(linear: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
         # A(p) = L (p - c_fixed) + c_moving + t

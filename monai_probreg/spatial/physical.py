@@ -33,21 +33,47 @@ import torch.nn.functional as F
 
 from monai_probreg.spatial.volume_io import Volume
 
-__all__ = ["grid_points", "voxel_to_mm", "mm_to_voxel", "apply_affine", "compose_forward", "compose_inverse",
-           "affine_to_itk", "affine_from_itk", "field_to_itk", "field_from_itk", "displacement_transform",
-           "resample_with_itk"]
+__all__ = ["affine_from_itk", "affine_to_itk", "apply_affine", "compose_forward", "compose_inverse",
+           "displacement_transform", "field_from_itk", "field_to_itk", "grid_points", "index_map", "mapped_index",
+           "mm_to_voxel", "resample_with_itk", "voxel_to_mm"]
+
+
+def index_map(shape: tuple[int, ...], matrix: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+    """``matrix[:3] @ (i, j, k, 1)`` (+ ``offset[i, j, k]``) for every voxel index of a grid of ``shape``: (I, J, K, 3)
+    float64. Broadcast from three ``arange``s in torch (multi-threaded; no index array, no (N, 3) matmul)."""
+    m = torch.from_numpy(np.asarray(matrix, dtype=np.float64)[:3].copy())
+    axes = [torch.arange(n, dtype=torch.float64).view([-1 if a == axis else 1 for a in range(3)])
+            for axis, n in enumerate(shape)]
+    out = torch.empty((*shape, 3), dtype=torch.float64)
+    for c in range(3):
+        torch.add(m[c, 0] * axes[0] + m[c, 3], m[c, 1] * axes[1] + m[c, 2] * axes[2], out=out[..., c])
+    if offset is not None:
+        out += torch.from_numpy(np.asarray(offset)).to(torch.float64)
+    return out.numpy()
 
 
 def grid_points(shape: tuple[int, ...], index_to_lps: np.ndarray) -> np.ndarray:
-    """LPS points (I, J, K, 3) of every voxel centre of a grid, float64 (broadcast from three ``arange``s: no index
-    array, no (N, 3) matmul, which numpy runs about 5x slower)."""
-    matrix = np.asarray(index_to_lps, dtype=np.float64)
-    i, j, k = (np.arange(n, dtype=np.float64).reshape([-1 if a == axis else 1 for a in range(3)])
-               for axis, n in enumerate(shape))
-    points = np.empty((*shape, 3), dtype=np.float64)
-    for c in range(3):
-        points[..., c] = matrix[c, 0] * i + matrix[c, 1] * j + matrix[c, 2] * k + matrix[c, 3]
-    return points
+    """LPS points (I, J, K, 3) of every voxel centre of a grid, float64 (:func:`index_map` of ``index_to_lps``)."""
+    return index_map(shape, index_to_lps)
+
+
+def mapped_index(shape: tuple[int, ...], index_to_lps: np.ndarray, target_index_to_lps: np.ndarray,
+                 affine: np.ndarray | None = None, field: np.ndarray | None = None) -> np.ndarray:
+    """Where every voxel ``p`` of a grid lands in another: the continuous index, in the grid ``target_index_to_lps``,
+    of ``A(p) + field(p)`` (I, J, K, 3) float64, ``A`` = ``affine`` (4, 4, default the identity), ``field`` (I, J, K, 3)
+    LPS mm on the first grid (e.g. ``warp.nii.gz``'s ``D``, whose ``p + D(p)`` is the moving point of ``p``).
+
+    Affine in the index apart from ``field``, so no point array is formed: ``T^-1 A G (i, j, k, 1) + T^-1 field``
+    (``G``, ``T``: the two grids' index -> LPS matrices). ``field`` is used at the precision it is given: pass the
+    float32 field that is written, and the result is the index ITK's resampling through that file computes."""
+    target_inverse = np.linalg.inv(np.asarray(target_index_to_lps, dtype=np.float64))
+    matrix = target_inverse @ (np.eye(4) if affine is None else np.asarray(affine, np.float64)) @ np.asarray(
+        index_to_lps, np.float64)
+    offset = None
+    if field is not None:
+        flat = torch.from_numpy(np.asarray(field)).to(torch.float64).reshape(-1, 3)
+        offset = (flat @ torch.from_numpy(target_inverse[:3, :3].T.copy())).view(*shape, 3)
+    return index_map(shape, matrix, None if offset is None else offset.numpy())
 
 
 def voxel_to_mm(displacement: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray:
@@ -72,15 +98,16 @@ def apply_affine(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     return out.numpy().reshape(np.shape(points))
 
 
-def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, affine: np.ndarray,
-                    points: np.ndarray | None = None) -> np.ndarray:
-    """Composed field on the fixed grid, ``D(p) = A(p + d(p)) - p`` (*S, 3) mm (module docstring, item 5).
+def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """Composed field on the fixed grid, ``D(p) = A(p + d(p)) - p`` (*S, 3) mm, float64 (module docstring, item 5).
 
-    ``deformable_mm``: ``d`` (*S, 3) on the fixed grid; ``affine``: ``A`` (4, 4), fixed LPS -> moving LPS;
-    ``points``: the fixed grid's :func:`grid_points`, if the caller has them.
-    """
-    points = grid_points(deformable_mm.shape[:3], fixed_index_to_lps) if points is None else points
-    return apply_affine(affine, points + deformable_mm) - points
+    ``deformable_mm``: ``d`` (*S, 3) on the fixed grid; ``affine``: ``A`` (4, 4), fixed LPS -> moving LPS.
+    With ``p = G (i, j, k, 1)``: ``D = (A G - G)(i, j, k, 1) + A_lin d``, so no point array is formed."""
+    affine = np.asarray(affine, dtype=np.float64)
+    grid = np.asarray(fixed_index_to_lps, dtype=np.float64)
+    flat = torch.from_numpy(np.asarray(deformable_mm)).to(torch.float64).reshape(-1, 3)
+    moved = flat @ torch.from_numpy(affine[:3, :3].T.copy())
+    return index_map(deformable_mm.shape[:3], affine @ grid - grid, moved.view(*deformable_mm.shape[:3], 3).numpy())
 
 
 def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[int, ...],
@@ -91,41 +118,33 @@ def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[
     ``inverse_mm``: ``d_inv`` (*S, 3) in mm on its grid (the fixed or model grid), as a :class:`Volume`; linear,
     border-extended outside it (:func:`~monai_probreg.spatial.point_sampling.sample_linear`'s ``"border"``).
 
-    Computed per slab of the moving grid's first axis without any (N, 3) point array: ``a`` and the continuous
-    index of ``a`` in ``d_inv``'s grid are affine in the moving voxel index (``A^-1 @ moving_index_to_lps``), so they
-    are broadcast from three ``arange``s and ``d_inv`` is read with one ``grid_sample`` per slab (float32
-    coordinates: at most 1e-5 voxel off on a 256-voxel axis). ``rows_per_chunk``: slab height (default: about two
-    million voxels per slab).
+    Computed per slab of the moving grid's first axis without any point array: ``a`` and the continuous index of
+    ``a`` in ``d_inv``'s grid are affine in the moving voxel index (``A^-1 @ moving_index_to_lps``), so both come from
+    :func:`index_map` and ``d_inv`` is read with one ``grid_sample`` per slab (float32 coordinates: at most 1e-5
+    voxel off on a 256-voxel axis). ``rows_per_chunk``: slab height (default: about two million voxels per slab).
     """
-    moving_to_fixed = np.linalg.inv(np.asarray(affine, np.float64)) @ np.asarray(moving_index_to_lps, np.float64)
+    moving_grid = np.asarray(moving_index_to_lps, np.float64)
+    moving_to_fixed = np.linalg.inv(np.asarray(affine, np.float64)) @ moving_grid
     to_field_index = np.linalg.inv(np.asarray(inverse_mm.index_to_lps, np.float64)) @ moving_to_fixed
     field = np.asarray(inverse_mm.array, dtype=np.float32)
     sizes = np.asarray(field.shape[:3], dtype=np.float64)
-    # index -> grid_sample's normalised coordinate (align_corners=True: -1 / +1 are the first / last voxel centres)
+    # index -> grid_sample's normalised coordinate (align_corners=True: -1 / +1 are the first / last voxel centres);
+    # grid_sample's grid is (x, y, z) = (axis 2, axis 1, axis 0) of the field, hence the rows in reverse order
     to_normalised = np.diag([*(2.0 / np.maximum(sizes - 1.0, 1.0)), 1.0])
     to_normalised[:3, 3] = -1.0
-    normalise = to_normalised @ to_field_index
-    shift = moving_to_fixed - np.asarray(moving_index_to_lps, np.float64)  # a - q, affine in the index
+    normalise = (to_normalised @ to_field_index)[[2, 1, 0, 3]]
+    shift = moving_to_fixed - moving_grid  # a - q, affine in the index
     source = torch.from_numpy(np.ascontiguousarray(field.transpose(3, 0, 1, 2)))[None]
     shape = tuple(int(n) for n in moving_shape)
     rows = rows_per_chunk or max(1, 2_000_000 // max(1, shape[1] * shape[2]))
-    j = np.arange(shape[1], dtype=np.float64)[None, :, None]
-    k = np.arange(shape[2], dtype=np.float64)[None, None, :]
-    # a - q per component as three broadcast terms, added in place to the sampled field (no full-size temporary)
-    shift_j = [torch.from_numpy((shift[c, 1] * j).astype(np.float32)) for c in range(3)]
-    shift_k = [torch.from_numpy((shift[c, 2] * k).astype(np.float32)) for c in range(3)]
     out = torch.empty((*shape, 3), dtype=torch.float32)
     for start in range(0, shape[0], rows):
-        i = np.arange(start, min(start + rows, shape[0]), dtype=np.float64)[:, None, None]
-        # grid_sample's grid is (x, y, z) = (axis 2, axis 1, axis 0) of the field: channels in reverse order
-        grid = np.stack([normalise[c, 0] * i + normalise[c, 1] * j + normalise[c, 2] * k + normalise[c, 3]
-                         for c in (2, 1, 0)], axis=-1).astype(np.float32)
-        values = F.grid_sample(source, torch.from_numpy(grid)[None], mode="bilinear", padding_mode="border",
-                               align_corners=True)[0]  # (3, rows, J, K)
-        for c in range(3):
-            values[c].add_(torch.from_numpy((shift[c, 0] * i + shift[c, 3]).astype(np.float32)))
-            values[c].add_(shift_j[c]).add_(shift_k[c])
-        out[start:start + len(i)] = values.permute(1, 2, 3, 0)
+        slab = (min(rows, shape[0] - start), *shape[1:])
+        first_row = np.eye(4)
+        first_row[0, 3] = start  # slab index (r, j, k) -> moving index (start + r, j, k)
+        grid = torch.from_numpy(index_map(slab, normalise @ first_row)).float()
+        values = F.grid_sample(source, grid[None], mode="bilinear", padding_mode="border", align_corners=True)[0]
+        out[start:start + slab[0]] = values.permute(1, 2, 3, 0) + torch.from_numpy(index_map(slab, shift @ first_row))
     return out.numpy()
 
 

@@ -36,12 +36,20 @@ def continuous_index(points: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray
 _CHUNK = 1 << 20  # points per step: a step's temporaries stay small (no N x 3 array beyond the caller's own)
 
 
-def _index_chunks(points: np.ndarray, volume: Volume, index: np.ndarray | None, chunk: int
+def _query_shape(points: np.ndarray | None, index: np.ndarray | None) -> tuple[int, ...]:
+    """The shape (..., 3) of what is sampled: ``points``, or ``index`` alone (then ``points`` may be None)."""
+    if points is None and index is None:
+        raise ValueError("expected points or their index; got neither")
+    if points is not None and index is not None and index.shape != np.shape(points):
+        raise ValueError(f"expected an index of the points' shape {np.shape(points)}; got {index.shape}")
+    return tuple(np.shape(points if points is not None else index))
+
+
+def _index_chunks(points: np.ndarray | None, volume: Volume, index: np.ndarray | None, chunk: int
                   ) -> Iterator[tuple[int, torch.Tensor]]:
     """(start, continuous indices (n, 3) float64) of ``points`` in ``volume``'s grid, ``chunk`` points at a time:
-    ``index`` when the caller has it (checked to match ``points``), else :func:`continuous_index` per chunk."""
-    if index is not None and index.shape != np.shape(points):
-        raise ValueError(f"expected an index of the points' shape {np.shape(points)}; got {index.shape}")
+    ``index`` when the caller has it (:func:`_query_shape`), else :func:`continuous_index` per chunk."""
+    _query_shape(points, index)
     source = (index if index is not None else np.asarray(points, dtype=np.float64)).reshape(-1, 3)
     for start in range(0, source.shape[0], chunk):
         part = np.asarray(source[start:start + chunk], dtype=np.float64)
@@ -54,13 +62,14 @@ def _inside(index: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     return ((index >= -0.5) & (index < upper)).all(dim=-1)
 
 
-def sample_linear(volume: Volume, points: np.ndarray, fill: float = 0.0, outside: str = "fill",
+def sample_linear(volume: Volume, points: np.ndarray | None, fill: float = 0.0, outside: str = "fill",
                   chunk: int = _CHUNK, index: np.ndarray | None = None) -> np.ndarray:
     """Trilinear samples of ``volume.array`` (I, J, K[, C]) at ``points`` (..., 3) -> (...[, C]) float64.
 
     ``outside``: ``"fill"`` (ITK: ``fill`` outside the half-voxel-extended grid) or ``"border"`` (clamp).
     ``chunk``: points per ``grid_sample`` call (bounds memory on large grids). ``index``: the points'
-    :func:`continuous_index` in ``volume``'s grid when the caller has it already (several volumes on one grid).
+    :func:`continuous_index` in ``volume``'s grid when the caller has it already (several volumes on one grid, or
+    :func:`~monai_probreg.spatial.physical.mapped_index` of a whole grid); ``points`` may then be None.
     """
     if outside not in ("fill", "border"):
         raise ValueError(f"outside must be 'fill' or 'border'; got {outside!r}")
@@ -70,24 +79,25 @@ def sample_linear(volume: Volume, points: np.ndarray, fill: float = 0.0, outside
     # align_corners=True: normalised -1 / +1 are the centres of the first / last voxel; grid order is (x, y, z) =
     # (axis 2, axis 1, axis 0) of the (N, C, D, H, W) input, hence the flip.
     scale = 2.0 / torch.clamp(torch.tensor(data.shape[:3], dtype=torch.float64) - 1.0, min=1.0)
-    num_points = int(np.prod(np.shape(points)[:-1]))
-    out = torch.empty((num_points, source.shape[1]), dtype=torch.float64)
+    query_shape = _query_shape(points, index)
+    out = torch.empty((int(np.prod(query_shape[:-1])), source.shape[1]), dtype=torch.float64)
     for start, index_part in _index_chunks(points, volume, index, chunk):
         grid = (index_part * scale - 1.0).flip(-1).view(1, -1, 1, 1, 3)
         values = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
         out[start:start + len(index_part)] = values[0, :, :, 0, 0].T
         if outside == "fill":
             out[start:start + len(index_part)][~_inside(index_part, data.shape[:3])] = fill
-    return out.numpy().reshape(*np.shape(points)[:-1], *channels)
+    return out.numpy().reshape(*query_shape[:-1], *channels)
 
 
-def sample_nearest(volume: Volume, points: np.ndarray, fill: int = 0, index: np.ndarray | None = None,
+def sample_nearest(volume: Volume, points: np.ndarray | None, fill: int = 0, index: np.ndarray | None = None,
                    chunk: int = _CHUNK) -> np.ndarray:
     """Nearest-neighbour samples (ITK rounding, half up) at ``points`` (..., 3); ``fill`` outside; input dtype.
     ``index``, ``chunk``: as :func:`sample_linear`'s."""
     _, size_j, size_k = volume.shape
     flat = torch.from_numpy(np.ascontiguousarray(volume.array).reshape(-1))
-    out = torch.empty(int(np.prod(np.shape(points)[:-1])), dtype=flat.dtype)
+    query_shape = _query_shape(points, index)
+    out = torch.empty(int(np.prod(query_shape[:-1])), dtype=flat.dtype)
     for start, index_part in _index_chunks(points, volume, index, chunk):
         inside = _inside(index_part, volume.shape)
         nearest = torch.floor(index_part + 0.5).to(torch.int64)  # ITK: half up
@@ -95,4 +105,4 @@ def sample_nearest(volume: Volume, points: np.ndarray, fill: int = 0, index: np.
         values = flat[(nearest[:, 0] * size_j + nearest[:, 1]) * size_k + nearest[:, 2]]
         values[~inside] = fill
         out[start:start + len(values)] = values
-    return out.numpy().reshape(np.shape(points)[:-1])
+    return out.numpy().reshape(query_shape[:-1])

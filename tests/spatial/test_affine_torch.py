@@ -11,7 +11,14 @@ import torch
 from conftest import FIXED_LPS, asymmetric_phantom, moved_scan, rigid_matrix
 
 from monai_probreg.spatial.affine import AffineSettings, align
-from monai_probreg.spatial.affine_torch import _cubic_bspline, mutual_information, rotation_matrix
+from monai_probreg.spatial.affine_torch import (
+    _cubic_bspline,
+    _scaled,
+    fixed_samples,
+    mutual_information,
+    register_affine_torch,
+    rotation_matrix,
+)
 from monai_probreg.spatial.physical import grid_points
 from monai_probreg.spatial.volume_io import Volume
 
@@ -103,9 +110,29 @@ def test_same_transform_with_one_or_two_threads():
 
 @pytest.mark.parametrize("max_samples, expected", [(None, 16 * 16 * 16 // 2), (300, 300), (10_000, 16 * 16 * 16 // 2)])
 def test_max_samples_caps_a_levels_sample_points(max_samples, expected):
-    from monai_probreg.spatial.affine_torch import _Level
-
     volume = Volume(np.random.default_rng(0).random((16, 16, 16)).astype(np.float32), np.eye(4))
-    image = torch.from_numpy(volume.array)
-    level = _Level(volume, image, volume, image, 1, 0.0, 0.5, torch.Generator().manual_seed(0), BINS, max_samples)
-    assert level.points.shape == (expected, 3) and level.fixed_bins.shape == (expected,)
+    settings = AffineSettings(shrink_factors=(1,), smoothing_sigmas_mm=(0.0,), rigid_iterations=(1,),
+                              affine_iterations=(1,), sampling_percentage=0.5, max_samples=max_samples,
+                              histogram_bins=BINS)
+    samples = fixed_samples(volume, settings)
+    assert samples.points[0].shape == (expected, 3) and samples.bins[0].shape == (expected,)
+
+
+def test_fixed_samples_are_voxel_centres_of_the_fixed_level_with_their_bins():
+    """The sample points are the LPS centres of the (pooled) fixed level's voxels, each with the bin of its value,
+    on an oblique, anisotropic grid; and a caller's prepared samples give the matrix the call would make itself."""
+    grid = np.eye(4)
+    grid[:3, :3] = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]) * [0.8, 1.5, 1.1]
+    grid[:3, 3] = [12.0, -7.0, 30.0]
+    volume = Volume(np.random.default_rng(1).random((12, 10, 14)).astype(np.float32), grid)
+    settings = AffineSettings(shrink_factors=(1,), smoothing_sigmas_mm=(0.0,), rigid_iterations=(2,),
+                              affine_iterations=(2,), sampling_percentage=0.3, histogram_bins=BINS)
+    samples = fixed_samples(volume, settings)
+    index = np.linalg.solve(grid[:3, :3], (samples.points[0].numpy() - grid[:3, 3]).T).T
+    np.testing.assert_allclose(index, np.round(index), atol=1e-9)  # voxel centres
+    scaled = _scaled(volume).numpy()
+    values = scaled[tuple(np.round(index).astype(int).T)]
+    np.testing.assert_array_equal(samples.bins[0].numpy(), np.clip(np.round(values * (BINS - 1)), 0, BINS - 1))
+    moving = Volume(np.roll(volume.array, 1, axis=0), grid)
+    np.testing.assert_array_equal(register_affine_torch(volume, moving, settings, samples).matrix,
+                                  register_affine_torch(volume, moving, settings).matrix)

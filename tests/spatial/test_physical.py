@@ -24,6 +24,8 @@ from monai_probreg.spatial.physical import (
     displacement_transform,
     field_to_itk,
     grid_points,
+    index_map,
+    mapped_index,
     mm_to_voxel,
     resample_with_itk,
     voxel_to_mm,
@@ -150,6 +152,43 @@ def test_grid_points_are_index_to_lps_of_every_index():
     for index in [(0, 0, 0), (3, 2, 4), (1, 2, 3)]:
         np.testing.assert_allclose(points[index], matrix[:3, :3] @ np.asarray(index, float) + matrix[:3, 3],
                                    rtol=0, atol=1e-12)
+
+
+def test_index_map_is_the_matrix_applied_to_every_index_plus_the_offset():
+    matrix = _affine() @ _grid()
+    offset = np.random.default_rng(4).normal(size=(4, 3, 5, 3))
+    ours = index_map((4, 3, 5), matrix, offset)
+    for index in [(0, 0, 0), (3, 2, 4), (1, 2, 3)]:
+        expected = matrix[:3, :3] @ np.asarray(index, float) + matrix[:3, 3] + offset[index]
+        np.testing.assert_allclose(ours[index], expected, rtol=0, atol=1e-12)
+
+
+def test_mapped_index_is_the_continuous_index_of_the_moved_points():
+    """mapped_index(...) = T^-1 (A p + field(p)) against explicit points, and sampling at it (index only, no points)
+    gives what sampling at those points gives: the same voxels, bit for bit."""
+    field = voxel_to_mm(_smooth(SHAPE, 3, 2.0, seed=5), _grid()).astype(np.float32)
+    target = np.eye(4)
+    target[:3, :3] = DIRECTION_OBLIQUE @ np.diag([1.3, 0.8, 1.1])
+    target[:3, 3] = [-6.0, 4.0, -3.0]
+    moved = apply_affine(_affine(), grid_points(SHAPE, _grid())) + field
+    expected = np.linalg.solve(target[:3, :3], (moved - target[:3, 3]).reshape(-1, 3).T).T.reshape(*SHAPE, 3)
+    ours = mapped_index(SHAPE, _grid(), target, _affine(), field)
+    np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(mapped_index(SHAPE, _grid(), _grid()), np.stack(np.meshgrid(
+        *[np.arange(n) for n in SHAPE], indexing="ij"), axis=-1), atol=1e-9)  # a grid onto itself: its own index
+    volume = Volume(_smooth((17, 13, 15), 1, 50.0, seed=6)[0], target)
+    labels = Volume(np.random.default_rng(1).integers(0, 6, (17, 13, 15)).astype(np.int16), target)
+    np.testing.assert_array_equal(sample_linear(volume, None, index=ours), sample_linear(volume, moved, index=ours))
+    np.testing.assert_allclose(sample_linear(volume, None, index=ours), sample_linear(volume, moved), atol=1e-9)
+    np.testing.assert_array_equal(sample_nearest(labels, None, index=ours), sample_nearest(labels, moved))
+
+
+def test_sampling_needs_points_or_their_index():
+    volume = Volume(np.zeros(SHAPE, np.float32), _grid())
+    with pytest.raises(ValueError, match="expected points or their index"):
+        sample_linear(volume, None)
+    with pytest.raises(ValueError, match="expected points or their index"):
+        sample_nearest(volume, None)
 
 
 def test_compose_inverse_undoes_compose_forward():

@@ -18,6 +18,10 @@ Reported per perturbation and side: mean Dice, and the number of pairs whose def
 alone (the target is 0).
 
     python benchmarks/robustness.py --threads 2 --model-file bundle/models/model_anypair.pt --model-file CANDIDATE.pt
+    python benchmarks/robustness.py --threads 2 --ants --conditions clean all --name robustness_ants  # ANTs, a subset
+
+``--conditions`` runs a subset (each condition keeps the seeds of a full run, so its perturbed images are the same);
+``--name`` is the stem of the JSON and PNG written.
 """
 
 from __future__ import annotations
@@ -85,6 +89,24 @@ def perturb(image: torch.Tensor, name: str, seed: int) -> torch.Tensor:
     return torch.as_tensor(_rescale(x))[None].float()
 
 
+ALL_CONDITIONS = [("clean", "none")] + [(p, side) for p in [*PERTURBATIONS, "all"] for side in SIDES]
+
+
+def select_conditions(selected: list[str] | None) -> list[tuple[str, str]]:
+    """``NAME[:SIDE]`` -> the (perturbation, side) conditions, in the order of a full run (all when None)."""
+    if not selected:
+        return list(ALL_CONDITIONS)
+    chosen = set()
+    for item in selected:
+        name, _, side = item.partition(":")
+        matches = [c for c in ALL_CONDITIONS if c[0] == name and (not side or c[1] == side)]
+        if not matches:
+            raise SystemExit(f"--conditions: expected NAME[:SIDE] with NAME in {sorted({c[0] for c in ALL_CONDITIONS})}"
+                             f" and SIDE in {list(SIDES)}; got {item!r}")
+        chosen.update(matches)
+    return [c for c in ALL_CONDITIONS if c in chosen]
+
+
 def pairs_for(ids: list[str]) -> list[tuple[str, str]]:
     return [(s, ATLAS_ID) for s in ids] + [(s, ids[(n + 1) % len(ids)]) for n, s in enumerate(ids)]
 
@@ -102,6 +124,10 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--conditions", nargs="+", default=None, metavar="NAME[:SIDE]",
+                    help="only these conditions, e.g. 'clean all:moving all:both' (a name alone: every side); "
+                         "default all. With --ants, ANTs' ~40 s per pair makes a subset worth it")
+    ap.add_argument("--name", default="robustness", help="stem of the JSON and PNG written (default: %(default)s)")
     args = ap.parse_args(argv)
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir}")
@@ -118,11 +144,11 @@ def main(argv=None) -> int:
                 for name, p in zip(names, model_files)}
     ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     scans = load_scans(args.dataset_dir, ids, int(evaluate.get_parsed_content("divisor")))
-    conditions = [("clean", "none")] + [(p, side) for p in [*PERTURBATIONS, "all"] for side in SIDES]
+    conditions = select_conditions(args.conditions)
     records: list[dict[str, Any]] = []
     for c, (name, side) in enumerate(conditions):
         for n, (moving_id, fixed_id) in enumerate(pairs_for(ids)):
-            seed = args.seed + 100 * n + 10_000 * c
+            seed = args.seed + 100 * n + 10_000 * ALL_CONDITIONS.index((name, side))  # as in a full run
             moving, fixed = scans[moving_id]["image"], scans[fixed_id]["image"]
             if side in ("moving", "both"):
                 moving = perturb(moving, name, seed)
@@ -145,12 +171,12 @@ def main(argv=None) -> int:
     table = table_markdown(records, conditions, methods, list(networks))
     print(table)
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    write_text(args.out_dir / "robustness.json", json.dumps({
+    write_text(args.out_dir / f"{args.name}.json", json.dumps({
         "pairs": [f"{m}_to_{f}" for m, f in pairs_for(ids)], "methods": methods, "markdown": table,
         "model_files": {name: str(p) for name, p in zip(names, model_files)},
         "threads": args.threads, "seconds": round(time.time() - start, 1), "records": records}, indent=1) + "\n")
-    figure(records, conditions, methods, args.out_dir / "robustness.png")
-    print(f"wrote {args.out_dir / 'robustness.json'} and robustness.png")
+    figure(records, conditions, methods, args.out_dir / f"{args.name}.png")
+    print(f"wrote {args.out_dir / args.name}.json and {args.name}.png")
     return 0
 
 

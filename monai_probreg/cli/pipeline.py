@@ -328,7 +328,8 @@ _MAP_FILES = ("jacobian", "entropy", "displacement_std")  # left out by Registra
 class Registered(NamedTuple):
     """What :func:`register_scan` computed, for a caller's own check of the result (its ``check``).
 
-    ``warp`` (*S, 3): the composed ``D(p) = phi(p) - p``, LPS mm on the fixed grid (``warp.nii.gz``); ``affine``
+    ``warp`` (*S, 3): the composed ``D(p) = phi(p) - p``, LPS mm on the fixed grid, float32 (``warp.nii.gz``'s
+    values); ``affine``
     (4, 4): the affine stage, fixed LPS -> moving LPS; ``points`` (*S, 3): the fixed grid's LPS points;
     ``displacement_variance`` (*S, 3): the calibrated posterior's variance of the deformable displacement, mm^2 on
     the fixed grid, one component per column of ``variance_axes`` (3, 3; unit LPS vectors: the model grid's axes),

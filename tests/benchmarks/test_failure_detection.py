@@ -66,6 +66,15 @@ def test_robustness_perturbations_are_seeded_and_scaled(name):
     assert not torch.equal(out, image)
 
 
+def test_robustness_conditions_subset_keeps_the_full_runs_order_and_refuses_unknown_names():
+    assert robustness.select_conditions(None) == robustness.ALL_CONDITIONS
+    chosen = robustness.select_conditions(["all:both", "clean", "noise"])
+    assert chosen == [("clean", "none"), ("noise", "moving"), ("noise", "fixed"), ("noise", "both"), ("all", "both")]
+    for bad in (["glare"], ["all:sideways"]):
+        with pytest.raises(SystemExit, match="--conditions: expected NAME"):
+            robustness.select_conditions(bad)
+
+
 def test_command_cases_register_each_scan_as_it_is_and_turned(tmp_path):
     dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
     bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)

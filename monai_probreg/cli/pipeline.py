@@ -109,12 +109,11 @@ class FixedSpace:
     label_ids: list[int] = field(default_factory=list)
     brain_mask: np.ndarray | None = None  # where the moving scan stays visible (monai_probreg.spatial.brain_mask)
     brain_mask_margin_mm: float | None = None  # its margin; None = no mask
+    affine_samples: dict[AffineSettings, FixedSamples] = field(default_factory=dict, repr=False)  # samples_for's
 
     @functools.cached_property
     def itk_image(self) -> itk.Image:
         return volume_to_itk(self.image)  # loads ITK's core modules (~0.8 s): not on the torch backend's path
-
-    affine_samples: dict[AffineSettings, FixedSamples] = field(default_factory=dict, repr=False)  # per settings
 
     def samples_for(self, settings: AffineSettings) -> FixedSamples | None:
         """The torch affine backend's fixed-image samples for ``settings``, made on first use and kept (the same
@@ -329,8 +328,8 @@ class Registered(NamedTuple):
     """What :func:`register_scan` computed, for a caller's own check of the result (its ``check``).
 
     ``warp`` (*S, 3): the composed ``D(p) = phi(p) - p``, LPS mm on the fixed grid, float32 (``warp.nii.gz``'s
-    values); ``affine``
-    (4, 4): the affine stage, fixed LPS -> moving LPS; ``points`` (*S, 3): the fixed grid's LPS points;
+    values); ``affine`` (4, 4): the affine stage, fixed LPS -> moving LPS; ``points`` (*S, 3): the fixed grid's LPS
+    points;
     ``displacement_variance`` (*S, 3): the calibrated posterior's variance of the deformable displacement, mm^2 on
     the fixed grid, one component per column of ``variance_axes`` (3, 3; unit LPS vectors: the model grid's axes),
     or None without samples."""

@@ -48,8 +48,8 @@ def _query_shape(points: np.ndarray | None, index: np.ndarray | None) -> tuple[i
 def _index_chunks(points: np.ndarray | None, volume: Volume, index: np.ndarray | None, chunk: int
                   ) -> Iterator[tuple[int, torch.Tensor]]:
     """(start, continuous indices (n, 3) float64) of ``points`` in ``volume``'s grid, ``chunk`` points at a time:
-    ``index`` when the caller has it (:func:`_query_shape`), else :func:`continuous_index` per chunk."""
-    _query_shape(points, index)
+    ``index`` when the caller has it (the callers check both with :func:`_query_shape`), else
+    :func:`continuous_index` per chunk."""
     source = (index if index is not None else np.asarray(points, dtype=np.float64)).reshape(-1, 3)
     for start in range(0, source.shape[0], chunk):
         part = np.asarray(source[start:start + chunk], dtype=np.float64)

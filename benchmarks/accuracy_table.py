@@ -77,7 +77,7 @@ TASKS = {  # --tasks key -> column name, in table order
     "atlas": "validation -> atlas",
     "pairs": "pairs between validation subjects",
 }
-DEFAULT_REFINE_ITERATIONS = 20  # the "ours + refinement" row: README "Accuracy" (settings chosen on training pairs)
+DEFAULT_REFINE_ITERATIONS = 10  # the "ours + refinement" row: README "Accuracy" (settings chosen on training pairs)
 ANTS_SETTINGS = {
     "call": 'ants.registration(fixed, moving, type_of_transform="SyN")',
     "parameters": "antspyx defaults (affine + SyN stages; default random sampling, so results vary slightly per run)",

@@ -60,7 +60,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
 DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
 DEFAULT_OUT = REPO / "benchmarks" / "results"
-DEFAULT_REFINE_ITERATIONS = 20  # as benchmarks/accuracy_table.py's refined row
+DEFAULT_REFINE_ITERATIONS = 10  # as benchmarks/accuracy_table.py's refined row
 ANTS_TYPES = {"ants_affine": "Affine", "ants_syn": "SyN"}
 LEAN = ("--no-inverse", "--no-maps", "--no-qc")
 DEFAULT_BATCH_SIZE = 8  # register-batch throughput over this many scans (the issue asks for >= 8)

@@ -12,13 +12,14 @@ trained on), clean and under each perturbation below, applied after evaluate.yam
 - ``all``: all of the above, one after the other.
 
 Methods, side by side on the same perturbed pairs: each ``--model-file`` (default: the shipped weights; add
-candidates to compare training recipes), "affine alone" (the input: the scans are pre-aligned, so no registration
+candidates to compare training recipes; with ``--refine N`` each also with its mean refined for the pair), "affine alone" (the input: the scans are pre-aligned, so no registration
 is the affine-only result), and ANTs SyN with ``--ants`` (antspyx defaults; ~40 s per pair on 2 threads).
 Reported per perturbation and side: mean Dice, and the number of pairs whose deformable Dice ends below the affine
 alone (the target is 0).
 
     python benchmarks/robustness.py --threads 2 --model-file bundle/models/model_anypair.pt --model-file CANDIDATE.pt
     python benchmarks/robustness.py --threads 2 --ants --conditions clean all --name robustness_ants  # ANTs, a subset
+    python benchmarks/robustness.py --threads 2 --refine 10 --conditions clean all --name robustness_refined
 
 ``--conditions`` runs a subset (each condition keeps the seeds of a full run, so its perturbed images are the same);
 ``--name`` is the stem of the JSON and PNG written.
@@ -128,20 +129,29 @@ def main(argv=None) -> int:
                     help="only these conditions, e.g. 'clean all:moving all:both' (a name alone: every side); "
                          "default all. With --ants, ANTs' ~40 s per pair makes a subset worth it")
     ap.add_argument("--name", default="robustness", help="stem of the JSON and PNG written (default: %(default)s)")
+    ap.add_argument("--refine", type=int, default=0, metavar="N",
+                    help="also each model with its mean refined for the pair (N steps, evaluate.yaml's other "
+                         "refine_* settings; monai_probreg.engines.refinement); default 0: not run")
     args = ap.parse_args(argv)
+    if args.refine < 0:
+        raise SystemExit(f"--refine must be >= 0 steps; got {args.refine}")
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir}")
         return 0
     torch.set_num_threads(args.threads)
     start = time.time()
     bundle_root = args.bundle_root.resolve()
-    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
+    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve()),
+                                                         "refine_iterations": args.refine})
     model_files = [p.resolve() for p in (args.model_file or [Path(evaluate.get_parsed_content("model_file"))])]
     names = args.label or [p.name for p in model_files]
     if len(names) != len(model_files) or len(set(names)) != len(names):
         raise SystemExit(f"--label: one distinct name per --model-file ({len(model_files)}); got {names}")
     networks = {name: load_weights(evaluate.get_parsed_content("network_def", lazy=False), p, "cpu")
                 for name, p in zip(names, model_files)}
+    refinement = evaluate.get_parsed_content("refinement")
+    refined = {f"{net} + refine {args.refine}": net for net in networks} if refinement.enabled else {}
+    models = [*networks, *refined]
     ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     scans = load_scans(args.dataset_dir, ids, int(evaluate.get_parsed_content("divisor")))
     conditions = select_conditions(args.conditions)
@@ -159,6 +169,9 @@ def main(argv=None) -> int:
                    "affine_alone": score_pair(None, *labels).mean_dice}
             for key, network in networks.items():
                 row[key] = score_pair(register_pair(network, moving, fixed).displacement, *labels).mean_dice
+            for key, base in refined.items():
+                output = register_pair(networks[base], moving, fixed, refinement)
+                row[key] = score_pair(output.displacement, *labels).mean_dice
             if args.ants:
                 warped_label, _, _ = ants_register(moving, fixed, labels[0])
                 row["ANTs SyN"] = score_pair(None, warped_label, labels[1]).mean_dice
@@ -166,14 +179,15 @@ def main(argv=None) -> int:
         done = [r for r in records if (r["perturbation"], r["side"]) == (name, side)]
         print(f"[{c + 1}/{len(conditions)}] {name} ({side}): " + ", ".join(
             f"{_name(k)} {np.mean([r[k] for r in done]):.3f}"
-            for k in ["affine_alone", *networks, *(["ANTs SyN"] if args.ants else [])]), flush=True)
-    methods = ["affine_alone", *networks, *(["ANTs SyN"] if args.ants else [])]
-    table = table_markdown(records, conditions, methods, list(networks))
+            for k in ["affine_alone", *models, *(["ANTs SyN"] if args.ants else [])]), flush=True)
+    methods = ["affine_alone", *models, *(["ANTs SyN"] if args.ants else [])]
+    table = table_markdown(records, conditions, methods, models)
     print(table)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     write_text(args.out_dir / f"{args.name}.json", json.dumps({
         "pairs": [f"{m}_to_{f}" for m, f in pairs_for(ids)], "methods": methods, "markdown": table,
         "model_files": {name: str(p) for name, p in zip(names, model_files)},
+        "refinement": refinement.as_dict() if refined else None,
         "threads": args.threads, "seconds": round(time.time() - start, 1), "records": records}, indent=1) + "\n")
     figure(records, conditions, methods, args.out_dir / f"{args.name}.png")
     print(f"wrote {args.out_dir / args.name}.json and {args.name}.png")

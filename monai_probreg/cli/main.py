@@ -93,7 +93,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                      help="show the network the whole moving scan (both images skull-stripped, or both not)")
     reg.add_argument("--refine", type=int, default=None, metavar="N",
                      help="refine the posterior mean for this pair with N optimiser steps (test-time refinement: "
-                          "more Dice for a few seconds on a CPU; 20 = the measured setting); default: the config's "
+                          "more Dice for a few seconds on a CPU; 10 = the measured setting); default: the config's "
                           "refine_iterations (0 = off)")
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     reg.add_argument("--no-inverse", action="store_true", help="do not compute or write inverse_warp.nii.gz and "

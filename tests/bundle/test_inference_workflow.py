@@ -85,8 +85,10 @@ def test_refinement_is_off_by_default_and_settable_from_the_config(config):
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
     parser["refine_iterations"], parser["refine_prior_lambda"] = 20, 3.0
+    parser["refine_image_loss"], parser["refine_image_weight"], parser["refine_fold_backtracks"] = "gaussian", 1.0, 0
     refinement = parser.get_parsed_content("inferer").refinement
     assert refinement.enabled and refinement.num_iterations == 20 and refinement.prior_lambda == 3.0
+    assert (refinement.image_loss, refinement.image_weight, refinement.fold_backtracks) == ("gaussian", 1.0, 0)
 
 
 def test_inference_twice_writes_the_same_files(tmp_path, tiny_dataset, bundle):

@@ -12,6 +12,7 @@ from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.handlers import RegistrationInferer
 from monai_probreg.engines.refinement import RefinementSettings, refine_registration
 from monai_probreg.engines.registration import register_pair, timed_register_pair
+from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -52,6 +53,10 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
     ("image_sigma", 0.0), ("image_sigma", math.nan),
     ("prior_lambda", -1.0), ("prior_lambda", None),
     ("posterior_weight", -0.5), ("posterior_weight", math.nan), ("posterior_weight", True),
+    ("image_loss", "ncc"), ("image_loss", None),
+    ("image_weight", -1.0), ("image_weight", math.nan), ("image_weight", "20"),
+    ("fold_backtracks", -1), ("fold_backtracks", 1.0), ("fold_backtracks", True),
+    ("lncc_kernel_size", 4), ("lncc_kernel_size", 1), ("lncc_kernel_size", 9.0),
 ])
 def test_bad_setting_names_itself(name, value):
     with pytest.raises(ValueError, match=name):
@@ -75,7 +80,8 @@ def test_refinement_finds_a_known_shift(shape, axis):
     match smooth blobs about as well (with lambda 0.1 the mean displacement stops near 1.0)."""
     net = _identity_net(len(shape))
     moving, fixed = _pair(shape, axis)
-    settings = RefinementSettings(num_iterations=60, learning_rate=0.1, image_sigma=0.05, prior_lambda=10.0,
+    settings = RefinementSettings(num_iterations=60, learning_rate=0.1, image_loss="gaussian", image_weight=1.0,
+                                  image_sigma=0.05, prior_lambda=10.0,
                                   posterior_weight=0.0)  # the untrained posterior (log_var -10) would pin it
     start = register_pair(net, moving, fixed)
     refined = refine_registration(net, moving, fixed, start, settings)
@@ -89,6 +95,56 @@ def test_refinement_finds_a_known_shift(shape, axis):
     before = (start.warped - fixed).square().mean()
     after = (refined.warped - fixed).square().mean()
     assert after < 0.1 * before, (before.item(), after.item())
+
+
+def test_refinement_with_local_ncc_finds_a_known_shift():
+    """The LNCC image term (the default) aligns the same pair; the direction is the Gaussian term's (pull-back)."""
+    assert RefinementSettings().image_loss == "lncc"
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=1)
+    settings = RefinementSettings(num_iterations=60, learning_rate=0.1, prior_lambda=10.0, posterior_weight=0.0)
+    refined = refine_registration(net, moving, fixed, register_pair(net, moving, fixed), settings)
+    inside = fixed[0, 0] > 0.3
+    assert refined.displacement[0, 1][inside].mean().item() == pytest.approx(SHIFT, abs=0.35)
+    assert refined.displacement[0, 0][inside].abs().mean().item() < 0.35
+
+
+def _folding_case() -> tuple:
+    """A pair of noise images refined with a huge step and almost no prior: the optimiser folds the field."""
+    net = _identity_net(2)
+    generator = torch.Generator().manual_seed(3)
+    moving, fixed = (torch.rand((1, 1, 32, 48), generator=generator) for _ in range(2))
+    return net, moving, fixed, register_pair(net, moving, fixed)
+
+
+def _folds(displacement: torch.Tensor) -> int:
+    return int((jacobian_determinant(displacement) <= 0).sum())
+
+
+def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds():
+    net, moving, fixed, start = _folding_case()
+    loose = {"num_iterations": 30, "learning_rate": 2.0, "prior_lambda": 1e-6, "posterior_weight": 0.0}
+    unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
+    assert _folds(unguarded.displacement) > 0  # the case folds without the guard, so the guard has work to do
+    guarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=4))
+    assert _folds(guarded.displacement) == 0
+    change, full = guarded.velocity_mean - start.velocity_mean, unguarded.velocity_mean - start.velocity_mean
+    fractions = [0.5**k for k in range(1, 5)] + [0.0]
+    assert any(torch.allclose(change, f * full, atol=1e-6) for f in fractions)  # a fraction of the same change
+    with torch.no_grad():  # and the returned fields are those of the kept mean
+        torch.testing.assert_close(guarded.displacement,
+                                   net.velocity_to_displacement(guarded.velocity_mean, moving.shape[2:]))
+
+
+def test_the_fold_guard_leaves_a_fold_free_refinement_alone():
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    start = register_pair(net, moving, fixed)
+    settings = {"num_iterations": 20, "posterior_weight": 0.0}
+    guarded = refine_registration(net, moving, fixed, start, RefinementSettings(**settings))
+    unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**settings, fold_backtracks=0))
+    assert _folds(unguarded.displacement) == 0
+    torch.testing.assert_close(guarded.velocity_mean, unguarded.velocity_mean, rtol=0, atol=0)
 
 
 def test_refined_fields_are_consistent_and_the_network_is_untouched():

@@ -55,9 +55,9 @@ class RefinementSettings:
     image_sigma: std of the Gaussian image noise, intensities in [0, 1] (the training value of the shipped model).
     prior_lambda: precision scale of the Laplacian prior, velocity-grid voxel units (larger = smoother, fewer folds).
     posterior_weight: weight of the pull towards the network's mean, in units of its posterior std (0 = none).
-    image_loss: the image term: "lncc" (MONAI's local normalised cross-correlation, kernel 9, in [-1, 0]; the
-        default: +0.005 Dice over "gaussian" on training pairs) or "gaussian" (the model's own likelihood with
-        ``image_sigma``, unused for "lncc").
+    image_loss: the image term: "lncc" (MONAI's local normalised cross-correlation over ``lncc_kernel_size``, in
+        [-1, 0]; the default: +0.005 Dice over "gaussian" on training pairs) or "gaussian" (the model's own
+        likelihood with ``image_sigma``, unused for "lncc").
     image_weight: multiplies the image term (20 for "lncc", chosen on training pairs: 50 gave the same Dice with a
         rougher field; use 1 with "gaussian", whose values are ~100x larger).
     lncc_kernel_size: side of LNCC's local window, network-grid voxels (odd; 9 = 18 mm at the shipped 2 mm grid).
@@ -77,9 +77,11 @@ class RefinementSettings:
     fold_backtracks: int = 4
 
     def __post_init__(self) -> None:
-        n = self.num_iterations
-        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-            raise ValueError(f"num_iterations must be an integer >= 0; got {n!r}")
+        for name in ("num_iterations", "fold_backtracks"):
+            _check_integer(name, getattr(self, name), minimum=0)
+        _check_integer("lncc_kernel_size", self.lncc_kernel_size, minimum=3)
+        if self.lncc_kernel_size % 2 == 0:
+            raise ValueError(f"lncc_kernel_size must be an odd integer >= 3; got {self.lncc_kernel_size!r}")
         for name in ("learning_rate", "image_sigma", "prior_lambda"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
@@ -90,20 +92,19 @@ class RefinementSettings:
                 raise ValueError(f"{name} must be a number >= 0; got {value!r}")
         if self.image_loss not in IMAGE_LOSSES:
             raise ValueError(f"image_loss must be one of {IMAGE_LOSSES}; got {self.image_loss!r}")
-        n = self.fold_backtracks
-        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-            raise ValueError(f"fold_backtracks must be an integer >= 0; got {n!r}")
-        k = self.lncc_kernel_size
-        if isinstance(k, bool) or not isinstance(k, int) or k < 3 or k % 2 == 0:
-            raise ValueError(f"lncc_kernel_size must be an odd integer >= 3; got {k!r}")
 
     @property
     def enabled(self) -> bool:
         return self.num_iterations > 0
 
-    def as_dict(self) -> dict[str, float]:
+    def as_dict(self) -> dict[str, float | int | str]:
         """The settings by name, for summaries."""
         return asdict(self)
+
+
+def _check_integer(name: str, value: object, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
 
 
 def _on_grid(image: Tensor, size: tuple[int, ...]) -> Tensor:

@@ -19,7 +19,7 @@ alone (the target is 0).
 
     python benchmarks/robustness.py --threads 2 --model-file bundle/models/model_anypair.pt --model-file CANDIDATE.pt
     python benchmarks/robustness.py --threads 2 --ants --conditions clean all --name robustness_ants  # ANTs, a subset
-    python benchmarks/robustness.py --threads 2 --refine 10 --conditions clean all --name robustness_refined
+    python benchmarks/robustness.py --threads 2 --ants --refine 10 --conditions clean all --name robustness_ants
 
 ``--conditions`` runs a subset (each condition keeps the seeds of a full run, so its perturbed images are the same);
 ``--name`` is the stem of the JSON and PNG written.

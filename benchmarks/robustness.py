@@ -12,7 +12,8 @@ trained on), clean and under each perturbation below, applied after evaluate.yam
 - ``all``: all of the above, one after the other.
 
 Methods, side by side on the same perturbed pairs: each ``--model-file`` (default: the shipped weights; add
-candidates to compare training recipes; with ``--refine N`` each also with its mean refined for the pair), "affine alone" (the input: the scans are pre-aligned, so no registration
+candidates to compare training recipes; with ``--refine N`` each also with its mean refined for the pair),
+"affine alone" (the input: the scans are pre-aligned, so no registration
 is the affine-only result), and ANTs SyN with ``--ants`` (antspyx defaults; ~40 s per pair on 2 threads).
 Reported per perturbation and side: mean Dice, and the number of pairs whose deformable Dice ends below the affine
 alone (the target is 0).

@@ -38,12 +38,11 @@ from torch import Tensor
 
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.losses.elbo import ProbRegLoss
+from monai_probreg.losses.likelihood import IMAGE_LOSSES
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
 
-__all__ = ["IMAGE_LOSSES", "RefinementSettings", "refine_registration"]
-
-IMAGE_LOSSES = ("gaussian", "lncc")  # RefinementSettings.image_loss: names of losses.likelihood.make_image_loss
+__all__ = ["RefinementSettings", "refine_registration"]
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from monai.losses import LocalNormalizedCrossCorrelationLoss
 from torch import Tensor, nn
 
-__all__ = ["gaussian_image_loss", "GaussianImageLoss", "make_image_loss"]
+__all__ = ["IMAGE_LOSSES", "GaussianImageLoss", "gaussian_image_loss", "make_image_loss"]
 
 
 def gaussian_image_loss(warped: Tensor, fixed: Tensor, image_sigma: float, reduction: str = "mean") -> Tensor:
@@ -45,6 +45,9 @@ class GaussianImageLoss(nn.Module):
 
     def forward(self, warped: Tensor, fixed: Tensor) -> Tensor:
         return gaussian_image_loss(warped, fixed, self.image_sigma, self.reduction)
+
+
+IMAGE_LOSSES = ("gaussian", "lncc")  # the names make_image_loss accepts
 
 
 def make_image_loss(name: str, spatial_dims: int = 3, image_sigma: float = 0.04, lncc_kernel_size: int = 9,

@@ -23,7 +23,8 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from torch.utils.data import Dataset
+import torch
+from torch.utils.data import Dataset, WeightedRandomSampler
 
 from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS, DatasetIndex
 from monai_probreg.utils.errors import InputError
@@ -34,6 +35,7 @@ __all__ = [
     "SCAN_IMAGE",
     "SCAN_LABEL",
     "PairDataset",
+    "mixed_sampler",
     "ordered_pairs",
     "read_pairs_file",
     "scan_dicts",
@@ -174,22 +176,42 @@ class PairDataset(Dataset):
         scans: indexable preprocessed scans (e.g. a ``CacheDataset`` over :func:`scan_dicts`).
         pairs: (moving, fixed) indices into ``scans`` (:func:`ordered_pairs`).
         transform: applied to each pair dict (None: none).
+        space: a name for the scans' space, prefixed to the pair ids (``<space>:<moving>_to_<fixed>``) when several
+            spaces are trained together (``train_template.yaml``); "" = none.
     """
 
     def __init__(self, scans: Sequence[Mapping[str, Any]], pairs: Sequence[tuple[int, int]],
-                 transform: Callable[[dict], dict] | None = None) -> None:
+                 transform: Callable[[dict], dict] | None = None, space: str = "") -> None:
         bad = [p for p in pairs if not (0 <= p[0] < len(scans) and 0 <= p[1] < len(scans))]
         if bad:
             raise ValueError(f"pairs must index scans 0..{len(scans) - 1}; got {bad[:3]}")
         self.scans, self.pairs, self.transform = scans, list(pairs), transform
+        self.prefix = f"{space}:" if space else ""
 
     def __len__(self) -> int:
         return len(self.pairs)
 
     def __getitem__(self, k: int) -> dict:
         moving, fixed = (self.scans[i] for i in self.pairs[k])
-        item = {"id": f"{moving['id']}_to_{fixed['id']}", IMAGE_KEYS[0]: moving[SCAN_IMAGE],
+        item = {"id": f"{self.prefix}{moving['id']}_to_{fixed['id']}", IMAGE_KEYS[0]: moving[SCAN_IMAGE],
                 IMAGE_KEYS[1]: fixed[SCAN_IMAGE]}
         if SCAN_LABEL in moving and SCAN_LABEL in fixed:
             item[LABEL_KEYS[0]], item[LABEL_KEYS[1]] = moving[SCAN_LABEL], fixed[SCAN_LABEL]
         return self.transform(item) if self.transform is not None else item
+
+
+def mixed_sampler(sizes: Sequence[int], fractions: Sequence[float], num_samples: int,
+                  generator: torch.Generator | None = None) -> WeightedRandomSampler:
+    """Sampler over datasets concatenated in this order (``torch.utils.data.ConcatDataset`` of datasets of ``sizes``
+    items) that draws each one's items with probability proportional to its ``fractions`` entry, uniformly inside
+    it (with replacement): e.g. half the pairs in LPBA40's space and half in a template's, whatever their sizes."""
+    if len(sizes) != len(fractions) or not sizes:
+        raise ValueError(f"expected one fraction per dataset; got {len(sizes)} sizes and {len(fractions)} fractions")
+    if any(n < 1 for n in sizes) or any(f < 0 for f in fractions) or sum(fractions) <= 0:
+        raise ValueError(f"expected sizes >= 1 and fractions >= 0 with a positive sum; got {list(sizes)} and "
+                         f"{list(fractions)}")
+    if num_samples < 1:
+        raise ValueError(f"num_samples must be >= 1; got {num_samples}")
+    weights = torch.cat([torch.full((int(n),), float(f) / int(n), dtype=torch.float64)
+                         for n, f in zip(sizes, fractions)])
+    return WeightedRandomSampler(weights, num_samples, replacement=True, generator=generator)

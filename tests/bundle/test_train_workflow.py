@@ -271,3 +271,30 @@ def test_any_pair_training_draws_subject_and_atlas_pairs_and_validates_on_both(t
     assert sorted(scored) == ["T01_to_T02", "T01_to_atlas", "T02_to_T01", "T02_to_atlas"]
     assert (tmp_path / "ckpt" / "model_anypair.pt").is_file()
     assert (tmp_path / "ckpt" / "model_anypair.network.json").is_file()
+
+
+def test_template_training_draws_pairs_in_both_spaces_and_never_a_validation_subject(tmp_path):
+    """train_template.yaml: half the pairs from the template-space folder (another grid, resized to the same network
+    grid), whose validation subjects are left out even when the folder has them; validation stays on LPBA40's."""
+    from conftest import make_tiny_dataset
+
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=4)
+    template = make_tiny_dataset(tmp_path / "template", num_subjects=4, shape=(24, 28, 20), seed=1)
+    configs = [str(TRAIN), *(str(BUNDLE / "configs" / f"train_{name}.yaml")
+                             for name in ("semisupervised", "pairs", "template"))]
+    wf = _workflow(tmp_path, dataset, configs, max_epochs=1, val_ids=["T01", "T02"], pairs_per_epoch=24,
+                   init_model_file=None, val_interval=1, augment_prob=0.0, self_repeats=1, template_repeats=3,
+                   template_dataset_dir=str(template))
+    seen_ids, scored = [], []
+    wf.trainer.add_event_handler(Events.ITERATION_COMPLETED, lambda e: seen_ids.extend(e.state.batch["id"]))
+    wf.evaluator.add_event_handler(Events.ITERATION_COMPLETED, lambda e: scored.extend(e.state.batch["id"]))
+    wf.run()
+    wf.finalize()
+    in_template = [i for i in seen_ids if i.startswith("template:")]
+    assert len(seen_ids) == 24 and 0 < len(in_template) < 24  # both spaces drawn (P(one space only) = 2 * 0.5**24)
+    assert not [i for i in seen_ids if "T01" in i or "T02" in i]
+    template_pairs = wf.parser.get_parsed_content("template#dataset")
+    assert len(template_pairs) == 2 + 2 * 3 + 3 * 1  # T03<->T04, each to the template x 3, 3 scans x self
+    assert template_pairs[0]["moving"].shape[1:] == (32, 32, 32)  # the template's grid, resized for the network
+    assert sorted(scored) == ["T01_to_T02", "T01_to_atlas", "T02_to_T01", "T02_to_atlas"]
+    assert (tmp_path / "ckpt" / "model_template.pt").is_file()

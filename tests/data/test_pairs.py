@@ -12,6 +12,7 @@ from monai_probreg.data.dataset import index_dataset
 from monai_probreg.data.pairs import (
     ATLAS_ID,
     PairDataset,
+    mixed_sampler,
     ordered_pairs,
     read_pairs_file,
     scan_dicts,
@@ -126,3 +127,31 @@ def test_a_missing_or_unparsable_pairs_file_is_named(tmp_path):
     broken.write_text("{not json")
     with pytest.raises(InputError, match="broken.json"):
         read_pairs_file(broken)
+
+
+def test_mixed_sampler_draws_each_dataset_at_its_fraction_whatever_its_size():
+    sampler = mixed_sampler([10, 1000], [0.5, 0.5], num_samples=4000, generator=torch.Generator().manual_seed(0))
+    drawn = torch.tensor(list(sampler))
+    first = (drawn < 10).float().mean().item()
+    assert abs(first - 0.5) < 0.03  # sizes 10 and 1000: uniform sampling would give 0.01
+    assert drawn.max() < 1010 and len(set((drawn[drawn < 10]).tolist())) == 10
+
+
+def test_mixed_sampler_never_draws_a_dataset_of_fraction_zero():
+    drawn = list(mixed_sampler([5, 5], [1.0, 0.0], num_samples=200, generator=torch.Generator().manual_seed(0)))
+    assert max(drawn) < 5
+
+
+@pytest.mark.parametrize("sizes, fractions, num_samples", [
+    ([5, 5], [1.0], 10), ([], [], 10), ([0, 5], [0.5, 0.5], 10), ([5, 5], [-0.1, 1.1], 10), ([5, 5], [0, 0], 10),
+    ([5, 5], [0.5, 0.5], 0)])
+def test_mixed_sampler_rejects_bad_arguments(sizes, fractions, num_samples):
+    with pytest.raises(ValueError, match="expected|must be"):
+        mixed_sampler(sizes, fractions, num_samples)
+
+
+def test_pair_dataset_prefixes_pair_ids_with_its_space(four):
+    index = index_dataset(four)
+    scans = [{"id": s["id"], "image": torch.zeros(1, 2, 2, 2)} for s in scan_dicts(index, index.ids[:2])]
+    assert PairDataset(scans, [(0, 1)], space="template")[0]["id"] == f"template:{scans[0]['id']}_to_{scans[1]['id']}"
+    assert PairDataset(scans, [(0, 1)])[0]["id"] == f"{scans[0]['id']}_to_{scans[1]['id']}"

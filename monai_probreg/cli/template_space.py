@@ -94,14 +94,17 @@ def to_template_space(dataset_dir: str | os.PathLike, out_dir: str | os.PathLike
     model = load_model(bundle_root, model_file, quality=False)
     fixed = prepare_fixed(template_path)
     options = RegistrationOptions(qc=False, inverse=False, maps=False, affine=affine or AffineSettings())
-    fused_inputs = []
+    fused_inputs, captured = [], []
+
+    def keep(registered: Registered) -> dict:  # register_scan's check: keeps the affine, adds nothing to the summary
+        captured.append(registered)
+        return {}
+
     with tempfile.TemporaryDirectory() as scratch:
         for n, sid in enumerate(chosen, start=1):
             moving, moving_label = read_image(index.images[sid], sid), read_label(index.labels[sid], sid)
-            captured: list[Registered] = []
-            summary = register_scan(model, fixed, moving, Path(scratch) / sid, index.labels[sid], options,
-                                    check=lambda r: captured.append(r) or {})
-            image, label = _affine_only(captured[0], fixed.image, moving, moving_label)
+            summary = register_scan(model, fixed, moving, Path(scratch) / sid, index.labels[sid], options, check=keep)
+            image, label = _affine_only(captured[-1], fixed.image, moving, moving_label)
             write_volume(out / "images" / f"{sid}.nii.gz", fixed.image.with_array(image))
             write_volume(out / "labels" / f"{sid}.nii.gz", fixed.image.with_array(label), label_dtype(label))
             fused_inputs.append(read_label(Path(scratch) / sid / "warped_label.nii.gz", sid).array)

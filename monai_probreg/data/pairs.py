@@ -12,6 +12,8 @@ VoxelMorph's scan-to-scan mode: the model is trained on ordered (moving, fixed) 
   by :func:`~monai_probreg.data.transforms.registration_transforms` with ``image_keys=("image",)``) and
   :class:`PairDataset` makes pair ``k`` from two cached scans on the fly, then applies the random transforms: all
   ordered pairs of 24 subjects would otherwise cache 552 pairs (2 volumes each) instead of 25 scans.
+- :func:`mixed_sampler`: draws pairs from several such datasets concatenated (e.g. LPBA40's grid and the template's,
+  ``train_template.yaml``) at fixed fractions, whatever their sizes.
 """
 
 from __future__ import annotations

@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import tempfile
 import time
@@ -114,6 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--ants", action="store_true", help="also ANTs SyN on the same subjects (antspyx, '.[bench]')")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)  # ANTs' too; ITK reads it at its first use
     fixed = prepare_fixed(mni152_template_path())
     rows = {}
     for model_file in args.model_files:

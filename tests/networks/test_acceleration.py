@@ -121,15 +121,19 @@ def test_bf16_keeps_dice_and_folding_on_a_synthetic_pair_with_the_shipped_weight
         net.load_state_dict(torch.load(SHIPPED_WEIGHTS, weights_only=True))
         with torch.inference_mode():
             disp = net.eval()(moving, fixed).displacement
-        results[precision] = (disp, label_dice(warp_labels(moving_label, disp), fixed_label),
+        warped = warp_labels(moving_label, disp)
+        results[precision] = (disp, warped, label_dice(warped, fixed_label),
                               jacobian_stats(jacobian_determinant(disp)).num_folding)
-    (d32, dice32, fold32), (d16, dice16, fold16) = results["fp32"], results["bf16"]
+    (d32, w32, dice32, fold32), (d16, w16, dice16, fold16) = results["fp32"], results["bf16"]
     before = label_dice(moving_label, fixed_label)
     assert all(dice32[k] > before[k] + 0.05 for k in before), "the registration must do something to compare"
-    # measured: max |diff| 0.015 voxels (fields up to 3.6 voxels), Dice within 1e-4 per label, 0 folds both.
-    # Bounds: 3x the displacement gap; a Dice step of 0.002 is a few boundary voxels of these structures
+    # measured, 0.13.0 / 0.14.0 weights: max |diff| 0.020 / 0.019 voxels (fields up to 3.6 voxels); warped labels
+    # differing at 16 / 27 of ~28 500 labelled voxels; Dice within 0.0005 / 0.0021 per label (the smallest structure
+    # has 2608 voxels: 0.002 is 5 of them); 0 folds both. Bounds: 3x the displacement gap; 0.5% of the labelled
+    # voxels (a nearest-neighbour label flips wherever a sample point moves across a rounding boundary); Dice 0.005
     assert (d16 - d32).abs().max() < 0.05
-    assert all(abs(dice16[k] - dice32[k]) < 0.002 for k in dice32), (dice16, dice32)
+    assert int((w16 != w32).sum()) <= 0.005 * int((w32 > 0).sum())
+    assert all(abs(dice16[k] - dice32[k]) < 0.005 for k in dice32), (dice16, dice32)
     assert fold16 == fold32
 
 

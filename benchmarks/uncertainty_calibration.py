@@ -124,15 +124,21 @@ def population_velocities(network, dataset) -> tuple[torch.Tensor, torch.Tensor]
     return mean, stacked - mean
 
 
+def population_velocity(population: tuple[torch.Tensor, torch.Tensor], generator: torch.Generator) -> torch.Tensor:
+    """A draw (1, 3, *V) of the population model, velocity-grid voxels: mean + sum_i w_i deviation_i with
+    w_i ~ N(0, 1/(n - 1)), a subject -> atlas velocity (the truth the registration of the deformed atlas aims at)."""
+    mean, deviations = population
+    weights = torch.randn(len(deviations), generator=generator) / math.sqrt(len(deviations) - 1)
+    return (mean + torch.einsum("n,n...->...", weights, deviations))[None]
+
+
 def population_deformation(fixed: torch.Tensor, population: tuple[torch.Tensor, torch.Tensor],
                            generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """A draw from the population model on ``fixed``'s grid: (forward exp(v), inverse exp(-v)), both (1, 3, *S)
-    voxels, with -v = mean + sum_i w_i deviation_i, w_i ~ N(0, 1/(n - 1)): the moving image, ``fixed`` warped by
-    exp(v), takes the shape of a new subject, and the truth exp(-v) is a subject -> atlas field."""
-    mean, deviations = population
-    weights = torch.randn(len(deviations), generator=generator) / math.sqrt(len(deviations) - 1)
-    subject_to_atlas = mean + torch.einsum("n,n...->...", weights, deviations)
-    full = resize_displacement(-subject_to_atlas[None], fixed.shape[2:])  # velocity grid -> image voxels
+    voxels, with -v = :func:`population_velocity`: the moving image, ``fixed`` warped by exp(v), takes the shape of
+    a new subject, and the truth exp(-v) is a subject -> atlas field."""
+    # velocity grid -> image voxels
+    full = resize_displacement(-population_velocity(population, generator), fixed.shape[2:])
     integrate = ScalingAndSquaring(num_steps=TRUTH_STEPS)
     return integrate(full), integrate(-full)
 
@@ -222,6 +228,13 @@ def displacement_metrics(std: np.ndarray, error: np.ndarray) -> dict[str, float]
             "rms_error_voxels": float(np.sqrt(np.mean(error**2))), "rms_std_voxels": float(np.sqrt(np.mean(std**2)))}
 
 
+def propagated_labels(network, velocities: torch.Tensor, atlas_label: torch.Tensor, size) -> list[torch.Tensor]:
+    """The atlas labels (1, 1, *S) pulled into the moving image's grid by exp(-z) for each velocity z of
+    ``velocities`` (K, 3, *V): K label maps (*S)."""
+    return [warp_labels(atlas_label, inverse[None])[0, 0]
+            for inverse in network.velocity_to_displacement(-velocities, size)]
+
+
 def label_case(network, pair, calibration: Calibration, num_samples, seed) -> dict[str, Any]:
     """Atlas labels into the subject by K sampled inverse warps; label entropy vs wrongly labelled voxels."""
     moving, fixed = pair["moving"], pair["fixed"]
@@ -235,8 +248,7 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed) -> di
         samples = []
         for start in range(0, num_samples, 4):
             z = sample_velocity(posterior.mean, log_var, min(4, num_samples - start), generator=generator)
-            for inverse in network.velocity_to_displacement(-z.flatten(0, 1), size):
-                samples.append(warp_labels(atlas_label, inverse[None])[0, 0])
+            samples += propagated_labels(network, z.flatten(0, 1), atlas_label, size)
         entropy = label_entropy(torch.stack(samples))
     truth = pair["moving_label"][0, 0].to(torch.int16)
     region = (predicted > 0) | (truth > 0)
@@ -245,24 +257,42 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed) -> di
             "entropy": entropy, "predicted": predicted, "truth": truth, "log_var": log_var, "mean": posterior.mean}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def validation_arguments(description: str) -> argparse.ArgumentParser:
+    """The arguments every validation-subject benchmark here shares: dataset, bundle, weights, subjects, samples,
+    threads, seed, output folder."""
+    ap = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET)
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
     ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
     ap.add_argument("--subjects", nargs="+", default=None, help="default: val_ids of configs/train.yaml")
+    ap.add_argument("--samples", type=int, default=16, help="posterior samples K")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    return ap
+
+
+def validation_model(args: argparse.Namespace):
+    """(evaluate.yaml's parser, weights file, network with its weights, subjects) for ``args`` of
+    :func:`validation_arguments`."""
+    bundle_root = args.bundle_root.resolve()
+    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
+    model_file = args.model_file or Path(evaluate.get_parsed_content("model_file"))
+    network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
+    subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    return evaluate, model_file, network, subjects
+
+
+def main(argv=None) -> int:
+    ap = validation_arguments(__doc__)
     ap.add_argument("--deformations", type=int, default=2, help="random deformations per subject")
     ap.add_argument("--probe", choices=["population", "noise"], default="population",
                     help="how the known deformations are drawn (see the module docstring)")
     ap.add_argument("--reference", choices=["atlas", "subject"], default="atlas",
                     help="the image that is deformed and registered back (see the module docstring)")
-    ap.add_argument("--samples", type=int, default=16, help="posterior samples K")
     ap.add_argument("--folds", type=int, default=2, help="cross-fitting folds over the subjects")
     ap.add_argument("--fit-iterations", type=int, default=FIT_ITERATIONS,
                     help="refits at the fitted pair, at most (see FIT_ITERATIONS)")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--write-calibration", action="store_true", help="fit on all subjects, write the sidecar")
     args = ap.parse_args(argv)
     if not args.dataset_dir.is_dir():
@@ -270,11 +300,7 @@ def main(argv=None) -> int:
         return 0
     torch.set_num_threads(args.threads)
     start_time = time.time()
-    bundle_root = args.bundle_root.resolve()
-    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
-    model_file = args.model_file or Path(evaluate.get_parsed_content("model_file"))
-    network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
-    subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    evaluate, model_file, network, subjects = validation_model(args)
     if args.fit_iterations < 1:
         raise SystemExit(f"--fit-iterations must be >= 1; got {args.fit_iterations}")
     if len(subjects) < args.folds or args.folds < 2:

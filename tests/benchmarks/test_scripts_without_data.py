@@ -11,7 +11,8 @@ from bench_helpers import REPO
 
 
 @pytest.mark.parametrize("script", ["accuracy_table", "end_to_end", "register_real_scan", "speed_compare",
-                                    "uncertainty_calibration", "failure_detection", "robustness", "affine_levers"])
+                                    "uncertainty_calibration", "uncertainty_ceiling", "failure_detection", "robustness",
+                                    "affine_levers"])
 def test_missing_dataset_skips_with_exit_code_0(tmp_path, script):
     missing = tmp_path / "no_such_dataset"
     cmd = [sys.executable, str(REPO / "benchmarks" / f"{script}.py"), "--dataset-dir", str(missing),

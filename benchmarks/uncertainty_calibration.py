@@ -87,6 +87,7 @@ FIT_ITERATIONS = 3         # at most this many re-samplings at the fitted pair a
                            # the two scalars trade along a ridge of near-equal coverage, and 8 refits drift on to a
                            # smaller scale and a larger bias fraction: Spearman +0.02, label AUROC -0.004, README)
 FIT_TOLERANCE = 0.02       # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
+SEED_STRIDE = 100         # subject n's deformation r is drawn with seed + SEED_STRIDE * n + r (r < SEED_STRIDE)
 
 
 def plain_tensor(t: torch.Tensor) -> torch.Tensor:
@@ -301,6 +302,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     start_time = time.time()
     evaluate, model_file, network, subjects = validation_model(args)
+    if not 1 <= args.deformations <= SEED_STRIDE:  # more would reuse the next subject's seeds
+        raise SystemExit(f"--deformations must be in [1, {SEED_STRIDE}]; got {args.deformations}")
     if args.fit_iterations < 1:
         raise SystemExit(f"--fit-iterations must be >= 1; got {args.fit_iterations}")
     if len(subjects) < args.folds or args.folds < 2:
@@ -330,7 +333,8 @@ def main(argv=None) -> int:
             probe = translation_probe(network, pair["fixed"])
             print("translation probe: recovered fraction of a 3-voxel shift of the atlas per axis: "
                   + ", ".join(f"{f:.2f}" for f in probe), flush=True)
-        cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + 100 * n + r, population)
+        cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + SEED_STRIDE * n + r,
+                                         population)
                       for r in range(args.deformations)]
         truth_rms = [float(c["truth"].pow(2).sum(0).mean().sqrt()) for c in cases[sid]]
         print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} {args.probe} deformations of the {args.reference}, "

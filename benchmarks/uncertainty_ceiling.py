@@ -39,6 +39,7 @@ from scipy.ndimage import distance_transform_edt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from uncertainty_calibration import (  # noqa: E402
+    SEED_STRIDE,
     TRUTH_STEPS,
     plain_tensor,
     population_velocities,
@@ -60,7 +61,6 @@ from monai_probreg.utils.files import write_text  # noqa: E402
 ORACLE_SCALES = (1 / 64, 1 / 16, 0.25, 1.0, 4.0)  # oracle variance levels, relative to the calibrated posterior's
                                                 # mean variance (label entropy is not scale-free: the best is kept)
 ORACLE_EPS = 1e-4                 # velocity-grid voxels^2 added to the squared error (log of an exact 0)
-SEED_STRIDE = 100                 # the calibration benchmark's seed of subject n's first deformation: seed + 100 n
 
 
 def scale_name(scale: float) -> str:

@@ -146,3 +146,16 @@ def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path
     assert written.std_scale == report["written_calibration"]["std_scale"] > 0
     assert 0 <= written.bias_fraction == report["written_calibration"]["bias_fraction"] <= 1
     assert "Spearman of vectors (ceiling)" in report["markdown"]
+
+
+@pytest.mark.parametrize("deformations", [0, 101])
+def test_deformations_outside_the_seed_stride_are_refused(tmp_path, tiny_dataset, deformations):
+    """Subject n's deformation r is drawn with seed + 100 n + r: 0 deformations score nothing, 101 would reuse the
+    next subject's first seed."""
+    from bench_helpers import REPO
+    from conftest import bundle_with_random_model
+
+    bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
+    with pytest.raises(SystemExit, match=r"--deformations must be in \[1, 100\]"):
+        bench.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
+                    "--deformations", str(deformations), "--out-dir", str(tmp_path / "out")])

@@ -65,7 +65,9 @@ def test_scores_rank_the_wrong_voxels():
     result = bench.scores(predicted, truth, {"perfect": wrong, "inverted": -wrong})
     assert result["perfect"] == 1.0 and result["inverted"] == 0.0
     assert result["wrong_fraction"] == pytest.approx(2 / 7)  # voxel 0 is background in both: outside the region
-    assert 0.0 <= result["boundary_distance"] <= 1.0
+    # boundary distance of the predicted map over the region (voxels 1-7): 0, 0, 1, 0, 0, 1, 2; the wrong voxels
+    # (1 and 4) sit at 0: each beats 3 of the 5 right ones and ties 2 -> (2 * (3 + 2 / 2)) / 10
+    assert result["boundary_distance"] == pytest.approx(0.8)
 
 
 def test_main_writes_the_table(tmp_path, tiny_dataset, single_thread):

@@ -133,13 +133,12 @@ def population_velocity(population: tuple[torch.Tensor, torch.Tensor], generator
     return (mean + torch.einsum("n,n...->...", weights, deviations))[None]
 
 
-def population_deformation(fixed: torch.Tensor, population: tuple[torch.Tensor, torch.Tensor],
-                           generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """A draw from the population model on ``fixed``'s grid: (forward exp(v), inverse exp(-v)), both (1, 3, *S)
-    voxels, with -v = :func:`population_velocity`: the moving image, ``fixed`` warped by exp(v), takes the shape of
-    a new subject, and the truth exp(-v) is a subject -> atlas field."""
-    # velocity grid -> image voxels
-    full = resize_displacement(-population_velocity(population, generator), fixed.shape[2:])
+def population_deformation(fixed: torch.Tensor, subject_to_atlas: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fields of a population draw ``subject_to_atlas`` (1, 3, *V) from :func:`population_velocity` on
+    ``fixed``'s grid: (forward exp(v), inverse exp(-v)), both (1, 3, *S) voxels, with -v = ``subject_to_atlas``: the
+    moving image, ``fixed`` warped by exp(v), takes the shape of a new subject, and the truth exp(-v) is a
+    subject -> atlas field."""
+    full = resize_displacement(-subject_to_atlas, fixed.shape[2:])  # velocity grid -> image voxels
     integrate = ScalingAndSquaring(num_steps=TRUTH_STEPS)
     return integrate(full), integrate(-full)
 
@@ -177,7 +176,7 @@ def displacement_case(network, fixed, rms, num_samples, seed, population=None) -
     ``population`` (from :func:`population_velocities`) draws the field from it; None: smoothed noise of RMS ``rms``."""
     generator = torch.Generator().manual_seed(seed)
     if population is not None:
-        forward, truth = population_deformation(fixed, population, generator)
+        forward, truth = population_deformation(fixed, population_velocity(population, generator))
     else:
         forward, truth = random_deformation(fixed, rms, generator)
     moving = warp_image(fixed, forward)
@@ -301,9 +300,9 @@ def main(argv=None) -> int:
         return 0
     torch.set_num_threads(args.threads)
     start_time = time.time()
-    evaluate, model_file, network, subjects = validation_model(args)
     if not 1 <= args.deformations <= SEED_STRIDE:  # more would reuse the next subject's seeds
         raise SystemExit(f"--deformations must be in [1, {SEED_STRIDE}]; got {args.deformations}")
+    evaluate, model_file, network, subjects = validation_model(args)
     if args.fit_iterations < 1:
         raise SystemExit(f"--fit-iterations must be >= 1; got {args.fit_iterations}")
     if len(subjects) < args.folds or args.folds < 2:

@@ -42,6 +42,7 @@ from uncertainty_calibration import (  # noqa: E402
     SEED_STRIDE,
     TRUTH_STEPS,
     plain_tensor,
+    population_deformation,
     population_velocities,
     population_velocity,
     propagated_labels,
@@ -49,7 +50,6 @@ from uncertainty_calibration import (  # noqa: E402
     validation_model,
 )
 
-from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement  # noqa: E402
 from monai_probreg.blocks.sampling import sample_velocity  # noqa: E402
 from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
 from monai_probreg.data.dataset import index_dataset, labelled_pairs  # noqa: E402
@@ -141,9 +141,8 @@ def subject_rows(network, pair, calibration, population, num_samples: int, seed:
                   {"calibrated": entropy_of(network, z, atlas_label, size)})
 
     true_velocity = population_velocity(population, torch.Generator().manual_seed(seed))
-    integrate = ScalingAndSquaring(num_steps=TRUTH_STEPS)
     with torch.inference_mode():
-        forward = integrate(resize_displacement(-true_velocity, size))  # moving = atlas o exp(-v*)
+        forward, _ = population_deformation(pair["fixed"], true_velocity)  # moving = atlas o exp(-v*)
         moving = warp_image(pair["fixed"], forward)
         truth = warp_labels(atlas_label, forward)[0, 0]
         posterior = network.posterior(moving, pair["fixed"])

@@ -100,8 +100,8 @@ def test_population_deformation_is_the_drawn_subject_to_atlas_field_and_its_inve
     d = torch.zeros((3, *velocity_grid))
     x = torch.linspace(0, math.pi, velocity_grid[0])[:, None, None]
     d[0] = 0.8 * torch.sin(x).expand(velocity_grid)  # a smooth bump along axis 0, velocity-grid voxels
-    forward, truth = bench.population_deformation(brain, (torch.zeros_like(d), torch.stack([d, -d])),
-                                                  torch.Generator().manual_seed(3))
+    draw = bench.population_velocity((torch.zeros_like(d), torch.stack([d, -d])), torch.Generator().manual_seed(3))
+    forward, truth = bench.population_deformation(brain, draw)
     w = torch.randn(2, generator=torch.Generator().manual_seed(3))
     expected = bench.ScalingAndSquaring(num_steps=bench.TRUTH_STEPS)(
         bench.resize_displacement(((w[0] - w[1]) * d)[None], brain.shape[2:]))
@@ -148,14 +148,14 @@ def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path
     assert "Spearman of vectors (ceiling)" in report["markdown"]
 
 
-@pytest.mark.parametrize("deformations", [0, 101])
+@pytest.mark.parametrize("deformations", [0, bench.SEED_STRIDE + 1])
 def test_deformations_outside_the_seed_stride_are_refused(tmp_path, tiny_dataset, deformations):
-    """Subject n's deformation r is drawn with seed + 100 n + r: 0 deformations score nothing, 101 would reuse the
-    next subject's first seed."""
+    """Subject n's deformation r is drawn with seed + SEED_STRIDE n + r: 0 deformations score nothing, SEED_STRIDE + 1
+    would reuse the next subject's first seed."""
     from bench_helpers import REPO
     from conftest import bundle_with_random_model
 
     bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
-    with pytest.raises(SystemExit, match=r"--deformations must be in \[1, 100\]"):
+    with pytest.raises(SystemExit, match=rf"--deformations must be in \[1, {bench.SEED_STRIDE}\]"):
         bench.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
                     "--deformations", str(deformations), "--out-dir", str(tmp_path / "out")])

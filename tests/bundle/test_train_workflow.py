@@ -298,3 +298,47 @@ def test_template_training_draws_pairs_in_both_spaces_and_never_a_validation_sub
     assert template_pairs[0]["moving"].shape[1:] == (32, 32, 32)  # the template's grid, resized for the network
     assert sorted(scored) == ["T01_to_T02", "T01_to_atlas", "T02_to_T01", "T02_to_atlas"]
     assert (tmp_path / "ckpt" / "model_template.pt").is_file()
+
+
+def test_synthetic_heads_are_a_third_space_rendered_anew_with_their_structures_on_the_dice_slots(tmp_path):
+    """train_synth.yaml: pairs drawn in all three spaces; a synthetic pair's images are renderings of its label maps
+    (not the cached images) and its labels reach the loss as slots of label_values, nothing else."""
+    import nibabel as nib
+    import numpy as np
+    from conftest import make_tiny_dataset
+
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=4)
+    template = make_tiny_dataset(tmp_path / "template", num_subjects=4, shape=(24, 28, 20), seed=1)
+    synth = make_tiny_dataset(tmp_path / "synth", num_subjects=3, shape=(28, 24, 20), seed=2)
+    freesurfer = {21: 2, 22: 3, 181: 507}  # white matter, cortex, an extra-cerebral class (TINY_LABELS)
+    for path in (synth / "labels").glob("*.nii.gz"):
+        img = nib.load(path)
+        data = np.asarray(img.dataobj).astype(np.int16)
+        nib.save(nib.Nifti1Image(np.vectorize(lambda v: freesurfer.get(int(v), 0))(data).astype(np.int16),
+                                 img.affine), path)
+    configs = [str(TRAIN), *(str(BUNDLE / "configs" / f"train_{name}.yaml")
+                             for name in ("semisupervised", "pairs", "template", "synth"))]
+    wf = _workflow(tmp_path, dataset, configs, max_epochs=1, val_ids=["T01", "T02"], pairs_per_epoch=30,
+                   init_model_file=None, val_interval=1, augment_prob=0.0, self_repeats=1, template_repeats=3,
+                   template_dataset_dir=str(template), synth_dataset_dir=str(synth),
+                   synth_structures=[2, 3])  # the tiny dataset has 3 slots, LPBA40 56 for the 32 of ASEG_LABELS
+    seen = []
+    wf.trainer.add_event_handler(Events.ITERATION_COMPLETED, lambda e: seen.append(
+        (e.state.batch["id"][0], e.state.batch["moving"].clone(), e.state.batch["moving_label"].clone())))
+    wf.run()
+    wf.finalize()
+    spaces = {i.split(":")[0] if ":" in i else "lpba" for i, _, _ in seen}
+    assert len(seen) == 30 and spaces == {"lpba", "template", "synth"}  # P(a space missed) < 3 * 0.7**30
+    slots = wf.parser.get_parsed_content("label_values")
+    synth_pairs = wf.parser.get_parsed_content("synth#dataset")
+    assert len(synth_pairs) == 3 * 2 + 3 * wf.parser["synth_self_repeats"]  # subject pairs, no atlas, self pairs
+    for pair_id, moving, labels in seen:
+        if not pair_id.startswith("synth:"):
+            continue
+        values = {int(v) for v in labels.unique()}
+        assert values <= {0, *slots[:2]}, f"{pair_id}: white matter and cortex on the first two slots, got {values}"
+        moving_id = pair_id.split(":")[1].split("_to_")[0]
+        cached = next(synth_pairs.scans[k]["image"] for k, s in enumerate(synth_pairs.scans.data) if s["id"] == moving_id)
+        assert moving.shape[2:] == cached.shape[1:] == (32, 32, 32)
+        assert (moving[0] - cached).abs().max() > 0.05, f"{pair_id}: the cached image, not a rendering"
+    assert (tmp_path / "ckpt" / "model_synth.pt").is_file()

@@ -15,6 +15,9 @@ leaves :func:`accelerated_posterior`.
   or AMX, :func:`native_bf16_supported`), where it is fast; elsewhere bf16 would be emulated and slower, and on CUDA it
   has not been measured, so ``"auto"`` keeps float32 there. bf16 keeps 8 bits of mantissa: the velocity moves by
   a fraction of a voxel, which ``tests/networks/test_acceleration.py`` bounds and the README quantifies on LPBA40.
+  The environment variable ``MONAI_PROBREG_UNET_PRECISION`` (:data:`PRECISION_ENV`), ``bf16`` or ``fp32``, decides
+  what ``"auto"`` means on every machine: the test suite runs both ways through it (README), so a result that
+  depends on the arithmetic is caught on any CPU, not only on the one whose default differs.
 
 Measured numbers for each lever: README "Speed", ``benchmarks/speed_compare.py``.
 """
@@ -22,15 +25,17 @@ Measured numbers for each lever: README "Speed", ``benchmarks/speed_compare.py``
 from __future__ import annotations
 
 import functools
+import os
 
 import torch
 from torch import Tensor, nn
 
 from monai_probreg.networks.velocity_unet import VelocityPosterior
 
-__all__ = ["UNET_PRECISIONS", "native_bf16_supported", "unet_autocast_dtype", "accelerated_posterior"]
+__all__ = ["PRECISION_ENV", "UNET_PRECISIONS", "native_bf16_supported", "unet_autocast_dtype", "accelerated_posterior"]
 
 UNET_PRECISIONS = ("auto", "bf16", "fp32")
+PRECISION_ENV = "MONAI_PROBREG_UNET_PRECISION"  # "bf16" or "fp32": what "auto" means (unset: the machine decides)
 
 
 @functools.lru_cache(maxsize=1)
@@ -50,6 +55,11 @@ def unet_autocast_dtype(precision: str, device: torch.device | str) -> torch.dty
         return None
     if precision == "bf16":
         return torch.bfloat16
+    forced = os.environ.get(PRECISION_ENV, "")
+    if forced:
+        if forced not in UNET_PRECISIONS[1:]:
+            raise ValueError(f"{PRECISION_ENV} must be one of {list(UNET_PRECISIONS[1:])} or unset; got {forced!r}")
+        return unet_autocast_dtype(forced, device)
     return torch.bfloat16 if torch.device(device).type == "cpu" and native_bf16_supported() else None
 
 

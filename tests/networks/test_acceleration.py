@@ -88,6 +88,7 @@ def test_levers_never_touch_training():
 
 
 def test_auto_precision_is_bf16_only_on_cpus_with_native_bf16(monkeypatch):
+    monkeypatch.delenv(acceleration.PRECISION_ENV, raising=False)  # the machine decides
     monkeypatch.setattr(acceleration, "native_bf16_supported", lambda: True)
     assert unet_autocast_dtype("auto", "cpu") is torch.bfloat16
     assert unet_autocast_dtype("auto", "cuda") is None  # not measured on GPUs: float32 unless asked for
@@ -96,6 +97,21 @@ def test_auto_precision_is_bf16_only_on_cpus_with_native_bf16(monkeypatch):
     assert unet_autocast_dtype("bf16", "cpu") is torch.bfloat16 and unet_autocast_dtype("fp32", "cpu") is None
     with pytest.raises(ValueError, match=r"one of \['auto', 'bf16', 'fp32'\]; got 'fp16'"):
         ProbRegNet(unet_precision="fp16")
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_the_environment_decides_what_auto_means_on_any_machine(monkeypatch, native):
+    monkeypatch.setattr(acceleration, "native_bf16_supported", lambda: native)
+    monkeypatch.setenv(acceleration.PRECISION_ENV, "bf16")
+    assert unet_autocast_dtype("auto", "cpu") is torch.bfloat16
+    assert unet_autocast_dtype("auto", "cuda") is torch.bfloat16
+    assert unet_autocast_dtype("fp32", "cpu") is None  # an explicit setting still wins
+    monkeypatch.setenv(acceleration.PRECISION_ENV, "fp32")
+    assert unet_autocast_dtype("auto", "cpu") is None and unet_autocast_dtype("bf16", "cpu") is torch.bfloat16
+    monkeypatch.setenv(acceleration.PRECISION_ENV, "auto")
+    with pytest.raises(ValueError, match=r"MONAI_PROBREG_UNET_PRECISION must be one of \['bf16', 'fp32'\] or unset; "
+                                         r"got 'auto'"):
+        unet_autocast_dtype("auto", "cpu")
 
 
 def test_bf16_unet_moves_the_displacement_by_a_fraction_of_a_voxel_random_weights():

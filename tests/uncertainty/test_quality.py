@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -11,6 +12,7 @@ import torch
 
 from monai_probreg.uncertainty.quality import (
     FAILURE_MARGIN,
+    LNCC_DROP_MARGIN,
     QualityModel,
     failed,
     fit_quality_model,
@@ -79,6 +81,21 @@ def test_a_drop_in_local_similarity_warns_whatever_the_models_say():
     assert model.estimate(dropped._replace(lncc_after=0.99)).warning is None  # equal is no drop
 
 
+def test_a_drop_within_the_margin_is_rounding_not_a_warning():
+    """The rule fires only beyond lncc_drop_margin (LNCC_DROP_MARGIN by default): a registration that changes nothing
+    must not warn or not by the UNet's rounding (bf16 or fp32)."""
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    assert model.lncc_drop_margin == LNCC_DROP_MARGIN > 0
+    good = _features(0.85, np.random.default_rng(4))
+    within = good._replace(lncc_before=0.985, lncc_after=0.985 - 0.5 * LNCC_DROP_MARGIN)
+    beyond = good._replace(lncc_before=0.985, lncc_after=0.985 - 2.0 * LNCC_DROP_MARGIN)
+    assert model.estimate(within).warning is None
+    assert "less alike" in model.estimate(beyond).warning
+    strict = dataclasses.replace(model, lncc_drop_margin=0.0)  # no margin: any drop warns (the rule before)
+    assert "less alike" in strict.estimate(within).warning
+
+
 def test_non_finite_features_warn():
     features, dice, failures = _training_set()
     model = fit_quality_model(features, dice, failures)
@@ -118,6 +135,8 @@ def _model(**changes) -> dict:
     ({"scale": [0.0] * N}, "scale must be positive"),
     ({"low": [1.0] * N, "high": [0.0] * N}, "low must be <= high"),
     ({"threshold": 1.0}, "threshold"),
+    ({"lncc_drop_margin": -0.001}, "lncc_drop_margin"),
+    ({"lncc_drop_margin": 1.0}, "lncc_drop_margin"),
     ({"dice_range": [0.8, 0.2]}, "dice_range"),
 ])
 def test_bad_model_values_are_refused(changes, match):

@@ -1,7 +1,7 @@
 """How well the shipped model recovers a known transform: ``monai-probreg demo`` over several seeds, side by side.
 
 For each weights file (``--model-files``, default the bundle's shipped default) and each seed, the demo's synthetic
-subject (:mod:`monai_probreg.spatial.synthetic`: the MNI152 template nilearn ships, turned, shifted and deformed by a
+subject (:mod:`monai_probreg.data.synthetic`: the MNI152 template nilearn ships, turned, shifted and deformed by a
 known transform, with a bias field and noise) is registered back through the code path of ``monai-probreg register``
 (:func:`monai_probreg.cli.demo.run_demo`) and scored inside the brain (:mod:`monai_probreg.metrics.recovery`): the
 displacement error in mm before, after the affine stage alone and after the whole registration (median, 95th
@@ -44,9 +44,9 @@ from monai_probreg.cli.demo import DEMO_SAMPLES, run_demo
 from monai_probreg.cli.model import load_model
 from monai_probreg.cli.output_dir import write_volume
 from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed
+from monai_probreg.data.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.metrics.recovery import displacement_recovery
-from monai_probreg.spatial.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 

@@ -22,7 +22,7 @@ from collections.abc import Callable
 import torch
 from monai.transforms import Rotate, ScaleIntensityRangePercentiles
 
-from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
+from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 
 Pair = tuple[torch.Tensor, torch.Tensor]
 _rescale = ScaleIntensityRangePercentiles(LOWER_PERCENTILE, UPPER_PERCENTILE, 0.0, 1.0, clip=True)

@@ -51,9 +51,9 @@ from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser, ants_reg
 from failure_detection import load_scans
 
 from monai_probreg.data.pairs import ATLAS_ID
-from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.scores import score_pair
+from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.utils.files import write_text
 from monai_probreg.weights.loading import load_weights
 

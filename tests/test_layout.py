@@ -4,6 +4,7 @@ module imports another module's private name."""
 from __future__ import annotations
 
 import ast
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -12,8 +13,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "monai_probreg"
 TIERS = {  # a folder may import its own tier and the tiers below it, never above
     "utils": 0,
     "blocks": 1, "networks": 1, "losses": 1, "metrics": 1,
-    "uncertainty": 2, "data": 2, "spatial": 2, "weights": 2,
-    "engines": 3, "cli": 3,
+    "uncertainty": 2, "spatial": 2, "weights": 2,
+    "data": 3,  # datasets, transforms, augmentation, synthetic subjects: built on spatial's geometry, never under it
+    "engines": 4, "cli": 4,
 }
 
 
@@ -60,6 +62,45 @@ def test_imports_run_one_way_and_take_no_private_names(module):
         assert not private, f"{module} imports private names {private} from {target}"
 
 
+def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One cycle of ``graph`` as its nodes in order, the first repeated at the end; None if it has none."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(node: str, stack: list[str]) -> list[str] | None:
+        state[node] = 1
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state and (cycle := visit(nxt, stack + [nxt])):
+                return cycle
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (cycle := visit(node, [node])):
+            return cycle
+    return None
+
+
+def test_no_import_circle_between_folders():
+    """Folders import one way: the folder graph (an edge for every import of another folder, at any depth of any
+    module, lazy and ``TYPE_CHECKING`` imports included) has no cycle, even between folders of one tier."""
+    graph: dict[str, set[str]] = {}
+    where: dict[tuple[str, str], str] = {}
+    for module, path in MODULES.items():
+        own = _folder(module)
+        if own is None:
+            continue
+        for target, _ in _imports(path):
+            folder = _folder(target)
+            if folder is not None and folder != own:
+                graph.setdefault(own, set()).add(folder)
+                where.setdefault((own, folder), f"{module} imports {target}")
+    cycle = _find_cycle(graph)
+    assert cycle is None, ("import circle between folders: " + " -> ".join(cycle) + " ("
+                           + "; ".join(where[a, b] for a, b in pairwise(cycle)) + ")")
+
+
 def test_no_import_circle():
     graph = {}
     for module, path in MODULES.items():
@@ -70,17 +111,5 @@ def test_no_import_circle():
                     targets.add(candidate)
                     break
         graph[module] = targets - {"monai_probreg"}
-    state: dict[str, int] = {}
-
-    def visit(node: str, stack: list[str]) -> None:
-        state[node] = 1
-        for nxt in graph[node]:
-            if state.get(nxt) == 1:
-                raise AssertionError("import circle: " + " -> ".join(stack[stack.index(nxt):] + [nxt]))
-            if nxt not in state:
-                visit(nxt, stack + [nxt])
-        state[node] = 2
-
-    for module in graph:
-        if module not in state:
-            visit(module, [module])
+    cycle = _find_cycle(graph)
+    assert cycle is None, "import circle: " + " -> ".join(cycle)

@@ -1,7 +1,7 @@
 """``monai-probreg demo``: register a synthetic subject whose answer is known, and say how well it was recovered.
 
 The subject is made from the template (by default the MNI ICBM152 template nilearn ships:
-:mod:`monai_probreg.data.template`) by :func:`~monai_probreg.spatial.synthetic.synthesize_subject`: a random rigid turn
+:mod:`monai_probreg.data.template`) by :func:`~monai_probreg.data.synthetic.synthesize_subject`: a random rigid turn
 and shift, a random smooth diffeomorphism, a bias field and Rician noise, all drawn from ``--seed``. It is then
 registered back onto the template by :func:`~monai_probreg.cli.pipeline.register_scan`, the code path of
 ``monai-probreg register`` with its options, and the result is scored against the known transform inside the
@@ -25,9 +25,9 @@ from pathlib import Path
 from monai_probreg.cli.model import LoadedModel
 from monai_probreg.cli.output_dir import write_field, write_volume
 from monai_probreg.cli.pipeline import FixedSpace, Registered, RegistrationOptions, register_scan
+from monai_probreg.data.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.metrics.recovery import displacement_recovery
 from monai_probreg.spatial.affine import AffineSettings
-from monai_probreg.spatial.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 
 __all__ = ["DEMO_SAMPLES", "demo_report", "run_demo"]
 

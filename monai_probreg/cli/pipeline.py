@@ -7,7 +7,7 @@ Stages, timed under these names in ``summary.json["timings_s"]``:
   torch by default, or ITK);
 - ``resample``: the moving scan onto the fixed grid through the affine (one linear interpolation, the scan's
   minimum outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`), percentile
-  intensity scaling to [0, 1] exactly as in training, then onto the model grid
+  intensity scaling to [0, 1] exactly as in training (:mod:`monai_probreg.spatial.intensity`), then onto the model grid
   (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS, padded to the bundle's divisor);
 - ``model``: the network's posterior mean velocity -> displacement and the warped scan (network, integration, warp);
 - ``refine``: with ``refinement`` enabled, that mean refined for the pair (:mod:`monai_probreg.engines.refinement`);
@@ -40,7 +40,6 @@ import itk
 import numpy as np
 import torch
 from monai.networks.utils import eval_mode
-from monai.transforms import ScaleIntensityRangePercentiles
 
 import monai_probreg
 from monai_probreg.cli.model import LoadedModel
@@ -54,7 +53,6 @@ from monai_probreg.cli.output_dir import (
     write_volume,
 )
 from monai_probreg.cli.qc import QCData, save_qc
-from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.engines.refinement import RefinementSettings, refine_registration
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
@@ -62,6 +60,7 @@ from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.spatial.affine import AffineResult, AffineSettings, align
 from monai_probreg.spatial.affine_torch import FixedSamples, fixed_samples
 from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask, hide_outside
+from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import (
     compose_forward,
@@ -83,18 +82,9 @@ __all__ = [
     "FixedSpace",
     "Registered",
     "RegistrationOptions",
-    "normalise_intensity",
     "prepare_fixed",
     "register_scan",
 ]
-
-
-
-def normalise_intensity(array: np.ndarray) -> np.ndarray:
-    """Percentiles LOWER/UPPER_PERCENTILE -> 0 / 1, clipped (MONAI's ScaleIntensityRangePercentiles, as in training)."""
-    scale = ScaleIntensityRangePercentiles(lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0,
-                                           clip=True)
-    return np.asarray(torch.as_tensor(scale(torch.from_numpy(np.asarray(array, np.float32))[None]))[0])
 
 
 @dataclass

@@ -43,7 +43,7 @@ from monai.transforms import (
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.warp import warp_image, warp_labels
 from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS
-from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
+from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 
 __all__ = ["INPUT_SUFFIX", "RandDiffeomorphicd", "intensity_augmentation", "moving_augmentation"]
 
@@ -201,7 +201,7 @@ def intensity_augmentation(
     probability ``prob`` and drawn independently per image: a smooth multiplicative bias field (MONAI
     ``RandBiasFieldd``, degree 3), a gamma change of contrast (``RandAdjustContrastd``), a Gaussian blur (resolution
     loss, ``RandGaussianSmoothd``) and Gaussian noise (``RandGaussianNoised``); it is then scaled to [0, 1] by the
-    same percentiles as the preprocessing (:data:`~monai_probreg.data.transforms.LOWER_PERCENTILE`), as a scan
+    same percentiles as the preprocessing (:data:`~monai_probreg.spatial.intensity.LOWER_PERCENTILE`), as a scan
     from another scanner would be at inference. The clean images stay under ``moving``/``fixed``:
     :func:`~monai_probreg.engines.training.prepare_registration_batch` feeds the ``_input`` copies to the network
     and :class:`~monai_probreg.engines.training.RegistrationLoss` scores the clean moving image warped by the

@@ -28,7 +28,7 @@ import torch
 from monai.transforms import GaussianSmooth, MapTransform, RandomizableTransform
 
 from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS
-from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
+from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 
 __all__ = ["ASEG_LABELS", "T1_LIKE", "RandLabelContrastd", "SlotLabelsd", "render_labels", "scale_to_unit"]
 

@@ -1,7 +1,8 @@
 """The MONAI transform chain of registration: load (checked), channel first, RAS, intensity, pad, resize.
 
 Transforms load NIfTI with MONAI (nibabel), put channels first,
-reorient to RAS, normalise intensities to [0, 1] by percentiles (robust to raw scanner values), pad to a
+reorient to RAS, normalise intensities to [0, 1] by percentiles (robust to raw scanner values; the
+bounds of :mod:`monai_probreg.spatial.intensity`), pad to a
 multiple of ``divisor`` and, for a reduced-resolution model, resize to ``network_size`` with the same
 align-corners linear resampling the model uses (``monai_probreg.blocks.integration.resize_displacement``).
 Geometry (affine, original shape) stays in the MetaTensor metadata so outputs can be written back.
@@ -36,12 +37,10 @@ from monai_probreg.spatial.checks import (
     corrupt_file_error,
     is_nifti,
 )
+from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.utils.errors import InputError
 
-__all__ = ['LOWER_PERCENTILE', 'UPPER_PERCENTILE', 'LoadCheckedd', 'NearestResizeAlignCornersd', 'registration_transforms']
-
-
-LOWER_PERCENTILE, UPPER_PERCENTILE = 0.5, 99.5  # intensities here map to 0 and 1 (training, bundle and command line)
+__all__ = ['LoadCheckedd', 'NearestResizeAlignCornersd', 'registration_transforms']
 
 
 class LoadCheckedd(MapTransform):

@@ -43,8 +43,8 @@ import torch.nn.functional as F
 from monai.transforms import GaussianSmooth, ScaleIntensityRangePercentiles
 from monai.utils import convert_to_tensor
 
-from monai_probreg.data.transforms import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.spatial.affine_settings import AffineResult, AffineSettings, StageReport
+from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = ["FixedSamples", "fixed_samples", "mutual_information", "register_affine_torch", "rotation_matrix"]

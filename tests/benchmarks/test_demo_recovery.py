@@ -11,7 +11,7 @@ from bench_helpers import load_benchmark
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps
 
 from monai_probreg.cli.pipeline import prepare_fixed
-from monai_probreg.spatial.synthetic import SyntheticSettings
+from monai_probreg.data.synthetic import SyntheticSettings
 
 demo_recovery = load_benchmark("demo_recovery")
 

@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from rel_helpers import rotation
 
-from monai_probreg.cli.pipeline import normalise_intensity
 from monai_probreg.data.transforms import registration_transforms
 from monai_probreg.networks.velocity_unet import LOG_VAR_MAX, LOG_VAR_MIN, bound_log_var
+from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.point_sampling import sample_linear
 from monai_probreg.spatial.volume_io import read_image

@@ -1,4 +1,4 @@
-"""monai_probreg.spatial.synthetic: a subject made from a template by a known transform (the demo's ground truth)."""
+"""monai_probreg.data.synthetic: a subject made from a template by a known transform (the demo's ground truth)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import FIXED_LPS, asymmetric_phantom
 
+from monai_probreg.data.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.spatial.physical import grid_points
 from monai_probreg.spatial.point_sampling import sample_linear
-from monai_probreg.spatial.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.spatial.volume_io import Volume
 
 CLEAN = {"bias_coeff": 0.0, "noise_fraction": 0.0}  # no intensity change: the geometry alone

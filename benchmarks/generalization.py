@@ -1,0 +1,368 @@
+"""Beyond LPBA40: the network alone, the default path and ANTs SyN, side by side in one run, on four kinds of data.
+
+The model was trained on LPBA40's anatomy and intensities; users bring other scanners, sites and datasets. Methods
+(every one through the code path a user runs; ``--model-files`` compares several weights in the same run):
+
+- "network": the weights' posterior mean, no refinement (``--refine 0``);
+- "default": the posterior mean refined per pair (``--refine-iterations`` steps, the bundle's refinement settings,
+  :mod:`monai_probreg.engines.refinement`);
+- "ANTs SyN": ``ants.registration(fixed, moving, type_of_transform="SyN")``, antspyx defaults (``.[bench]``).
+
+Parts (``--parts``):
+
+(a) ``demo``: ``monai-probreg demo``'s subjects (the MNI152 template moved by a known transform, seeds 0-2):
+    median and 95th-percentile displacement error in the brain, the affine stage's median, 95% coverage
+    (``benchmarks/demo_recovery.py``'s cases);
+(b) ``native``: the raw S20 scan with its skull onto the MNI152 template, no ``--fixed`` (the whole command):
+    normalised cross-correlation of the warped scan with the template inside the template's brain, folded voxels,
+    the whole command's wall time (read, align, register, write) against ANTs SyN whole (read, register, resample,
+    write);
+(c) ``synthetic``: heads rendered T1-like (:func:`monai_probreg.cli.synth_space.render_head`) from two whole-head
+    label maps no training run saw (SynthSeg's ``training_seg_11`` and ``_12`` by default), each deformed by a
+    random smooth diffeomorphism per seed, cropped to the head, skull and scalp kept; each registered onto the other
+    with its labels (``register --fixed``): Dice over FreeSurfer's aseg structures
+    (:data:`~monai_probreg.data.label_synthesis.ASEG_LABELS`), folded voxels;
+(d) ``lpba40``: ``benchmarks/accuracy_table.py`` on the validation subjects (-> S01 and the pairs between them).
+
+    python benchmarks/generalization.py --threads 2 --label-maps SynthSeg/data/training_label_maps
+    python benchmarks/generalization.py --parts demo native --model-files bundle/models/model.pt runs/x/model.pt
+
+A part whose data is missing (LPBA40, the native scans, the label maps) is skipped with a line that says so.
+Prints one table and writes ``OUT_DIR/generalization.{json,png}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import accuracy_table
+import numpy as np
+import torch
+from demo_recovery import ants_case, one_case
+
+from monai_probreg.cli.demo import DEMO_SAMPLES
+from monai_probreg.cli.model import load_model
+from monai_probreg.cli.output_dir import label_dtype, write_volume
+from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
+from monai_probreg.cli.synth_space import render_head
+from monai_probreg.data.augmentation import RandDiffeomorphicd
+from monai_probreg.data.label_synthesis import ASEG_LABELS
+from monai_probreg.data.synthetic import SyntheticSettings
+from monai_probreg.data.template import mni152_template_path
+from monai_probreg.spatial.volume_io import Volume, read_image, read_label
+from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import library_versions
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = REPO / "benchmarks" / "results"
+DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
+PARTS = ("demo", "native", "synthetic", "lpba40")
+DEMO_SEEDS = (0, 1, 2)
+NATIVE_SCAN = "S20"
+SYNTH_MAPS = ("training_seg_11", "training_seg_12")  # never in a training run (train_synth.yaml uses 01-10)
+SYNTH_SEEDS = (0, 1)
+SYNTH_DEFORM_RMS_MM = 2.5         # the random deformation of each synthetic head: RMS velocity, mm (1 mm voxels)
+SYNTH_DEFORM_SPACING_MM = 16.0    # its control-point spacing, mm (the demo's)
+SYNTH_CROP_MARGIN = 8             # voxels kept around the head's bounding box (a scanner's field of view)
+ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
+
+
+def dice(warped: np.ndarray, fixed: np.ndarray, labels: Sequence[int]) -> float:
+    """Mean Dice over the ``labels`` present in both maps."""
+    scores = []
+    for v in labels:
+        a, b = warped == v, fixed == v
+        if a.any() and b.any():
+            scores.append(2.0 * np.logical_and(a, b).sum() / (a.sum() + b.sum()))
+    return float(np.mean(scores)) if scores else float("nan")
+
+
+def brain_ncc(warped: np.ndarray, template: np.ndarray) -> float:
+    """Pearson correlation of the two images over the template's brain (its voxels above its minimum)."""
+    brain = template > template.min()
+    a, b = warped[brain].astype(np.float64), template[brain].astype(np.float64)
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+# ---------------------------------------------------------------------------------------------------- ANTs SyN
+def ants_whole(fixed_path: Path, moving_path: Path, moving_label: Path | None, out_dir: Path) -> dict:
+    """ANTs SyN as a user runs it: read both files, register, resample the scan (and labels), write; timed whole."""
+    import ants
+
+    start = time.perf_counter()
+    fixed, moving = ants.image_read(str(fixed_path)), ants.image_read(str(moving_path))
+    result = ants.registration(fixed, moving, type_of_transform="SyN", outprefix=f"{out_dir}/tx_")
+    warped = ants.apply_transforms(fixed, moving, result["fwdtransforms"])
+    ants.image_write(warped, str(out_dir / "warped.nii.gz"))
+    record = {}
+    if moving_label is not None:
+        labels = ants.apply_transforms(fixed, ants.image_read(str(moving_label)), result["fwdtransforms"],
+                                       interpolator="genericLabel")
+        ants.image_write(labels, str(out_dir / "warped_label.nii.gz"))
+    record["seconds"] = round(time.perf_counter() - start, 2)
+    jacobian = ants.create_jacobian_determinant_image(fixed, result["fwdtransforms"][0]).numpy()
+    record["num_folding"] = int((jacobian <= 0).sum())  # the SyN field's; the affine stage folds nothing
+    return record
+
+
+# ---------------------------------------------------------------------------------------------------- parts
+def part_demo(models: dict, options: dict, fixed, ants: bool) -> dict:
+    rows = {}
+    for name, model in models.items():
+        for method, steps in options.items():
+            cases = {}
+            for seed in DEMO_SEEDS:
+                opts = _options(model, steps, seed, samples=True)
+                cases[seed] = one_case(model, fixed, seed, SyntheticSettings(), opts)
+            rows[f"{method} ({name})"] = _demo_row(cases)
+            print(f"[demo] {method} ({name}): {rows[f'{method} ({name})']}", flush=True)
+    if ants:
+        rows["ANTs SyN"] = _demo_row({seed: ants_case(fixed, seed, SyntheticSettings()) for seed in DEMO_SEEDS})
+        print(f"[demo] ANTs SyN: {rows['ANTs SyN']}", flush=True)
+    return rows
+
+
+def _demo_row(cases: dict) -> dict:
+    mean = lambda key, part: float(np.mean([c[key][part] for c in cases.values()]))  # noqa: E731
+    first = next(iter(cases.values()))
+    return {"after_median_mm": mean("after", "median_mm"), "after_p95_mm": mean("after", "p95_mm"),
+            "affine_median_mm": None if first.get("affine_only") is None else mean("affine_only", "median_mm"),
+            "coverage": (None if first.get("coverage") is None
+                         else float(np.mean([c["coverage"] for c in cases.values()]))),
+            "after_below_affine_every_seed": (None if first.get("affine_only") is None else all(
+                c["after"]["median_mm"] < c["affine_only"]["median_mm"] for c in cases.values())),
+            "per_seed_after_median_mm": [c["after"]["median_mm"] for c in cases.values()]}
+
+
+def part_native(models: dict, options: dict, native_dir: Path, ants: bool) -> dict:
+    scan = native_dir / f"{NATIVE_SCAN}.nii.gz"
+    if not scan.is_file():
+        return {"skipped": f"no {scan}"}
+    template_path = mni152_template_path()
+    template = read_image(template_path).array
+    fixed = prepare_fixed(template_path)
+    rows = {}
+    with tempfile.TemporaryDirectory(prefix="generalization_native_") as tmp:
+        for name, model in models.items():
+            for method, steps in options.items():
+                out = Path(tmp) / f"{name}_{method}"
+                start = time.perf_counter()
+                summary = register_scan(model, fixed, scan, out, None, _options(model, steps, 0))
+                seconds = time.perf_counter() - start
+                warped = read_image(out / "warped.nii.gz").array
+                rows[f"{method} ({name})"] = {"ncc": brain_ncc(warped, template), "seconds": round(seconds, 2),
+                                              "num_folding": summary["jacobian"]["num_nonpositive"]}
+                print(f"[native] {method} ({name}): {rows[f'{method} ({name})']}", flush=True)
+        if ants:
+            out = Path(tmp) / "ants"
+            out.mkdir()
+            record = ants_whole(template_path, scan, None, out)
+            rows["ANTs SyN"] = {"ncc": brain_ncc(read_image(out / "warped.nii.gz").array, template), **record}
+            print(f"[native] ANTs SyN: {rows['ANTs SyN']}", flush=True)
+    return rows
+
+
+def synthetic_head(label_map: Path, seed: int, out_dir: Path) -> tuple[Path, Path]:
+    """A label map cropped to its head, deformed by a random diffeomorphism (``seed``), rendered T1-like; written as
+    ``<stem>_<seed>_image.nii.gz`` and ``_label.nii.gz`` in ``out_dir``. Returns their paths."""
+    labels = read_label(label_map)
+    nonzero = np.argwhere(labels.array > 0)
+    lo = np.maximum(nonzero.min(0) - SYNTH_CROP_MARGIN, 0)
+    hi = np.minimum(nonzero.max(0) + SYNTH_CROP_MARGIN + 1, labels.shape)
+    cropped = labels.array[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    index_to_lps = labels.index_to_lps.copy()
+    index_to_lps[:3, 3] = labels.index_to_lps[:3, :3] @ lo + labels.index_to_lps[:3, 3]
+    spacing = float(np.mean(labels.spacing))
+    deform = RandDiffeomorphicd(keys=[], label_keys=["label"], magnitude=SYNTH_DEFORM_RMS_MM / spacing,
+                                control_spacing=SYNTH_DEFORM_SPACING_MM / spacing)
+    deform.set_random_state(seed=seed)
+    warped = deform({"label": torch.from_numpy(cropped.astype(np.int32))[None]})["label"][0].numpy()
+    volume = Volume(warped.astype(np.int32), index_to_lps)
+    stem = f"{label_map.name.split('.')[0]}_{seed}"
+    image_path, label_path = out_dir / f"{stem}_image.nii.gz", out_dir / f"{stem}_label.nii.gz"
+    write_volume(image_path, render_head(volume, seed))
+    write_volume(label_path, volume, label_dtype(volume.array))
+    return image_path, label_path
+
+
+def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: bool) -> dict:
+    paths = [label_maps / f"{m}.nii.gz" for m in SYNTH_MAPS] if label_maps else []
+    if not paths or not all(p.is_file() for p in paths):
+        return {"skipped": f"no {SYNTH_MAPS} in {label_maps} (git clone https://github.com/BBillot/SynthSeg)"}
+    rows: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="generalization_synth_") as tmp:
+        for seed in SYNTH_SEEDS:
+            heads = [synthetic_head(p, seed, Path(tmp)) for p in paths]
+            for (moving, moving_label), (fixed_image, fixed_label) in ((heads[0], heads[1]), (heads[1], heads[0])):
+                pair = f"{moving.name.split('_image')[0]}_to_{fixed_image.name.split('_image')[0]}"
+                target = read_label(fixed_label).array
+                fixed = prepare_fixed(fixed_image, fixed_label)
+                for name, model in models.items():
+                    for method, steps in options.items():
+                        out = Path(tmp) / f"{pair}_{name}_{method}"
+                        summary = register_scan(model, fixed, moving, out, moving_label, _options(model, steps, seed))
+                        score = dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS)
+                        _add(rows, f"{method} ({name})", pair, score, summary["jacobian"]["num_nonpositive"])
+                if ants:
+                    out = Path(tmp) / f"{pair}_ants"
+                    out.mkdir()
+                    record = ants_whole(fixed_image, moving, moving_label, out)
+                    score = dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS)
+                    _add(rows, "ANTs SyN", pair, score, record["num_folding"])
+                print(f"[synthetic] {pair}: " + ", ".join(f"{k} {v['per_pair'][pair]:.3f}" for k, v in rows.items()),
+                      flush=True)
+    for row in rows.values():
+        row["dice"] = float(np.mean(list(row["per_pair"].values())))
+    return rows
+
+
+def _add(rows: dict, key: str, pair: str, score: float, folds: int) -> None:
+    row = rows.setdefault(key, {"per_pair": {}, "num_folding": 0})
+    row["per_pair"][pair] = score
+    row["num_folding"] += int(folds)
+
+
+def part_lpba40(model_files: list[Path | None], steps: int, dataset_dir: Path | None, threads: int,
+                ants: bool) -> dict:
+    rows = {}
+    with tempfile.TemporaryDirectory(prefix="generalization_lpba40_") as tmp:
+        for n, model_file in enumerate(model_files):
+            methods = ["ours", "refined"] + (["ants"] if ants and n == 0 else [])
+            argv = ["--threads", str(threads), "--out-dir", tmp, "--refine-iterations", str(steps),
+                    "--methods", *methods]
+            argv += ["--dataset-dir", str(dataset_dir)] if dataset_dir else []
+            argv += ["--model-file", str(model_file)] if model_file else []
+            accuracy_table.main(argv)
+            stored = Path(tmp) / "accuracy_table.json"
+            if not stored.is_file():
+                return {"skipped": "LPBA40 not found"}
+            result = json.loads(stored.read_text())
+            name = _name(model_file)
+            for key, label in (("ours", f"network ({name})"), ("refined", f"default ({name})"), ("ants", "ANTs SyN")):
+                row = result["methods"].get(key)
+                if row and row.get("aggregate"):
+                    rows[label] = {"to_atlas": row["aggregate"]["atlas"]["dice"]["mean"],
+                                   "pairs": row["aggregate"]["pairs"]["dice"]["mean"],
+                                   "num_folding_per_pair": row["aggregate_all"]["num_folding"]["mean"]}
+            stored.unlink()
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------------- running
+def _options(model, steps: int, seed: int, samples: bool = False) -> RegistrationOptions:
+    """The command's options with ``steps`` refinement steps (the bundle's other refinement settings) and ``seed``;
+    ``samples``: the demo's posterior samples (its coverage), else none and no maps (what is scored needs none)."""
+    base = (RegistrationOptions(samples=DEMO_SAMPLES, seed=seed) if samples
+            else RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed))
+    return dataclasses.replace(base, affine=dataclasses.replace(base.affine, seed=seed),
+                               refinement=dataclasses.replace(model.refinement, num_iterations=steps))
+
+
+def _name(model_file: Path | None) -> str:
+    return "shipped" if model_file is None else Path(model_file).stem
+
+
+def markdown(result: dict) -> str:
+    lines = ["| method | demo: median / p95 mm (affine) | demo 95% coverage | S20 -> MNI152: NCC, folds, s | "
+             "unseen label maps: Dice | LPBA40 -> S01 / pairs |", "|---|---|---|---|---|---|"]
+    parts = result["parts"]
+    names = list(dict.fromkeys(k for p in parts.values() if "skipped" not in p for k in p))
+    for name in names:
+        d, n, s, l4 = (parts.get(p, {}).get(name) for p in PARTS)
+        cell = lambda v, f: "–" if v is None else f.format(v)  # noqa: E731
+        lines.append(
+            f"| {name} | " + ("–" if d is None else f"{d['after_median_mm']:.2f} / {d['after_p95_mm']:.2f} "
+                                                      f"({cell(d['affine_median_mm'], '{:.2f}')})")
+            + f" | {cell(d and d['coverage'], '{:.3f}')} | "
+            + ("–" if n is None else f"{n['ncc']:.3f}, {n['num_folding']}, {n['seconds']:.1f}") + " | "
+            + ("–" if s is None else f"{s['dice']:.3f}") + " | "
+            + ("–" if l4 is None else f"{l4['to_atlas']:.3f} / {l4['pairs']:.3f}") + " |")
+    return "\n".join(lines)
+
+
+def figure(result: dict, path: Path) -> Path:
+    """One panel per part: each method's headline number (lower is better for the demo's error)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("demo", "after_median_mm", "demo: median error, mm (lower is better)"),
+              ("native", "ncc", "S20 -> MNI152: NCC in the brain"),
+              ("synthetic", "dice", "unseen label maps: mean Dice"),
+              ("lpba40", "pairs", "LPBA40: pairs between unseen subjects, Dice")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6))
+    for ax, (part, key, title) in zip(axes, panels):
+        rows = {k: v for k, v in result["parts"].get(part, {}).items() if isinstance(v, dict) and key in v}
+        ax.barh(list(rows), [v[key] for v in rows.values()], color="tab:blue")
+        for y, v in enumerate(rows.values()):
+            ax.text(v[key], y, f" {v[key]:.3f}", va="center", fontsize=8)
+        ax.set_title(title, fontsize=9)
+        ax.tick_params(labelsize=8)
+        if not rows:
+            ax.text(0.5, 0.5, "skipped", ha="center", transform=ax.transAxes)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
+    ap.add_argument("--model-files", nargs="+", type=Path, default=None, help="weights (default: the bundle's)")
+    ap.add_argument("--refine-iterations", type=int, default=accuracy_table.DEFAULT_REFINE_ITERATIONS,
+                    help="refinement steps of the default path (default: %(default)s)")
+    ap.add_argument("--label-maps", type=Path, default=None, help="folder with SynthSeg's training_seg_*.nii.gz")
+    ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE)
+    ap.add_argument("--dataset-dir", type=Path, default=None, help="LPBA40 (default: accuracy_table.py's)")
+    ap.add_argument("--no-ants", dest="ants", action="store_false", help="leave ANTs SyN out")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)  # ANTs' too; read at ITK's first use
+    if args.ants:
+        try:
+            import ants  # noqa: F401
+        except ImportError as err:
+            print(f"ANTs SyN skipped: antspyx not importable ({err}); pip install -e '.[bench]'", flush=True)
+            args.ants = False
+    model_files = args.model_files or [None]
+    models = {_name(f): load_model(model_file=f) for f in model_files}
+    options = {"network": 0, "default": args.refine_iterations}
+    start = time.perf_counter()
+    parts: dict[str, dict] = {}
+    if "demo" in args.parts:
+        parts["demo"] = part_demo(models, options, prepare_fixed(mni152_template_path()), args.ants)
+    if "native" in args.parts:
+        parts["native"] = part_native(models, options, args.native_dir, args.ants)
+    if "synthetic" in args.parts:
+        parts["synthetic"] = part_synthetic(models, options, args.label_maps, args.ants)
+    if "lpba40" in args.parts:
+        parts["lpba40"] = part_lpba40(model_files, args.refine_iterations, args.dataset_dir, args.threads, args.ants)
+    result = {"parts": parts, "threads": args.threads, "refine_iterations": args.refine_iterations,
+              "model_files": {k: str(m.model_file) for k, m in models.items()},
+              "ants": ANTS_CALL if args.ants else None,
+              "synthetic": {"label_maps": list(SYNTH_MAPS), "seeds": list(SYNTH_SEEDS),
+                            "deform_rms_mm": SYNTH_DEFORM_RMS_MM, "deform_spacing_mm": SYNTH_DEFORM_SPACING_MM,
+                            "labels": list(ASEG_LABELS)},
+              "seconds": round(time.perf_counter() - start, 1), "versions": library_versions()}
+    result["markdown"] = markdown(result)
+    path = write_text(args.out_dir / "generalization.json", json.dumps(result, indent=2) + "\n")
+    png = figure(result, args.out_dir / "generalization.png")
+    print(f"\n{result['markdown']}\n\nwrote {path} and {png}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

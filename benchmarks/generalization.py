@@ -40,7 +40,7 @@ import os
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import accuracy_table
@@ -59,7 +59,7 @@ from monai_probreg.data.synthetic import SyntheticSettings
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.spatial.volume_io import Volume, read_image, read_label
 from monai_probreg.utils.files import write_text
-from monai_probreg.utils.provenance import library_versions
+from monai_probreg.utils.provenance import file_sha256, library_versions
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
@@ -114,8 +114,32 @@ def ants_whole(fixed_path: Path, moving_path: Path, moving_label: Path | None, o
     return record
 
 
+class AntsCache:
+    """ANTs SyN's records by case, kept in a JSON file across runs (``--ants-cache``): its inputs do not depend on our
+    weights, so comparing new weights need not rerun 20-60 minutes of SyN. A key names the case, the sha256 of its
+    input files and every setting that makes it; a reused record says ``"cached": true`` and when it was computed."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self.records: dict[str, dict] = json.loads(path.read_text()) if path is not None and path.is_file() else {}
+
+    def get(self, key: str, compute: Callable[[], dict]) -> dict:
+        if key in self.records:
+            return {**self.records[key], "cached": True}
+        record = {**compute(), "computed_at": time.strftime("%Y-%m-%d %H:%M:%S"),
+                  "antspyx": library_versions().get("antspyx")}
+        self.records[key] = record
+        if self.path is not None:
+            write_text(self.path, json.dumps(self.records, indent=1) + "\n")
+        return record
+
+
+def _sha(*paths: Path) -> str:
+    return ",".join(file_sha256(p)[:16] for p in paths)
+
+
 # ---------------------------------------------------------------------------------------------------- parts
-def part_demo(models: dict, options: dict, fixed, ants: bool) -> dict:
+def part_demo(models: dict, options: dict, fixed, ants: AntsCache | None) -> dict:
     rows = {}
     for name, model in models.items():
         for method, steps in options.items():
@@ -125,8 +149,11 @@ def part_demo(models: dict, options: dict, fixed, ants: bool) -> dict:
                 cases[seed] = one_case(model, fixed, seed, SyntheticSettings(), opts)
             rows[f"{method} ({name})"] = _demo_row(cases)
             print(f"[demo] {method} ({name}): {rows[f'{method} ({name})']}", flush=True)
-    if ants:
-        rows["ANTs SyN"] = _demo_row({seed: ants_case(fixed, seed, SyntheticSettings()) for seed in DEMO_SEEDS})
+    if ants is not None:
+        settings = SyntheticSettings()
+        key = f"demo:{_sha(Path(fixed.image.path))}:{json.dumps(settings.as_dict(), sort_keys=True)}:seed"
+        rows["ANTs SyN"] = _demo_row({seed: ants.get(f"{key}{seed}", lambda seed=seed: ants_case(fixed, seed, settings))
+                                      for seed in DEMO_SEEDS})
         print(f"[demo] ANTs SyN: {rows['ANTs SyN']}", flush=True)
     return rows
 
@@ -143,7 +170,7 @@ def _demo_row(cases: dict) -> dict:
             "per_seed_after_median_mm": [c["after"]["median_mm"] for c in cases.values()]}
 
 
-def part_native(models: dict, options: dict, native_dir: Path, ants: bool) -> dict:
+def part_native(models: dict, options: dict, native_dir: Path, ants: AntsCache | None) -> dict:
     scan = native_dir / f"{NATIVE_SCAN}.nii.gz"
     if not scan.is_file():
         return {"skipped": f"no {scan}"}
@@ -162,11 +189,14 @@ def part_native(models: dict, options: dict, native_dir: Path, ants: bool) -> di
                 rows[f"{method} ({name})"] = {"ncc": brain_ncc(warped, template), "seconds": round(seconds, 2),
                                               "num_folding": summary["jacobian"]["num_nonpositive"]}
                 print(f"[native] {method} ({name}): {rows[f'{method} ({name})']}", flush=True)
-        if ants:
-            out = Path(tmp) / "ants"
-            out.mkdir()
-            record = ants_whole(template_path, scan, None, out)
-            rows["ANTs SyN"] = {"ncc": brain_ncc(read_image(out / "warped.nii.gz").array, template), **record}
+        if ants is not None:
+            def compute() -> dict:
+                out = Path(tmp) / "ants"
+                out.mkdir()
+                record = ants_whole(template_path, scan, None, out)
+                return {"ncc": brain_ncc(read_image(out / "warped.nii.gz").array, template), **record}
+
+            rows["ANTs SyN"] = ants.get(f"native:{_sha(template_path, scan)}", compute)
             print(f"[native] ANTs SyN: {rows['ANTs SyN']}", flush=True)
     return rows
 
@@ -194,7 +224,7 @@ def synthetic_head(label_map: Path, seed: int, out_dir: Path) -> tuple[Path, Pat
     return image_path, label_path
 
 
-def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: bool) -> dict:
+def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: AntsCache | None) -> dict:
     paths = [label_maps / f"{m}.nii.gz" for m in SYNTH_MAPS] if label_maps else []
     if not paths or not all(p.is_file() for p in paths):
         return {"skipped": f"no {SYNTH_MAPS} in {label_maps} (git clone https://github.com/BBillot/SynthSeg)"}
@@ -212,12 +242,19 @@ def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: b
                         summary = register_scan(model, fixed, moving, out, moving_label, _options(model, steps, seed))
                         score = dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS)
                         _add(rows, f"{method} ({name})", pair, score, summary["jacobian"]["num_nonpositive"])
-                if ants:
-                    out = Path(tmp) / f"{pair}_ants"
-                    out.mkdir()
-                    record = ants_whole(fixed_image, moving, moving_label, out)
-                    score = dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS)
-                    _add(rows, "ANTs SyN", pair, score, record["num_folding"])
+                if ants is not None:
+                    def compute(pair=pair, moving=moving, moving_label=moving_label, fixed_image=fixed_image,
+                                target=target) -> dict:
+                        out = Path(tmp) / f"{pair}_ants"
+                        out.mkdir()
+                        record = ants_whole(fixed_image, moving, moving_label, out)
+                        return {**record, "dice": dice(read_label(out / "warped_label.nii.gz").array, target,
+                                                       ASEG_LABELS)}
+
+                    key = (f"synthetic:{_sha(*paths)}:{SYNTH_DEFORM_RMS_MM}:{SYNTH_DEFORM_SPACING_MM}:"
+                           f"{SYNTH_CROP_MARGIN}:{pair}")
+                    record = ants.get(key, compute)
+                    _add(rows, "ANTs SyN", pair, record["dice"], record["num_folding"])
                 print(f"[synthetic] {pair}: " + ", ".join(f"{k} {v['per_pair'][pair]:.3f}" for k, v in rows.items()),
                       flush=True)
     for row in rows.values():
@@ -232,28 +269,33 @@ def _add(rows: dict, key: str, pair: str, score: float, folds: int) -> None:
 
 
 def part_lpba40(model_files: list[Path | None], steps: int, dataset_dir: Path | None, threads: int,
-                ants: bool) -> dict:
+                ants: AntsCache | None) -> dict:
+    """``accuracy_table.py``'s validation -> S01 and pairs, per weights: network and default rows; ANTs SyN once."""
+    dataset = (dataset_dir or accuracy_table.DEFAULT_DATASET).resolve()
+    if not dataset.is_dir():
+        return {"skipped": f"LPBA40 not found at {dataset}"}
+    ants_key = f"lpba40:{dataset}:{accuracy_table.DEFAULT_REFINE_ITERATIONS}"
+    run_ants = ants is not None and ants_key not in ants.records
     rows = {}
     with tempfile.TemporaryDirectory(prefix="generalization_lpba40_") as tmp:
         for n, model_file in enumerate(model_files):
-            methods = ["ours", "refined"] + (["ants"] if ants and n == 0 else [])
+            methods = ["ours", "refined"] + (["ants"] if run_ants and n == 0 else [])
             argv = ["--threads", str(threads), "--out-dir", tmp, "--refine-iterations", str(steps),
-                    "--methods", *methods]
-            argv += ["--dataset-dir", str(dataset_dir)] if dataset_dir else []
+                    "--dataset-dir", str(dataset), "--methods", *methods]
             argv += ["--model-file", str(model_file)] if model_file else []
             accuracy_table.main(argv)
-            stored = Path(tmp) / "accuracy_table.json"
-            if not stored.is_file():
-                return {"skipped": "LPBA40 not found"}
-            result = json.loads(stored.read_text())
+            result = json.loads((Path(tmp) / "accuracy_table.json").read_text())
             name = _name(model_file)
-            for key, label in (("ours", f"network ({name})"), ("refined", f"default ({name})"), ("ants", "ANTs SyN")):
-                row = result["methods"].get(key)
+            for method, label in (("ours", f"network ({name})"), ("refined", f"default ({name})"),
+                                  ("ants", "ANTs SyN")):
+                row = result["methods"].get(method)
                 if row and row.get("aggregate"):
-                    rows[label] = {"to_atlas": row["aggregate"]["atlas"]["dice"]["mean"],
-                                   "pairs": row["aggregate"]["pairs"]["dice"]["mean"],
+                    rows[label] = {"to_atlas": row["aggregate"]["atlas"]["mean_dice"]["mean"],
+                                   "pairs": row["aggregate"]["pairs"]["mean_dice"]["mean"],
                                    "num_folding_per_pair": row["aggregate_all"]["num_folding"]["mean"]}
-            stored.unlink()
+    if ants is not None:
+        computed = rows.pop("ANTs SyN", None)
+        rows["ANTs SyN"] = ants.get(ants_key, lambda: computed)
     return rows
 
 
@@ -326,6 +368,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE)
     ap.add_argument("--dataset-dir", type=Path, default=None, help="LPBA40 (default: accuracy_table.py's)")
     ap.add_argument("--no-ants", dest="ants", action="store_false", help="leave ANTs SyN out")
+    ap.add_argument("--ants-cache", type=Path, default=None,
+                    help="JSON file of ANTs SyN's records to reuse and extend (AntsCache; default: none, all run)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
@@ -337,19 +381,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ImportError as err:
             print(f"ANTs SyN skipped: antspyx not importable ({err}); pip install -e '.[bench]'", flush=True)
             args.ants = False
+    ants = AntsCache(args.ants_cache) if args.ants else None
     model_files = args.model_files or [None]
     models = {_name(f): load_model(model_file=f) for f in model_files}
     options = {"network": 0, "default": args.refine_iterations}
     start = time.perf_counter()
     parts: dict[str, dict] = {}
     if "demo" in args.parts:
-        parts["demo"] = part_demo(models, options, prepare_fixed(mni152_template_path()), args.ants)
+        parts["demo"] = part_demo(models, options, prepare_fixed(mni152_template_path()), ants)
     if "native" in args.parts:
-        parts["native"] = part_native(models, options, args.native_dir, args.ants)
+        parts["native"] = part_native(models, options, args.native_dir, ants)
     if "synthetic" in args.parts:
-        parts["synthetic"] = part_synthetic(models, options, args.label_maps, args.ants)
+        parts["synthetic"] = part_synthetic(models, options, args.label_maps, ants)
     if "lpba40" in args.parts:
-        parts["lpba40"] = part_lpba40(model_files, args.refine_iterations, args.dataset_dir, args.threads, args.ants)
+        parts["lpba40"] = part_lpba40(model_files, args.refine_iterations, args.dataset_dir, args.threads, ants)
     result = {"parts": parts, "threads": args.threads, "refine_iterations": args.refine_iterations,
               "model_files": {k: str(m.model_file) for k, m in models.items()},
               "ants": ANTS_CALL if args.ants else None,

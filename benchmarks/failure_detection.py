@@ -110,13 +110,15 @@ def cases_for(ids: list[str], seed: int, training: bool) -> list[dict[str, Any]]
     return [{**c, "seed": seed + i} for i, c in enumerate(cases)]
 
 
-def run_case(network, calibration, scans: dict, case: dict) -> dict:
+def run_case(network, calibration, scans: dict, case: dict, refinement=None) -> dict:
+    """One registration of the bundle path (the mean refined for the pair when ``refinement`` is enabled): its
+    quality features, Dice, Dice of no registration and whether it failed."""
     moving, fixed = scans[case["moving"]], scans[case["fixed"]]
     image, label = moving["image"], moving["label"]
     if case["perturbation"] != NORMAL:
         g = torch.Generator().manual_seed(case["seed"])
         image, label = PERTURBATIONS[case["perturbation"]](image, label, g)
-    output = register_pair(network, image, fixed["image"])
+    output = register_pair(network, image, fixed["image"], refinement)
     shape = output.displacement.shape[2:]
     entropy = posterior_maps(network, output.velocity_mean, output.velocity_log_var, shape,
                              std_scale=calibration.std_scale, bias_fraction=calibration.bias_fraction).velocity_entropy
@@ -323,6 +325,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--refine", type=int, default=None, metavar="N",
+                    help="refinement steps of the bundle-path registrations (default: evaluate.yaml's "
+                         "refine_iterations, the default path; the whole-command cases follow inference.yaml's)")
     ap.add_argument("--no-command-cases", dest="command_cases", action="store_false",
                     help="leave out the whole-command registrations (module docstring)")
     ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE,
@@ -339,9 +344,16 @@ def main(argv=None) -> int:
     if args.records is not None:
         stored = json.loads(args.records.read_text())
         train_records, val_records = stored["train_records"], stored["val_records"]
+        refinement_record = stored.get("refinement")
     else:
         network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
         calibration = calibration_for(model_file)
+        refinement = evaluate.get_parsed_content("refinement")
+        if args.refine is not None:
+            refinement = dataclasses.replace(refinement, num_iterations=args.refine)
+        print(f"registrations: the network's mean{' refined' if refinement.enabled else ''} "
+              f"({refinement.num_iterations} refinement steps)", flush=True)
+        refinement_record = refinement.as_dict()
         val_ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
         index = index_dataset(args.dataset_dir)
         train_ids = [i for i in index.ids if i not in val_ids][: args.train_subjects]
@@ -351,7 +363,7 @@ def main(argv=None) -> int:
             cases = cases_for(ids, seed, training=split == "train")
             records[split] = []
             for n, case in enumerate(cases):
-                r = run_case(network, calibration, scans, case)
+                r = run_case(network, calibration, scans, case, refinement)
                 records[split].append(r)
                 print(f"[{split} {n + 1}/{len(cases)}] {r['moving']} -> {r['fixed']} ({r['perturbation']}): Dice "
                       f"{r['dice_identity']:.3f} -> {r['dice']:.3f}{' FAILED' if r['failed'] else ''}  "
@@ -359,7 +371,8 @@ def main(argv=None) -> int:
         train_records, val_records = records["train"], records["val"]
         args.out_dir.mkdir(parents=True, exist_ok=True)  # the registrations first: a refit needs only these
         write_text(args.out_dir / "failure_detection.json", json.dumps(
-            {"model_file": str(model_file), "train_records": train_records, "val_records": val_records}) + "\n")
+            {"model_file": str(model_file), "refinement": refinement_record, "train_records": train_records,
+             "val_records": val_records}) + "\n")
     if (args.command_cases and args.dataset_dir.is_dir()
             and not any(r["perturbation"] in COMMAND_NAMES for r in train_records)):
         native_ids = {p.name.split(".")[0] for p in args.native_dir.glob("*.nii.gz")} if args.native_dir.is_dir() else set()
@@ -385,7 +398,8 @@ def main(argv=None) -> int:
             print(native_markdown(native))
     args.out_dir.mkdir(parents=True, exist_ok=True)
     write_text(args.out_dir / "failure_detection.json", json.dumps({
-        "model_file": str(model_file), "validation": result, "training_fit": train_result, "markdown": table,
+        "model_file": str(model_file), "refinement": refinement_record, "validation": result,
+        "training_fit": train_result, "markdown": table,
         "native": native,
         "model": {k: v for k, v in model.__dict__.items()}, "seconds": round(time.time() - start, 1),
         "train_records": train_records, "val_records": val_records}, indent=1) + "\n")

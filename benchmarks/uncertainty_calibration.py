@@ -36,6 +36,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -59,12 +60,14 @@ from monai_probreg.data.dataset import (
     index_dataset,  # noqa: E402
     labelled_pairs,
 )
+from monai_probreg.engines.registration import register_pair  # noqa: E402
 from monai_probreg.metrics.calibration import (  # noqa: E402
     auroc,
     interval_coverage,
     spearman,
     uncertainty_calibration_error,
 )
+from monai_probreg.networks.velocity_unet import VelocityPosterior  # noqa: E402
 from monai_probreg.uncertainty.calibration import (  # noqa: E402
     Calibration,
     calibrate_log_var,
@@ -171,17 +174,24 @@ def _subsample(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     return index[keep]
 
 
-def displacement_case(network, fixed, rms, num_samples, seed, population=None) -> dict[str, Any]:
+def posterior_for(network, moving, fixed, refinement=None) -> VelocityPosterior:
+    """The posterior a user's registration samples: the network's, with its mean refined for the pair when
+    ``refinement`` (evaluate.yaml's ``refinement``) is enabled; the variance stays the network's."""
+    output = register_pair(network, moving, fixed, refinement)
+    return VelocityPosterior(output.velocity_mean, output.velocity_log_var)
+
+
+def displacement_case(network, fixed, rms, num_samples, seed, population=None, refinement=None) -> dict[str, Any]:
     """One synthetic case: the posterior (kept, to re-sample when calibrated), the truth on subsampled voxels.
-    ``population`` (from :func:`population_velocities`) draws the field from it; None: smoothed noise of RMS ``rms``."""
+    ``population`` (from :func:`population_velocities`) draws the field from it; None: smoothed noise of RMS ``rms``.
+    ``refinement``: the mean is the refined one (:func:`posterior_for`)."""
     generator = torch.Generator().manual_seed(seed)
     if population is not None:
         forward, truth = population_deformation(fixed, population_velocity(population, generator))
     else:
         forward, truth = random_deformation(fixed, rms, generator)
     moving = warp_image(fixed, forward)
-    with torch.inference_mode():
-        posterior = network.posterior(moving, fixed)
+    posterior = posterior_for(network, moving, fixed, refinement)
     voxels = _subsample(fixed[0, 0] > 0, generator)
     with torch.inference_mode():
         registration = network.velocity_to_displacement(posterior.mean, tuple(fixed.shape[2:]))
@@ -235,12 +245,13 @@ def propagated_labels(network, velocities: torch.Tensor, atlas_label: torch.Tens
             for inverse in network.velocity_to_displacement(-velocities, size)]
 
 
-def label_case(network, pair, calibration: Calibration, num_samples, seed) -> dict[str, Any]:
-    """Atlas labels into the subject by K sampled inverse warps; label entropy vs wrongly labelled voxels."""
+def label_case(network, pair, calibration: Calibration, num_samples, seed, refinement=None) -> dict[str, Any]:
+    """Atlas labels into the subject by K sampled inverse warps; label entropy vs wrongly labelled voxels.
+    ``refinement``: around the refined mean (:func:`posterior_for`)."""
     moving, fixed = pair["moving"], pair["fixed"]
     size = tuple(moving.shape[2:])
+    posterior = posterior_for(network, moving, fixed, refinement)
     with torch.inference_mode():
-        posterior = network.posterior(moving, fixed)
         log_var = calibrate_log_var(posterior.log_var, calibration.std_scale, posterior.mean, calibration.bias_fraction)
         atlas_label = pair["fixed_label"].to(torch.int16)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
@@ -294,6 +305,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fit-iterations", type=int, default=FIT_ITERATIONS,
                     help="refits at the fitted pair, at most (see FIT_ITERATIONS)")
     ap.add_argument("--write-calibration", action="store_true", help="fit on all subjects, write the sidecar")
+    ap.add_argument("--refine", type=int, default=None, metavar="N",
+                    help="refinement steps of the mean that is calibrated (default: evaluate.yaml's refine_iterations,"
+                         " the bundle's default path; 0 = the network's mean)")
     args = ap.parse_args(argv)
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir}")
@@ -303,6 +317,13 @@ def main(argv=None) -> int:
     if not 1 <= args.deformations <= SEED_STRIDE:  # more would reuse the next subject's seeds
         raise SystemExit(f"--deformations must be in [1, {SEED_STRIDE}]; got {args.deformations}")
     evaluate, model_file, network, subjects = validation_model(args)
+    refinement = evaluate.get_parsed_content("refinement")
+    if args.refine is not None:
+        if args.refine < 0:
+            raise SystemExit(f"--refine must be >= 0 steps; got {args.refine}")
+        refinement = dataclasses.replace(refinement, num_iterations=args.refine)
+    print(f"calibrating the {'refined' if refinement.enabled else 'network'}'s mean "
+          f"({refinement.num_iterations} refinement steps)", flush=True)
     if args.fit_iterations < 1:
         raise SystemExit(f"--fit-iterations must be >= 1; got {args.fit_iterations}")
     if len(subjects) < args.folds or args.folds < 2:
@@ -333,7 +354,7 @@ def main(argv=None) -> int:
             print("translation probe: recovered fraction of a 3-voxel shift of the atlas per axis: "
                   + ", ".join(f"{f:.2f}" for f in probe), flush=True)
         cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + SEED_STRIDE * n + r,
-                                         population)
+                                         population, refinement)
                       for r in range(args.deformations)]
         truth_rms = [float(c["truth"].pow(2).sum(0).mean().sqrt()) for c in cases[sid]]
         print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} {args.probe} deformations of the {args.reference}, "
@@ -380,7 +401,7 @@ def main(argv=None) -> int:
         for name, cal in (("raw", Calibration(1.0, 0.0)), ("calibrated", calibration)):
             errors = raw[sid] if name == "raw" else [case_errors(network, c, cal, args.samples) for c in cases[sid]]
             std, error, _ = _pool(errors)
-            labels = label_case(network, items[sid], cal, args.samples, args.seed + 7)
+            labels = label_case(network, items[sid], cal, args.samples, args.seed + 7, refinement)
             rows[name]["std"].append(std)
             rows[name]["error"].append(error)
             rows[name]["auroc"].append(labels["auroc"])
@@ -424,7 +445,7 @@ def main(argv=None) -> int:
             args.out_dir / "uncertainty_figure4.png", sid)
     result = {"model_file": str(model_file), "subjects": list(cases), "folds": folds,
               "fold_calibrations": {f: c._asdict() for f, c in scales.items()},
-              "settings": {"probe": args.probe, "deformations": args.deformations, "reference": args.reference, "samples": args.samples, "truth_steps": TRUTH_STEPS,
+              "settings": {"refinement": refinement.as_dict(), "probe": args.probe, "deformations": args.deformations, "reference": args.reference, "samples": args.samples, "truth_steps": TRUTH_STEPS,
                            "smoothing_voxels": SMOOTHING_VOXELS, "voxels_per_case": VOXELS_PER_CASE,
                            "threads": args.threads, "seed": args.seed, "fit_iterations": args.fit_iterations,
                            "fit_tolerance": FIT_TOLERANCE,

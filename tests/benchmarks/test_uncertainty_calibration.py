@@ -159,3 +159,34 @@ def test_deformations_outside_the_seed_stride_are_refused(tmp_path, tiny_dataset
     with pytest.raises(SystemExit, match=rf"--deformations must be in \[1, {bench.SEED_STRIDE}\]"):
         bench.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
                     "--deformations", str(deformations), "--out-dir", str(tmp_path / "out")])
+
+
+def test_the_posterior_of_the_default_path_has_the_refined_mean_and_the_networks_variance(brain):
+    from monai_probreg import ProbRegNet
+    from monai_probreg.engines.refinement import RefinementSettings
+
+    torch.manual_seed(0)
+    network = ProbRegNet(network_size=(16, 16, 16)).eval()
+    moving = warp_image(brain, torch.full((1, 3, *brain.shape[2:]), 1.5))  # the brain shifted: something to refine
+    with torch.inference_mode():
+        plain = network.posterior(moving, brain)
+    same = bench.posterior_for(network, moving, brain, RefinementSettings(num_iterations=0))
+    assert torch.equal(same.mean, plain.mean) and torch.equal(same.log_var, plain.log_var)
+    refined = bench.posterior_for(network, moving, brain, RefinementSettings(num_iterations=3))
+    assert torch.equal(refined.log_var, plain.log_var)  # the refinement moves the mean only
+    assert (refined.mean - plain.mean).abs().max() > 1e-4
+
+
+def test_main_calibrates_the_refined_mean_when_asked(tmp_path, tiny_dataset, single_thread):
+    from bench_helpers import REPO
+    from conftest import bundle_with_random_model
+
+    bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
+    out = tmp_path / "out"
+    common = ["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
+              "--deformations", "1", "--samples", "2", "--probe", "noise", "--out-dir", str(out)]
+    assert bench.main([*common, "--refine", "2"]) == 0
+    report = json.loads((out / "uncertainty_calibration.json").read_text())
+    assert report["settings"]["refinement"]["num_iterations"] == 2
+    with pytest.raises(SystemExit, match="--refine must be >= 0"):
+        bench.main([*common, "--refine", "-1"])

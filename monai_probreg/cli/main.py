@@ -93,8 +93,8 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
                      help="show the network the whole moving scan (both images skull-stripped, or both not)")
     reg.add_argument("--refine", type=int, default=None, metavar="N",
                      help="refine the posterior mean for this pair with N optimiser steps (test-time refinement: "
-                          "more Dice for a few seconds on a CPU; 10 = the measured setting); default: the config's "
-                          "refine_iterations (0 = off)")
+                          "a few seconds on a CPU); default: the config's refine_iterations (10: on); 0 = the "
+                          "network alone")
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     reg.add_argument("--no-inverse", action="store_true", help="do not compute or write inverse_warp.nii.gz and "
                      "fixed_label_in_moving.nii.gz (the moving grid's field: about a third of the writing time)")

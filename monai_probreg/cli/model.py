@@ -43,7 +43,7 @@ class LoadedModel:
     config_file: Path
     std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
     bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
-    refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement`` (off)
+    refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement``
     weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
     quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
 

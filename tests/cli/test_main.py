@@ -30,6 +30,7 @@ from conftest import (
     save_lps,
     tiny_bundle,
 )
+from monai.bundle import ConfigParser
 
 from monai_probreg.cli.main import main
 from monai_probreg.spatial.physical import (
@@ -144,8 +145,8 @@ def test_inverse_warp_maps_back(scene, registered):
 
 def test_summary_and_qc(scene, registered):
     summary = json.loads((registered.dir / "summary.json").read_text())
-    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "maps", "samples", "compose", "qc",
-                                          "write", "total"]
+    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "refine", "maps", "samples",
+                                          "compose", "qc", "write", "total"]
     assert summary["dice"]["mean"] > 0.85 and set(summary["dice"]["per_label"]) == {str(v) for v in PHANTOM_LABELS}
     assert summary["jacobian"]["num_nonpositive"] == 0
     assert summary["uncertainty"]["samples"] == 2 and summary["uncertainty"]["mean_displacement_std_mm"] >= 0
@@ -294,7 +295,7 @@ def test_bad_refine_steps(scene, tmp_path):
 
 def test_refine_adds_its_stage_and_records_its_settings(scene, tmp_path):
     """--refine N: a ``refine`` stage between ``model`` and ``maps``, its settings in summary.json (the rest from the
-    bundle's inference.yaml), no folding; without it the config's default (off) is recorded."""
+    bundle's inference.yaml), no folding."""
     out = tmp_path / "refined"
     result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--refine", "3", "--no-qc",
                      *scene.common, *FAST_AFFINE)
@@ -346,8 +347,20 @@ def test_brain_mask_of_a_skull_stripped_fixed_image_is_recorded_and_can_be_switc
     assert support < fraction["masked"]["fraction_of_fixed_grid"] < 1.0  # the support, dilated
 
 
-def test_refinement_is_off_by_default(registered):
+def test_refinement_is_on_by_default(registered):
+    """The default path refines the network's mean (inference.yaml's refine_iterations: the network alone does not
+    generalise beyond its training data); the stage is timed and its settings recorded."""
     summary = json.loads((registered.dir / "summary.json").read_text())
+    steps = ConfigParser.load_config_file(str(BUNDLE_DIR / "configs" / "inference.yaml"))["refine_iterations"]
+    assert steps > 0 and summary["model"]["refinement"]["num_iterations"] == steps and "refine" in summary["timings_s"]
+
+
+def test_refine_0_gives_the_network_alone(scene, tmp_path):
+    out = tmp_path / "network"
+    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--refine", "0", "--no-qc",
+                     *scene.common, *FAST_AFFINE)
+    assert result.rc == 0, result.err
+    summary = json.loads((out / "summary.json").read_text())
     assert summary["model"]["refinement"]["num_iterations"] == 0 and "refine" not in summary["timings_s"]
 
 

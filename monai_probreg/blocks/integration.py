@@ -19,12 +19,15 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
+from typing import List
 
+import torch
 import torch.nn.functional as F
 from monai.networks.blocks import DVF2DDF
 from torch import Tensor, nn
 
 from monai_probreg.blocks.warp import CachedWarp
+from monai_probreg.utils.tensors import shape_str
 
 __all__ = ["ScalingAndSquaring", "integrate_velocity", "resize_displacement", "DisplacementResize"]
 
@@ -52,10 +55,13 @@ class ScalingAndSquaring(DVF2DDF):
     def forward(self, dvf: Tensor) -> Tensor:
         spatial_dims = dvf.ndim - 2
         if spatial_dims not in (2, 3) or dvf.shape[1] != spatial_dims:
-            raise ValueError(
-                f"velocity must have shape (B, spatial_dims, *S) with spatial_dims in (2, 3); got {tuple(dvf.shape)}"
-            )
-        return super().forward(dvf)
+            raise ValueError("velocity must have shape (B, spatial_dims, *S) with spatial_dims in (2, 3); got "
+                             + shape_str(dvf.shape))
+        # DVF2DDF.forward, written out (torch.jit.script has no super()): same operations in the same order
+        ddf = dvf / (2**self.num_steps)
+        for _ in range(self.num_steps):
+            ddf = ddf + self.warp_layer(image=ddf, ddf=ddf)
+        return ddf
 
 
 def integrate_velocity(velocity: Tensor, num_steps: int = 7, padding_mode: str = "border") -> Tensor:
@@ -63,7 +69,7 @@ def integrate_velocity(velocity: Tensor, num_steps: int = 7, padding_mode: str =
     return ScalingAndSquaring(num_steps=num_steps, padding_mode=padding_mode)(velocity)
 
 
-def resize_displacement(ddf: Tensor, spatial_size: Sequence[int]) -> Tensor:
+def resize_displacement(ddf: Tensor, spatial_size: List[int]) -> Tensor:
     """Resample a displacement field to another grid over the same extent, rescaling its values.
 
     With ``align_corners=True`` the first and last voxel centres of both grids coincide, so a voxel
@@ -71,19 +77,22 @@ def resize_displacement(ddf: Tensor, spatial_size: Sequence[int]) -> Tensor:
     (n_k source size, m_k target size). Each component is multiplied by that factor; a plain "x2"
     would be off by (n_k - 1) / n_k. Shapes: (B, D, *n) -> (B, D, *m).
     """
+    # written for torch.jit.script as well as eager (ProbRegNet's forward); the messages are the same either way
     spatial_dims = ddf.ndim - 2
-    size = tuple(int(s) for s in spatial_size)
+    size = [int(s) for s in spatial_size]
     if len(size) != spatial_dims or ddf.shape[1] != spatial_dims:
-        raise ValueError(
-            f"expected a (B, {len(size)}, *S) field for a {len(size)}-d target size; got {tuple(ddf.shape)}"
-        )
-    if size == tuple(ddf.shape[2:]):
+        raise ValueError("expected a (B, " + str(len(size)) + ", *S) field for a " + str(len(size))
+                         + "-d target size; got " + shape_str(ddf.shape))
+    source = list(ddf.shape[2:])
+    if size == source:
         return ddf
-    if min(ddf.shape[2:]) < 2 or min(size) < 2:
-        raise ValueError(f"both grids need at least 2 voxels per axis; got {tuple(ddf.shape[2:])} -> {size}")
+    for n in source + size:
+        if n < 2:
+            raise ValueError("both grids need at least 2 voxels per axis; got " + shape_str(source) + " -> "
+                             + shape_str(size))
     mode = "bilinear" if spatial_dims == 2 else "trilinear"
-    scale = [(m - 1) / (n - 1) for m, n in zip(size, ddf.shape[2:])]
-    scale_t = ddf.new_tensor(scale).view(1, spatial_dims, *([1] * spatial_dims))
+    scale = [(size[k] - 1) / (source[k] - 1) for k in range(spatial_dims)]
+    scale_t = torch.tensor(scale, dtype=ddf.dtype, device=ddf.device).view([1, spatial_dims] + [1] * spatial_dims)
     # interpolation is linear: scaling the small field first saves a pass over the large one
     return F.interpolate(ddf * scale_t, size=size, mode=mode, align_corners=True)
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from monai_probreg.utils.tensors import shape_str
+
 __all__ = ["sample_velocity", "VelocitySampler"]
 
 
@@ -20,10 +22,11 @@ def sample_velocity(
     Shapes: mean, log_var (B, D, *S) -> (num_samples, B, D, *S).
     """
     if mean.shape != log_var.shape:
-        raise ValueError(f"mean and log_var must have the same shape; got {tuple(mean.shape)} and {tuple(log_var.shape)}")
+        raise ValueError("mean and log_var must have the same shape; got " + shape_str(mean.shape) + " and "
+                         + shape_str(log_var.shape))
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1; got {num_samples}")
-    eps = torch.randn((num_samples, *mean.shape), dtype=mean.dtype, device=mean.device, generator=generator)
+    eps = torch.randn([num_samples] + list(mean.shape), dtype=mean.dtype, device=mean.device, generator=generator)
     return mean.unsqueeze(0) + torch.exp(0.5 * log_var).unsqueeze(0) * eps
 
 

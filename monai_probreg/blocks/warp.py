@@ -23,12 +23,16 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import List
 
 import torch
 import torch.nn.functional as F
 from monai.networks.blocks import Warp
 from monai.networks.utils import meshgrid_ij
 from torch import Tensor, nn
+
+from monai_probreg.blocks.grid_coords import index_scale, normalise_index
+from monai_probreg.utils.tensors import shape_str
 
 __all__ = [
     "CachedWarp",
@@ -55,29 +59,31 @@ def identity_grid(spatial_shape: tuple[int, ...], dtype: torch.dtype, device: to
 
 def sampling_grid(ddf: Tensor) -> Tensor:
     """``grid_sample``'s grid for the pull-back ``x -> x + ddf(x)``: (B, *S, D), last axis in its reversed (xyz)
-    order, coordinates normalised to [-1, 1] with ``align_corners=True`` (voxel i of n -> 2 i / (n - 1) - 1).
+    order, coordinates normalised to [-1, 1] with ``align_corners=True`` (the rule of
+    :mod:`monai_probreg.blocks.grid_coords`: voxel i of n -> i * 2 / (n - 1) - 1).
 
     One pass over the field: each grid component is a broadcast 1-D axis plus the scaled field component, written
     into place (``out=``) when no gradient is needed, stacked otherwise (differentiable in ``ddf``).
+    Compiles with ``torch.jit.script``.
     """
-    spatial = tuple(ddf.shape[2:])
+    spatial = ddf.shape[2:]
     dims = len(spatial)
     differentiable = torch.is_grad_enabled() and ddf.requires_grad
-    grid = None if differentiable else ddf.new_empty((ddf.shape[0], *spatial, dims))
-    components = []
+    grid = ddf.new_empty([0] if differentiable else [ddf.shape[0]] + list(spatial) + [dims])
+    components: List[Tensor] = []
     for k in range(dims):
-        axis = dims - 1 - k  # grid channel k (x, y, z) samples tensor axis 2 + axis
-        denominator = max(spatial[axis] - 1, 1)  # a singleton axis maps to -1, as in MONAI
-        scale = 2.0 / denominator
+        axis = dims - 1 - k  # grid channel k (x, y, z) samples tensor axis 2 + axis (grid_coords: the flip)
         shape = [1] * (dims + 1)
         shape[1 + axis] = spatial[axis]
-        # i * 2 / (n - 1) - 1 in MONAI's order of operations: the identity grid is bit-identical to MONAI's
-        line = (torch.arange(spatial[axis], dtype=ddf.dtype, device=ddf.device) * 2 / denominator - 1).view(shape)
-        if grid is None:
+        # normalise_index is MONAI's order of operations: the identity grid is bit-identical to MONAI's
+        line = normalise_index(torch.arange(spatial[axis], dtype=ddf.dtype, device=ddf.device), spatial[axis])
+        line = line.view(shape)
+        scale = index_scale(spatial[axis])
+        if differentiable:
             components.append(line + ddf[:, axis] * scale)
         else:
             torch.add(line, ddf[:, axis], alpha=scale, out=grid[..., k])
-    return torch.stack(components, dim=-1) if grid is None else grid
+    return torch.stack(components, dim=-1) if differentiable else grid
 
 
 def _num_splits(image: Tensor, grid: Tensor) -> int:
@@ -150,12 +156,19 @@ class CachedWarp(Warp):
         return self.ref_grid.expand(ddf.shape[0], *self.ref_grid.shape[1:])
 
     def forward(self, image: Tensor, ddf: Tensor) -> Tensor:  # type: ignore[override]
-        if image.ndim not in (4, 5):
-            raise ValueError(f"image must be (B, C, *S) with 2 or 3 spatial dims; got shape {tuple(image.shape)}")
-        expected = (image.shape[0], image.ndim - 2, *image.shape[2:])
-        if tuple(ddf.shape) != expected:
-            raise ValueError(f"ddf must have shape {expected} to warp an image of shape {tuple(image.shape)}; "
-                             f"got {tuple(ddf.shape)}")
+        if image.ndim != 4 and image.ndim != 5:
+            raise ValueError("image must be (B, C, *S) with 2 or 3 spatial dims; got shape " + shape_str(image.shape))
+        expected = [image.shape[0], image.ndim - 2] + list(image.shape[2:])
+        if list(ddf.shape) != expected:
+            raise ValueError("ddf must have shape " + shape_str(expected) + " to warp an image of shape "
+                             + shape_str(image.shape) + "; got " + shape_str(ddf.shape))
+        if torch.jit.is_scripting():  # TorchScript (bundle ckpt_export): the one-pass grid, one grid_sample call
+            return F.grid_sample(image, sampling_grid(ddf), mode=self._interp_mode_native,
+                                 padding_mode=self._padding_mode_native, align_corners=True)
+        return self._eager_forward(image, ddf)
+
+    @torch.jit.unused
+    def _eager_forward(self, image: Tensor, ddf: Tensor) -> Tensor:
         if not self.fast or self.jitter or torch.jit.is_tracing():  # a trace must not record this machine's threads
             return super().forward(image, ddf)
         return split_grid_sample(image, sampling_grid(ddf), self._interp_mode_native, self._padding_mode_native)

@@ -18,7 +18,7 @@ generative model ``x ~ N(y o phi_z, sigma^2 I)`` the warped image is ``y`` = our
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import List, NamedTuple, Optional
 
 import torch
 import torch.nn.functional as F
@@ -26,9 +26,10 @@ from torch import Tensor, nn
 
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.sampling import VelocitySampler, sample_velocity
-from monai_probreg.blocks.warp import warp_image
+from monai_probreg.blocks.warp import CachedWarp, warp_image
 from monai_probreg.networks.acceleration import accelerated_posterior, unet_autocast_dtype
 from monai_probreg.networks.velocity_unet import VelocityPosterior, VelocityUNet
+from monai_probreg.utils.tensors import shape_str
 
 __all__ = ["RegistrationOutput", "PosteriorSamples", "ProbRegNet"]
 
@@ -49,8 +50,8 @@ class RegistrationOutput(NamedTuple):
     velocity: Tensor
     velocity_mean: Tensor
     velocity_log_var: Tensor
-    inverse_displacement: Tensor | None
-    warped_fixed: Tensor | None
+    inverse_displacement: Optional[Tensor]  # typing.Optional: TorchScript cannot read "Tensor | None" here
+    warped_fixed: Optional[Tensor]
 
 
 class PosteriorSamples(NamedTuple):
@@ -103,9 +104,7 @@ class ProbRegNet(nn.Module):
         self.spatial_dims = spatial_dims
         self.bidirectional = bidirectional
         self.padding_mode = padding_mode
-        self.network_size = tuple(int(n) for n in network_size) if network_size is not None else None
-        if self.network_size is not None and len(self.network_size) != spatial_dims:
-            raise ValueError(f"network_size must have {spatial_dims} entries; got {network_size}")
+        self.network_size = network_size
         self.enc_channels = tuple(int(c) for c in enc_channels)
         self.dec_channels = tuple(int(c) for c in dec_channels)
         self.unet = VelocityUNet(
@@ -117,6 +116,25 @@ class ProbRegNet(nn.Module):
         )
         self.sampler = VelocitySampler()
         self.integrate = ScalingAndSquaring(num_steps=num_steps, fast=fast_sampling)
+        # the warp of the moving image under torch.jit.script (eager: warp_image's shared layers, same arithmetic)
+        self.warp_layer = CachedWarp(mode="bilinear", padding_mode=padding_mode, fast=fast_sampling)
+
+    # Python-only settings: torch.jit.script compiles forward without them (it reads _resize_inputs and
+    # _network_grid; never an empty list, whose element type TorchScript could not infer)
+    __jit_unused_properties__ = ["fast_sampling", "network_size"]
+
+    @property
+    def network_size(self) -> tuple[int, ...] | None:
+        """Grid the UNet sees (settable; None: the input grid)."""
+        return tuple(self._network_grid) if self._resize_inputs else None
+
+    @network_size.setter
+    def network_size(self, value: Sequence[int] | None) -> None:
+        grid = [int(n) for n in value] if value is not None else []
+        if value is not None and len(grid) != self.spatial_dims:
+            raise ValueError(f"network_size must have {self.spatial_dims} entries; got {value}")
+        self._resize_inputs = value is not None
+        self._network_grid = grid if value is not None else [0]
 
     @property
     def fast_sampling(self) -> bool:
@@ -127,20 +145,28 @@ class ProbRegNet(nn.Module):
     def fast_sampling(self, value: bool) -> None:
         self.integrate.warp_layer.fast = bool(value)
 
-    def velocity_to_displacement(self, velocity: Tensor, spatial_size: Sequence[int]) -> Tensor:
+    def velocity_to_displacement(self, velocity: Tensor, spatial_size: List[int]) -> Tensor:
         """Integrate a velocity (B, D, *V) on its grid and resize the displacement to ``spatial_size``."""
         return resize_displacement(self.integrate(velocity), spatial_size)
 
     def posterior(self, moving: Tensor, fixed: Tensor) -> VelocityPosterior:
         """q(z | moving, fixed) on the velocity grid, resizing the inputs to ``network_size`` first if set."""
         if moving.shape != fixed.shape:
-            raise ValueError(f"moving and fixed must have the same shape; got {tuple(moving.shape)} and {tuple(fixed.shape)}")
-        if self.network_size is not None and tuple(moving.shape[2:]) != self.network_size:
+            raise ValueError("moving and fixed must have the same shape; got " + shape_str(moving.shape) + " and "
+                             + shape_str(fixed.shape))
+        grid = self._network_grid
+        if self._resize_inputs and list(moving.shape[2:]) != grid:
             mode = "trilinear" if self.spatial_dims == 3 else "bilinear"
-            moving = F.interpolate(moving, size=self.network_size, mode=mode, align_corners=True)
-            fixed = F.interpolate(fixed, size=self.network_size, mode=mode, align_corners=True)
+            moving = F.interpolate(moving, size=grid, mode=mode, align_corners=True)
+            fixed = F.interpolate(fixed, size=grid, mode=mode, align_corners=True)
+        if torch.jit.is_scripting():  # TorchScript (bundle ckpt_export): the plain float32 path
+            return self.unet(moving, fixed)
         if torch.is_grad_enabled() or torch.jit.is_tracing():  # training, export: the plain float32 path
             return self.unet(moving, fixed)
+        return self._accelerated_posterior(moving, fixed)
+
+    @torch.jit.unused
+    def _accelerated_posterior(self, moving: Tensor, fixed: Tensor) -> VelocityPosterior:
         return accelerated_posterior(self.unet, moving, fixed, self.unet_precision, self.channels_last)
 
     def forward(self, moving: Tensor, fixed: Tensor) -> RegistrationOutput:
@@ -148,11 +174,12 @@ class ProbRegNet(nn.Module):
         velocity = self.sampler(posterior.mean, posterior.log_var)
         size = moving.shape[2:]
         displacement = self.velocity_to_displacement(velocity, size)
-        warped = warp_image(moving, displacement, padding_mode=self.padding_mode, fast=self.fast_sampling)
-        inverse = warped_fixed = None
+        warped = self._warp(moving, displacement)
+        inverse: Optional[Tensor] = None
+        warped_fixed: Optional[Tensor] = None
         if self.bidirectional:
             inverse = self.velocity_to_displacement(-velocity, size)
-            warped_fixed = warp_image(fixed, inverse, padding_mode=self.padding_mode, fast=self.fast_sampling)
+            warped_fixed = self._warp(fixed, inverse)
         return RegistrationOutput(
             warped=warped,
             displacement=displacement,
@@ -162,6 +189,11 @@ class ProbRegNet(nn.Module):
             inverse_displacement=inverse,
             warped_fixed=warped_fixed,
         )
+
+    def _warp(self, image: Tensor, ddf: Tensor) -> Tensor:
+        if torch.jit.is_scripting():
+            return self.warp_layer(image, ddf)
+        return warp_image(image, ddf, padding_mode=self.padding_mode, fast=self.fast_sampling)
 
     @torch.no_grad()
     def sample(

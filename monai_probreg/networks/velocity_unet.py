@@ -29,6 +29,8 @@ import torch.nn.functional as F
 from monai.networks.blocks import Convolution
 from torch import Tensor, nn
 
+from monai_probreg.utils.tensors import shape_str
+
 __all__ = ["VelocityPosterior", "VelocityUNet", "LOG_VAR_MIN", "LOG_VAR_MAX", "LOG_VAR_MARGIN", "bound_log_var"]
 
 # Bounds of the log-variance (velocity-grid voxels^2): sigma from 3e-7 to 150 voxels, far beyond both ends of what a
@@ -135,17 +137,18 @@ class VelocityUNet(nn.Module):
             nn.init.constant_(self.log_var_head.bias, log_var_init_bias)
 
     def forward(self, moving: Tensor, fixed: Tensor) -> VelocityPosterior:
+        # written for torch.jit.script as well as eager (bundle ckpt_export): no comprehension with an ``if``, no
+        # ``tuple(shape)``; the messages are the same either way (:func:`_shape_str`)
         if moving.shape != fixed.shape:
-            raise ValueError(f"moving and fixed must have the same shape; got {tuple(moving.shape)} and {tuple(fixed.shape)}")
+            raise ValueError("moving and fixed must have the same shape; got " + shape_str(moving.shape) + " and "
+                             + shape_str(fixed.shape))
         if moving.ndim != self.spatial_dims + 2:
-            raise ValueError(
-                f"expected (B, C, *S) inputs with {self.spatial_dims} spatial dims; got shape {tuple(moving.shape)}"
-            )
-        bad = [s for s in moving.shape[2:] if s % self.divisor]
-        if bad:
-            raise ValueError(
-                f"spatial size must be a multiple of {self.divisor} (2**depth); got {tuple(moving.shape[2:])}"
-            )
+            raise ValueError("expected (B, C, *S) inputs with " + str(self.spatial_dims) + " spatial dims; got shape "
+                             + shape_str(moving.shape))
+        for s in moving.shape[2:]:
+            if s % self.divisor:
+                raise ValueError("spatial size must be a multiple of " + str(self.divisor) + " (2**depth); got "
+                                 + shape_str(moving.shape[2:]))
         x = torch.cat([moving, fixed], dim=1)
         skips = [x]
         for layer in self.encoder:
@@ -154,7 +157,8 @@ class VelocityUNet(nn.Module):
         x = self.bottom(x)
         for i, layer in enumerate(self.up_convs):
             skip = skips[len(self.encoder) - 1 - i]
-            x = F.interpolate(x, scale_factor=2, mode="nearest")
+            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
             x = layer(torch.cat([x, skip], dim=1))
         x = self.extra_convs(x)
         return VelocityPosterior(mean=self.mean_head(x), log_var=bound_log_var(self.log_var_head(x)))
+

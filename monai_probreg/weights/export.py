@@ -41,6 +41,12 @@ Command line (builds the network from a bundle config's ``network_def``, loads a
     python -m monai_probreg.weights.export --model-file bundle/models/model.pt --config bundle/configs/inference.yaml \\
         --out bundle/models/model.ts --input-size 160 192 160
 
+The MONAI model zoo's own export, ``python -m monai.bundle ckpt_export --net_id zoo_network_def``, is the other
+route: ``torch.jit.script`` (not a trace) of :class:`~monai_probreg.networks.pair_input.PairInputNet`, any input
+size, one 2-channel input (moving, fixed) and the displacement alone as output (float32, the plain UNet path, the
+one-pass sampling grid; ``tests/bundle/test_bundle_checks.py``). This module's file is the deployment one: all four
+outputs, and its contract stored in the file.
+
 ONNX is not exported: ``torch.onnx`` needs the ``onnx``/``onnxscript`` packages, which are not dependencies.
 """
 

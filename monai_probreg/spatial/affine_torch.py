@@ -43,6 +43,7 @@ import torch.nn.functional as F
 from monai.transforms import GaussianSmooth, ScaleIntensityRangePercentiles
 from monai.utils import convert_to_tensor
 
+from monai_probreg.blocks.grid_coords import index_to_grid_matrix
 from monai_probreg.spatial.affine_settings import AffineResult, AffineSettings, StageReport
 from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.spatial.volume_io import Volume
@@ -188,19 +189,15 @@ class _Level:
         self.points, self.fixed_bins = points, fixed_bins
         self.moving = moving_level[None, None]
         lps_to_index = torch.from_numpy(np.linalg.inv(moving_grid))
-        sizes = torch.tensor(moving_level.shape, dtype=torch.float64)
-        # LPS -> grid_sample's normalised coordinates (align_corners=True: -1/+1 = first/last voxel centre)
-        to_normalised = torch.diag(torch.cat([2.0 / torch.clamp(sizes - 1, min=1.0), torch.ones(1)]))
-        to_normalised[:3, 3] = -1.0
-        self.lps_to_normalised = to_normalised @ lps_to_index
+        # LPS -> grid_sample's normalised coordinates, in its (x, y, z) order (blocks.grid_coords)
+        self.lps_to_normalised = index_to_grid_matrix([int(n) for n in moving_level.shape]) @ lps_to_index
         self.bins = bins
 
     def loss(self, matrix: torch.Tensor) -> torch.Tensor:
         """Negative MI with the moving image sampled at ``matrix`` (4, 4, fixed -> moving) of the points."""
         full = self.lps_to_normalised @ matrix
         normalised = self.points @ full[:3, :3].T + full[:3, 3]
-        # grid_sample's grid is (x, y, z) = (axis 2, axis 1, axis 0) of the (N, C, D, H, W) input: flip here
-        grid = normalised.flip(-1).to(torch.float32).view(1, -1, 1, 1, 3)
+        grid = normalised.to(torch.float32).view(1, -1, 1, 1, 3)  # already in grid_sample's (x, y, z) order
         sampled = F.grid_sample(self.moving, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
         return -mutual_information(sampled.view(-1), self.fixed_bins, self.bins)
 

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from monai_probreg.blocks.grid_coords import index_to_grid_matrix
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = ["affine_from_itk", "affine_to_itk", "apply_affine", "compose_forward", "compose_inverse",
@@ -127,12 +128,8 @@ def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[
     moving_to_fixed = np.linalg.inv(np.asarray(affine, np.float64)) @ moving_grid
     to_field_index = np.linalg.inv(np.asarray(inverse_mm.index_to_lps, np.float64)) @ moving_to_fixed
     field = np.asarray(inverse_mm.array, dtype=np.float32)
-    sizes = np.asarray(field.shape[:3], dtype=np.float64)
-    # index -> grid_sample's normalised coordinate (align_corners=True: -1 / +1 are the first / last voxel centres);
-    # grid_sample's grid is (x, y, z) = (axis 2, axis 1, axis 0) of the field, hence the rows in reverse order
-    to_normalised = np.diag([*(2.0 / np.maximum(sizes - 1.0, 1.0)), 1.0])
-    to_normalised[:3, 3] = -1.0
-    normalise = (to_normalised @ to_field_index)[[2, 1, 0, 3]]
+    # index -> grid_sample's normalised coordinate, rows in its (x, y, z) order (blocks.grid_coords)
+    normalise = index_to_grid_matrix([int(n) for n in field.shape[:3]]).numpy() @ to_field_index
     shift = moving_to_fixed - moving_grid  # a - q, affine in the index
     source = torch.from_numpy(np.ascontiguousarray(field.transpose(3, 0, 1, 2)))[None]
     shape = tuple(int(n) for n in moving_shape)

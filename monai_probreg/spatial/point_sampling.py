@@ -22,6 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from monai_probreg.blocks.grid_coords import index_to_grid
 from monai_probreg.spatial.physical import apply_affine
 from monai_probreg.spatial.volume_io import Volume
 
@@ -76,13 +77,11 @@ def sample_linear(volume: Volume, points: np.ndarray | None, fill: float = 0.0, 
     data = np.asarray(volume.array, dtype=np.float64)
     channels = data.shape[3:]
     source = torch.from_numpy(np.ascontiguousarray(data.reshape(*data.shape[:3], -1).transpose(3, 0, 1, 2)))[None]
-    # align_corners=True: normalised -1 / +1 are the centres of the first / last voxel; grid order is (x, y, z) =
-    # (axis 2, axis 1, axis 0) of the (N, C, D, H, W) input, hence the flip.
-    scale = 2.0 / torch.clamp(torch.tensor(data.shape[:3], dtype=torch.float64) - 1.0, min=1.0)
+    sizes = [int(n) for n in data.shape[:3]]
     query_shape = _query_shape(points, index)
     out = torch.empty((int(np.prod(query_shape[:-1])), source.shape[1]), dtype=torch.float64)
     for start, index_part in _index_chunks(points, volume, index, chunk):
-        grid = (index_part * scale - 1.0).flip(-1).view(1, -1, 1, 1, 3)
+        grid = index_to_grid(index_part, sizes).view(1, -1, 1, 1, 3)  # blocks.grid_coords: normalised, xyz order
         values = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
         out[start:start + len(index_part)] = values[0, :, :, 0, 0].T
         if outside == "fill":

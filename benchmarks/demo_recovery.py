@@ -19,7 +19,7 @@ Issue "The first five minutes" asks for a median error <= 1 mm after registratio
 >= 3 mm) and a coverage in [0.90, 0.98]. The template ships with nilearn, so this runs on any install:
 
     python benchmarks/demo_recovery.py --threads 2
-    python benchmarks/demo_recovery.py --model-files bundle/models/model_anypair.pt runs/x/model_anypair.pt --refine 0 10
+    python benchmarks/demo_recovery.py --model-files bundle/models/model.pt CANDIDATE.pt --refine 0 10
     python benchmarks/demo_recovery.py --refine 0 10 --seeds 0 1 2 --ants   # + ANTs SyN on the same subjects
 
 Prints a table and writes ``OUT_DIR/demo_recovery.json``.

@@ -139,7 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET, help="atlas/, images/, labels/")
     ap.add_argument("--subject", default="S11", help="subject id (default: S11, a validation subject)")
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
-    ap.add_argument("--model-file", type=Path, default=None, help="weights (default: BUNDLE/models/model.pt)")
+    ap.add_argument("--model-file", type=Path, default=None, help="weights (default: BUNDLE/models/model.pt, shipped)")
     ap.add_argument("--threads", type=int, default=None, help="CPU threads for torch and ITK (default: all)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the random misalignment")
     ap.add_argument("--max-rotation", type=float, default=15.0, help="degrees about each axis (default 15)")

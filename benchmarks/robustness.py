@@ -18,7 +18,7 @@ is the affine-only result), and ANTs SyN with ``--ants`` (antspyx defaults; ~40 
 Reported per perturbation and side: mean Dice, and the number of pairs whose deformable Dice ends below the affine
 alone (the target is 0).
 
-    python benchmarks/robustness.py --threads 2 --model-file bundle/models/model_anypair.pt --model-file CANDIDATE.pt
+    python benchmarks/robustness.py --threads 2 --model-file bundle/models/model.pt --model-file CANDIDATE.pt
     python benchmarks/robustness.py --threads 2 --ants --conditions clean all --name robustness_ants  # ANTs, a subset
     python benchmarks/robustness.py --threads 2 --ants --refine 10 --conditions clean all --name robustness_ants
 

@@ -12,7 +12,7 @@ import nibabel as nib
 import numpy as np
 import pytest
 
-DEFAULT_WEIGHTS = "model_anypair.pt"  # the configs' model_file: the shipped default
+DEFAULT_WEIGHTS = "model.pt"  # the configs' model_file: the shipped default (the model zoo's name)
 TINY_LABELS = (21, 22, 181)  # non-contiguous ids, like LPBA40's
 
 
@@ -71,8 +71,8 @@ def single_thread():
 
 
 def bundle_with_random_model(root: Path, bundle_dir: Path, network_size: Sequence[int] | None = None) -> Path:
-    """Copy ``bundle_dir/configs`` to ``root`` and save a seeded random ProbRegNet state_dict as every shipped weights
-    file: models/model.pt, models/model_semisupervised.pt and models/model_anypair.pt (the configs' default)."""
+    """Copy ``bundle_dir/configs`` to ``root`` and save a seeded random ProbRegNet state_dict as the one shipped weights
+    file, models/model.pt (the configs' default)."""
     import shutil
 
     import torch
@@ -82,9 +82,7 @@ def bundle_with_random_model(root: Path, bundle_dir: Path, network_size: Sequenc
     shutil.copytree(bundle_dir / "configs", root / "configs")
     (root / "models").mkdir()
     torch.manual_seed(0)
-    state = ProbRegNet(network_size=network_size).state_dict()
-    for name in ("model.pt", "model_semisupervised.pt", DEFAULT_WEIGHTS):
-        torch.save(state, root / "models" / name)
+    torch.save(ProbRegNet(network_size=network_size).state_dict(), root / "models" / DEFAULT_WEIGHTS)
     return root
 
 

@@ -13,7 +13,7 @@ loaded with ``weights_only=True``. They must have the same keys and shapes; floa
 float64 and cast back, any other tensor must be equal in all. The network settings recorded next to an input
 (``<name>.network.json``, :mod:`monai_probreg.weights.settings`) must agree and are written next to the output.
 
-    python -m monai_probreg.weights.averaging --out bundle/models/model_semisupervised.pt RUN/state_ep9.pt RUN/...
+    python -m monai_probreg.weights.averaging --out bundle/models/model.pt RUN/state_ep9.pt RUN/...
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ def bundle(tmp_path_factory):
     root = bundle_with_random_model(tmp_path_factory.mktemp("bundle"), REPO / "bundle", network_size=(16, 16, 16))
     # as shipped: the settings sidecar next to the weights, so the trained row passes the settings check with the
     # trained grid and only then scales it with the padded input
-    write_network_settings(root / "models" / "model_anypair.pt", ProbRegNet(network_size=(16, 16, 16)))
+    write_network_settings(root / "models" / "model.pt", ProbRegNet(network_size=(16, 16, 16)))
     return root
 
 

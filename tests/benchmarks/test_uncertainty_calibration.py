@@ -142,7 +142,7 @@ def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path
         assert all(-1 <= m[k] <= 1 for k in ("spearman_std_abs_error", "spearman_ceiling", "spearman_vector",
                                              "spearman_vector_ceiling"))
     assert set(report["fold_calibrations"]) == {"0", "1"}
-    written = load_calibration(bundle / "models" / "model_anypair.pt")
+    written = load_calibration(bundle / "models" / "model.pt")
     assert written.std_scale == report["written_calibration"]["std_scale"] > 0
     assert 0 <= written.bias_fraction == report["written_calibration"]["bias_fraction"] <= 1
     assert "Spearman of vectors (ceiling)" in report["markdown"]

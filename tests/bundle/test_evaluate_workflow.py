@@ -50,7 +50,7 @@ def test_evaluate_scores_every_labelled_subject(tmp_path, tiny_dataset, bundle, 
     assert 0.0 <= mean <= 1.0 and mean == pytest.approx(np.mean([float(r["mean_dice"]) for r in rows]), abs=1e-12)
     assert 0.0 <= summary["no_registration"]["mean_dice"]["mean"] <= 1.0
     assert set(summary["dice_per_label"]) == {str(lab) for lab in TINY_LABELS}
-    assert summary["config"]["model_file"] == str(bundle) + "/models/model_anypair.pt"  # the shipped default
+    assert summary["config"]["model_file"] == str(bundle) + "/models/model.pt"  # the shipped default
     assert summary["config"]["network_size"] == [16, 16, 16]
     assert "3 subjects" in capsys.readouterr().out
 

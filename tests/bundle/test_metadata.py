@@ -58,3 +58,59 @@ def test_prediction_is_a_displacement_with_one_channel_per_axis(metadata):
 
 def test_package_version_matches_the_installed_package(metadata):
     assert metadata["required_packages_version"]["monai-probreg"] == monai_probreg.__version__
+
+
+# --- large_files.yml: the model zoo's list of the shipped weights -----------------------------------------------------
+BUNDLE = ROOT / "bundle"
+
+
+def _large_files() -> list[dict]:
+    from monai.bundle import ConfigParser
+
+    parser = ConfigParser()
+    parser.read_config(str(BUNDLE / "large_files.yml"))  # as the zoo's CI reads it
+    return parser.get()["large_files"]
+
+
+def test_large_files_lists_exactly_the_shipped_weights_and_their_hashes():
+    from monai.apps.utils import check_hash
+
+    entries = _large_files()
+    shipped = sorted(str(p.relative_to(BUNDLE)) for p in (BUNDLE / "models").iterdir() if p.suffix in (".pt", ".ts"))
+    assert sorted(e["path"] for e in entries) == shipped == ["models/model.pt", "models/model.ts"]
+    for entry in entries:
+        assert set(entry) == {"path", "url", "hash_val", "hash_type"} and entry["hash_type"] == "sha256"
+        assert check_hash(BUNDLE / entry["path"], entry["hash_val"], entry["hash_type"]), entry["path"]
+
+
+def test_large_files_pass_the_zoos_download_step_without_a_download(tmp_path):
+    """The zoo's CI hands each entry to download_url: a file in place with its hash is kept (the empty url is never
+    used); a changed one is refused."""
+    from monai.apps.utils import HashCheckError, download_url
+
+    for entry in _large_files():
+        download_url(url=entry["url"], filepath=BUNDLE / entry["path"], hash_val=entry["hash_val"],
+                     hash_type=entry["hash_type"])
+    changed = tmp_path / "model.pt"
+    changed.write_bytes((BUNDLE / "models" / "model.pt").read_bytes() + b"\0")
+    entry = _large_files()[0]
+    with pytest.raises(HashCheckError):
+        download_url(url=entry["url"], filepath=changed, hash_val=entry["hash_val"], hash_type=entry["hash_type"])
+
+
+@pytest.mark.parametrize("config", ["inference.yaml", "evaluate.yaml"])
+def test_the_configs_default_weights_are_the_zoos_models_model_pt(config):
+    from monai.bundle import ConfigParser
+
+    parser = ConfigParser()
+    parser.read_config(str(BUNDLE / "configs" / config))
+    parser["bundle_root"] = str(BUNDLE)
+    assert Path(parser.get_parsed_content("model_file")) == BUNDLE / "models" / "model.pt"
+
+
+def test_the_shipped_torchscript_is_the_export_of_the_shipped_weights():
+    import torch
+
+    weights = torch.load(BUNDLE / "models" / "model.pt", weights_only=True)
+    exported = torch.jit.load(str(BUNDLE / "models" / "model.ts"), map_location="cpu").state_dict()
+    assert all(torch.equal(exported["network." + key], value) for key, value in weights.items())

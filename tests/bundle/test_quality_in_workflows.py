@@ -22,7 +22,7 @@ N = len(QualityFeatures._fields)
 
 @pytest.fixture
 def always_warns(bundle):
-    weights = bundle / "models" / "model_anypair.pt"
+    weights = bundle / "models" / "model.pt"
     save_quality_model(QualityModel(list(QualityFeatures._fields), [-1e9] * N, [1e9] * N, [0.0] * N, [1.0] * N, [0.0] * N, 0.42,
                                     [0.0] * N, 20.0), weights)
     yield weights

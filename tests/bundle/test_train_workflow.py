@@ -128,13 +128,16 @@ def test_resume_continues_from_saved_epoch_with_optimizer_state(tmp_path, tiny_d
 
 def test_semi_supervised_training_uses_the_label_term(tmp_path, tiny_dataset):
     semi = str(TRAIN.parent / "train_semisupervised.yaml")
-    # the variant fine-tunes from the unsupervised weights: give it a model whose mean-head bias is recognisable
+    # the variant fine-tunes from models/model.pt (train.yaml's output, or the shipped default), here in ckpt_dir as
+    # train.yaml leaves it: a model whose mean-head bias is recognisable
     init = ProbRegNet(spatial_dims=3, network_size=TINY["network_size"])
     with torch.no_grad():
         init.unet.mean_head.bias.fill_(0.123)
-    torch.save(init.state_dict(), tmp_path / "unsupervised.pt")
-    wf = _workflow(tmp_path, tiny_dataset, config=[str(TRAIN), semi], max_epochs=1,
-                   init_model_file=str(tmp_path / "unsupervised.pt"))
+    start = tmp_path / "ckpt" / "model.pt"
+    start.parent.mkdir()
+    torch.save(init.state_dict(), start)
+    start_bytes = start.read_bytes()
+    wf = _workflow(tmp_path, tiny_dataset, config=[str(TRAIN), semi], max_epochs=1, init_model_file=str(start))
     assert wf.parser.get_parsed_content("label_values") == [21, 22, 181]  # read from the atlas label map
     wf.run()
     wf.finalize()
@@ -142,7 +145,7 @@ def test_semi_supervised_training_uses_the_label_term(tmp_path, tiny_dataset):
     bias = wf.parser.get_parsed_content("network_def").unet.mean_head.bias
     assert torch.allclose(bias, torch.full_like(bias, 0.123), atol=1e-2)
     assert (tmp_path / "ckpt" / "model_semisupervised.pt").is_file()
-    assert not (tmp_path / "ckpt" / "model.pt").exists()  # the unsupervised weights are never overwritten
+    assert start.read_bytes() == start_bytes  # the weights it starts from (models/model.pt) are never overwritten
     terms = wf.parser.get_parsed_content("loss").last_terms
     assert terms is not None and torch.isfinite(terms.total)
     # a Dice loss of labels that overlap only partly; exactly 0 would mean the term was never computed

@@ -25,7 +25,7 @@ def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("cli_calibration")
     image, _ = asymmetric_phantom()
     bundle = tiny_bundle(root / "bundle", BUNDLE)
-    weights = bundle / "models" / "model_anypair.pt"  # the configs' default model_file
+    weights = bundle / "models" / "model.pt"  # the configs' default model_file
     save_calibration(weights, SCALE, ["synthetic"], 2)
     fixed = save_lps(root / "fixed.nii.gz", image.astype(np.float32), FIXED_LPS)
     moving = save_lps(root / "moving.nii.gz", (image * 400 + 20).astype(np.float32), FIXED_LPS)

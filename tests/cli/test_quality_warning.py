@@ -32,7 +32,7 @@ def scene(tmp_path_factory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("quality")
     case = moved_phantom([6.0, -4.0, 5.0], [2.0, -1.0, 1.5])
     bundle = tiny_bundle(root / "bundle", BUNDLE_DIR)
-    s = SimpleNamespace(root=root, bundle=bundle, weights=bundle / "models" / "model_anypair.pt",
+    s = SimpleNamespace(root=root, bundle=bundle, weights=bundle / "models" / "model.pt",
                         fixed=save_lps(root / "fixed.nii.gz", case.image, FIXED_LPS),
                         moving=save_lps(root / "moving.nii.gz", case.moved, case.grid))
     s.common = ["--fixed", str(s.fixed), "--bundle-root", str(s.bundle), *FAST_AFFINE]

@@ -17,7 +17,7 @@ from monai_probreg.networks import acceleration
 from monai_probreg.networks.acceleration import unet_autocast_dtype
 
 ROOT = Path(__file__).resolve().parents[2]
-SHIPPED_WEIGHTS = ROOT / "bundle" / "models" / "model_anypair.pt"
+SHIPPED_WEIGHTS = ROOT / "bundle" / "models" / "model.pt"
 PLAIN = {"unet_precision": "fp32", "channels_last": False, "fast_sampling": False}
 
 pytestmark = pytest.mark.usefixtures("single_thread")

@@ -178,7 +178,7 @@ def test_the_shipped_default_weights_carry_their_own_quality_model():
     refused at inference time; this catches it before release."""
     from pathlib import Path
 
-    weights = Path(__file__).resolve().parents[2] / "bundle" / "models" / "model_anypair.pt"
+    weights = Path(__file__).resolve().parents[2] / "bundle" / "models" / "model.pt"
     model = load_quality_model(weights)  # raises when the SHA-256 does not match the weights
     assert model is not None and len(model.fitted_on) >= 2
     assert not {"S11", "S14", "S16", "S21", "S28", "S29"} & set(model.fitted_on)  # never a validation subject

@@ -87,7 +87,7 @@ def test_the_writer_waits_for_the_weights_and_then_writes(tmp_path):
 
 
 @pytest.mark.parametrize("config", ["inference.yaml", "evaluate.yaml"])
-@pytest.mark.parametrize("weights", ["model.pt", "model_semisupervised.pt", "model_anypair.pt"])
+@pytest.mark.parametrize("weights", sorted(p.name for p in (ROOT / "bundle" / "models").glob("*.pt")))
 def test_the_shipped_weights_carry_settings_that_fit_the_configs(config, weights):
     parser = ConfigParser()
     parser.read_config(str(ROOT / "bundle" / "configs" / config))

@@ -20,10 +20,10 @@ SUBCOMMANDS = ("register-batch", "register", "demo")  # longest first: "register
 MAX_README_LINES = 250
 CI_MARKER = "<!-- ci:test-command -->"
 
-FENCE = re.compile(r"^(```|~~~).*?^\1[ \t]*$", re.M | re.S)
+FENCE = re.compile(r"^(```|~~~).*?^\1[ \t]*$", re.MULTILINE | re.DOTALL)
 INLINE_CODE = re.compile(r"`[^`\n]*`")
 MD_LINK = re.compile(r"!?\[[^\]\n]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
-IMG_SRC = re.compile(r"<img\b[^>]*\bsrc\s*=\s*[\"']([^\"']+)[\"']", re.I)
+IMG_SRC = re.compile(r"<img\b[^>]*\bsrc\s*=\s*[\"']([^\"']+)[\"']", re.IGNORECASE)
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9]*(?:-[a-z0-9]+)*(?![\w])")
 COMMAND = re.compile(r"\bmonai-probreg\s+(" + "|".join(SUBCOMMANDS) + r")\b")
 
@@ -40,7 +40,7 @@ def links(text: str) -> list[str]:
 
 
 def is_external(target: str) -> bool:
-    return bool(re.match(r"^[a-z][a-z0-9+.-]*:", target, re.I))  # http:, https:, mailto:, ...
+    return bool(re.match(r"^[a-z][a-z0-9+.-]*:", target, re.IGNORECASE))  # http:, https:, mailto:, ...
 
 
 def github_slug(heading: str) -> str:
@@ -54,7 +54,7 @@ def anchors(path: Path) -> set[str]:
     text = FENCE.sub("", path.read_text(encoding="utf-8"))
     seen: dict[str, int] = {}
     out = set()
-    for heading in re.findall(r"^#{1,6}\s+(.+?)\s*#*\s*$", text, re.M):
+    for heading in re.findall(r"^#{1,6}\s+(.+?)\s*#*\s*$", text, re.MULTILINE):
         slug = github_slug(heading)
         n = seen.get(slug, 0)
         seen[slug] = n + 1

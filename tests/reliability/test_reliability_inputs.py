@@ -3,7 +3,7 @@ bundle's (monai_probreg.data.transforms.LoadCheckedd, used by inference.yaml, ev
 
 Each case is one file and what must happen: either a one-line InputError that names the file and contains the
 expected words, or a correct load (voxels equal to what was written, geometry equal to the header's). A raw
-traceback, a hang or a silently different array fails the test. ``CASES`` is the catalogue the README counts.
+traceback, a hang or a silently different array fails the test. ``CASES`` is the catalogue docs/design.md counts.
 """
 
 from __future__ import annotations
@@ -188,7 +188,7 @@ def test_input(case: Case, loader: str, tmp_path: Path, monkeypatch: pytest.Monk
 
 
 def test_the_catalogue_is_what_the_readme_reports():
-    """README "Reliability" quotes these numbers; update both together."""
+    """docs/design.md "Reliability" quotes these numbers; update both together."""
     assert (len(CASES), len(FAULTS)) == (51, 29)
 
 

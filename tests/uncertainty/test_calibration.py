@@ -104,7 +104,7 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
 
     weights = Path(__file__).resolve().parents[2] / "bundle" / "models" / "model.pt"
     record = load_calibration(weights)  # raises when the SHA-256 does not match the weights
-    assert record.std_scale > 1.0  # the raw variational posterior is over-confident (README "Uncertainty")
+    assert record.std_scale > 1.0  # the raw posterior is over-confident (docs/uncertainty.md)
 
 
 # --- the bias term: (bias_fraction |u|)^2 added to every component's variance ---------------------------------------

@@ -40,8 +40,6 @@ import math
 import os
 import platform
 import sys
-import tempfile
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -49,7 +47,17 @@ from typing import Any
 import monai
 import numpy as np
 import torch
-import yaml
+from common import (
+    ANTS_INSTALL_HINT,
+    DEFAULT_DATASET,
+    DEFAULT_OUT,
+    DEFAULT_REFINE_ITERATIONS,
+    REPO,
+    ants_available,
+    ants_register,
+    bundle_parser,
+    parse_overrides,
+)
 from monai.bundle import ConfigParser
 from monai.data import Dataset
 
@@ -61,12 +69,8 @@ from monai_probreg.engines.registration import evaluate_pair, register_pair
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.metrics.scores import PairScores, score_pair
 from monai_probreg.utils.files import write_text
-from monai_probreg.utils.tensors import plain_tensor
 from monai_probreg.weights.loading import load_weights
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"   # ../shared/data/lpba40 from the repository root
-DEFAULT_OUT = REPO / "benchmarks" / "results"
 METHODS = {  # --methods key -> row name, in table order
     "identity": "no registration",
     "ants": "ANTs SyN",
@@ -77,7 +81,6 @@ TASKS = {  # --tasks key -> column name, in table order
     "atlas": "validation -> atlas",
     "pairs": "pairs between validation subjects",
 }
-DEFAULT_REFINE_ITERATIONS = 10  # the "ours + refinement" row: README "Accuracy" (settings chosen on training pairs)
 ANTS_SETTINGS = {
     "call": 'ants.registration(fixed, moving, type_of_transform="SyN")',
     "parameters": "antspyx defaults (affine + SyN stages; default random sampling, so results vary slightly per run)",
@@ -89,71 +92,12 @@ ANTS_SETTINGS = {
 }
 
 
-# ------------------------------------------------------------------------------------------------ configs
-def _parser(bundle_root: Path, names: Sequence[str], overrides: dict[str, Any] | None = None) -> ConfigParser:
-    """A ConfigParser over ``bundle_root/configs/<names>`` (merged in order), bundle_root and overrides set."""
-    parser = ConfigParser()
-    parser.read_config([str(bundle_root / "configs" / n) for n in names])
-    parser["bundle_root"] = str(bundle_root)
-    for key, value in (overrides or {}).items():
-        parser[key] = value
-    return parser
-
-
-def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
-    overrides = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise SystemExit(f"--override expects KEY=VALUE (VALUE in YAML, e.g. network_size=[80,96,80]); "
-                             f"got {item!r}")
-        overrides[key] = yaml.safe_load(value)
-    return overrides
-
-
 # ------------------------------------------------------------------------------------------------ methods
-def ants_register(moving: torch.Tensor, fixed: torch.Tensor, moving_label: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """ANTs SyN of ``moving`` onto ``fixed`` (both (1, 1, *S) on one grid) with antspyx defaults.
-
-    Returns (moving labels warped nearest neighbour by ANTs (1, 1, *S) int16, the composed forward displacement
-    (1, 3, *S) in our convention, registration wall time in s). The images get spacing 1, origin 0 and identity
-    direction, so ITK's physical x, y, z are array axes 0, 1, 2 in voxels, and ITK's forward transform maps a fixed
-    point x to the moving point x + u(x): exactly our pull-back ``warped[x] = moving[x + u(x)]``.
-    """
-    import ants
-
-    def image(t: torch.Tensor) -> ants.ANTsImage:
-        array = np.ascontiguousarray(plain_tensor(t)[0, 0].detach().cpu().numpy(), dtype=np.float32)
-        return ants.from_numpy(array, origin=(0.0, 0.0, 0.0), spacing=(1.0, 1.0, 1.0), direction=np.eye(3))
-
-    fixed_img, moving_img = image(fixed), image(moving)
-    with tempfile.TemporaryDirectory(prefix="ants_syn_") as tmp:
-        start = time.perf_counter()
-        result = ants.registration(fixed_img, moving_img, type_of_transform="SyN", outprefix=f"{tmp}/tx_")
-        runtime = time.perf_counter() - start
-        fwd = result["fwdtransforms"]
-        warped = ants.apply_transforms(fixed_img, image(moving_label.float()), fwd, interpolator="nearestNeighbor")
-        # |J| from the whole forward transform (affine then SyN), on the same finite differences as ours
-        field = ants.image_read(ants.apply_transforms(fixed_img, moving_img, fwd, compose=f"{tmp}/composed_"))
-        displacement = torch.from_numpy(np.ascontiguousarray(field.numpy(), dtype=np.float32))  # (X, Y, Z, 3)
-    labels = torch.from_numpy(np.rint(warped.numpy())).to(torch.int16)[None, None]
-    return labels, displacement.movedim(-1, 0)[None], runtime
-
-
 def _ants_scores(pair: dict, labels: Sequence[int] | None) -> PairScores:
     warped_label, displacement, runtime = ants_register(pair["moving"], pair["fixed"], pair["moving_label"])
     # Dice of ANTs' own nearest-neighbour label warp; folding of its composed field
     scores = score_pair(None, warped_label, pair["fixed_label"], runtime, labels)
     return scores._replace(**jacobian_stats(jacobian_determinant(displacement))._asdict())
-
-
-def _ants_available() -> tuple[bool, str]:
-    try:
-        import ants
-    except ImportError as err:
-        return False, f"skipped: antspyx not importable ({err}); pip install -e '.[bench]'"
-    return True, getattr(ants, "__version__", "unknown")
 
 
 # ------------------------------------------------------------------------------------------------ reporting
@@ -244,9 +188,9 @@ def _methods(keys: Sequence[str], evaluate: ConfigParser, model_file: Path, refi
         if key == "identity":
             runners[key] = lambda p: score_pair(None, p["moving_label"], p["fixed_label"], 0.0, labels)
         elif key == "ants":
-            ok, message = _ants_available()
+            ok, message = ants_available()
             if not ok:
-                row["status"] = message
+                row["status"] = f"skipped: {message}; {ANTS_INSTALL_HINT}"
                 continue
             antspyx, row["threads"] = message, threads
             runners[key] = lambda p: _ants_scores(p, labels)
@@ -310,10 +254,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(threads)
     os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(threads)  # ITK reads it once, at its first use
     bundle_root = args.bundle_root.resolve()
-    overrides = _parse_overrides(args.override)
-    evaluate = _parser(bundle_root, ["evaluate.yaml"],
-                       {**overrides, "dataset_dir": str(dataset_dir), "refine_iterations": args.refine_iterations})
-    subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    overrides = parse_overrides(args.override)
+    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {**overrides, "dataset_dir": str(dataset_dir),
+                                                              "refine_iterations": args.refine_iterations})
+    subjects = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     tasks = [t for t in TASKS if t in args.tasks]
     model_file = args.model_file or Path(evaluate.get_parsed_content("model_file"))
     refinement = evaluate.get_parsed_content("refinement")

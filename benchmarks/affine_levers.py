@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT
 
 from monai_probreg.cli.pipeline import prepare_fixed
 from monai_probreg.data.dataset import index_dataset
@@ -34,10 +35,6 @@ from monai_probreg.spatial.volume_io import read_image, read_label
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
-DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
-DEFAULT_OUT = REPO / "benchmarks" / "results"
 DEFAULT_SUBJECTS = ("S11", "S12", "S13", "S14", "S15")  # validation subjects
 MOVE_SEED = 7
 MAX_ROTATION_DEG, MAX_TRANSLATION_MM, MOVED_SPACING = 15.0, 20.0, (0.9, 1.5, 0.9)

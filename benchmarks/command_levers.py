@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import DEFAULT_OUT
 from isal import igzip
 
 from monai_probreg.metrics.jacobian import jacobian_determinant
@@ -42,8 +43,6 @@ from monai_probreg.spatial.physical import apply_affine, grid_points
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO / "benchmarks" / "results"
 ATLAS_SHAPE = (160, 192, 160)
 MOVING_SHAPE = (256, 124, 256)
 SEED = 0

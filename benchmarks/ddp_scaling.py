@@ -23,9 +23,8 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO
+
 EPOCH_LINE = re.compile(r"SupervisedTrainer - INFO - Epoch\[(\d+)\] Complete\. Time taken: (\d+):(\d+):([\d.]+)")
 WARMUP_EPOCHS = 1  # epochs left out of the timing
 RUN_TIMEOUT_S = 1800
@@ -67,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=3)
     ap.add_argument("--nproc", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1, help="CPU threads per process")
-    ap.add_argument("--out-dir", type=Path, default=HERE / "results")
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir.resolve()}", flush=True)

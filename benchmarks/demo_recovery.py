@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import DEFAULT_OUT
 
 from monai_probreg.cli.demo import DEMO_SAMPLES, run_demo
 from monai_probreg.cli.model import load_model
@@ -50,8 +51,6 @@ from monai_probreg.metrics.recovery import displacement_recovery
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO / "benchmarks" / "results"
 DEFAULT_SEEDS = (0, 1, 2, 3, 4)
 IDENTITY = SyntheticSettings(max_rotation_deg=0, max_shift_mm=0, deform_rms_mm=0, bias_coeff=0, noise_fraction=0)
 

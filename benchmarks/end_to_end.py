@@ -50,17 +50,13 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import torch
+from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT, DEFAULT_REFINE_ITERATIONS, ants_available
 
 import monai_probreg
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.utils.files import write_text
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
-DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
-DEFAULT_OUT = REPO / "benchmarks" / "results"
-DEFAULT_REFINE_ITERATIONS = 10  # as benchmarks/accuracy_table.py's refined row
 ANTS_TYPES = {"ants_affine": "Affine", "ants_syn": "SyN"}
 LEAN = ("--no-inverse", "--no-maps", "--no-qc")
 DEFAULT_BATCH_SIZE = 8  # register-batch throughput over this many scans (the issue asks for >= 8)
@@ -256,12 +252,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)
     antspyx = None
     if not args.no_ants:
-        try:
-            import ants
-
-            antspyx = getattr(ants, "__version__", "unknown")
-        except ImportError as err:
-            antspyx = f"skipped: antspyx not importable ({err})"
+        ok, message = ants_available()  # loads antspyx now, not inside a timed run
+        antspyx = message if ok else f"skipped: {message}"
 
     rows: dict[str, dict] = {}
     work = tempfile.TemporaryDirectory(prefix="e2e_scans_")

@@ -44,14 +44,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import nibabel as nib
 import numpy as np
 import torch
-from monai.data import Dataset
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import nibabel as nib
-from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser
+from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT, REPO, bundle_parser
 from failure_set import PERTURBATIONS
+from monai.data import Dataset
 
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.data.pairs import ATLAS_ID, scan_dicts
@@ -69,7 +67,6 @@ from monai_probreg.utils.tensors import plain_tensor
 from monai_probreg.weights.loading import load_weights
 
 NORMAL = "none"
-DEFAULT_NATIVE = REPO.parent / "shared" / "data" / "lpba40-native"
 HEADER_TURNS = (0, 90, 180)  # degrees about the S axis through the scan's centre, applied to its header only
 COMMAND = "command"  # the whole-command cases' perturbation name; turned ones add "_turn<degrees>"
 COMMAND_NAMES = tuple(f"{COMMAND}_turn{d}" if d else COMMAND for d in HEADER_TURNS)
@@ -339,7 +336,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     start = time.time()
     bundle_root = args.bundle_root.resolve()
-    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
+    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
     model_file = (args.model_file or Path(evaluate.get_parsed_content("model_file"))).resolve()
     if args.records is not None:
         stored = json.loads(args.records.read_text())
@@ -354,7 +351,7 @@ def main(argv=None) -> int:
         print(f"registrations: the network's mean{' refined' if refinement.enabled else ''} "
               f"({refinement.num_iterations} refinement steps)", flush=True)
         refinement_record = refinement.as_dict()
-        val_ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+        val_ids = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
         index = index_dataset(args.dataset_dir)
         train_ids = [i for i in index.ids if i not in val_ids][: args.train_subjects]
         scans = load_scans(args.dataset_dir, train_ids + val_ids, int(evaluate.get_parsed_content("divisor")))

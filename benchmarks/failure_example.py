@@ -24,9 +24,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy_table import DEFAULT_OUT
+from common import DEFAULT_OUT
 from failure_detection import turned_header
 from register_real_scan import misalign
 

@@ -20,15 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO
+from common import bundle_parser as _parser
 from failure_detection import NORMAL, cases_for, load_scans, run_case
 
 from monai_probreg.data.pairs import ATLAS_ID

@@ -39,10 +39,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, ants_available
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
-DEFAULT_OUT = REPO / "benchmarks" / "results"
 # index -> LPS direction of the moved scan: axis 0 toward anterior, 1 toward inferior, 2 toward left ("AIL")
 DIRECTION = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -122,11 +120,12 @@ def itk_reproduction(moving: Path, moving_label: Path, atlas: Path, out: Path, w
     result = {"max_abs_diff": float(np.abs(theirs - ours).max()), "intensity_range": float(ours.max() - ours.min()),
               "label_mismatches": int((labels != our_labels).sum()), "voxels": int(labels.size)}
     if with_ants:
-        try:
-            import ants
-        except ImportError as err:
-            result["ants"] = f"skipped: antspyx not importable ({err})"
+        ok, message = ants_available()
+        if not ok:
+            result["ants"] = f"skipped: {message}"
         else:
+            import ants
+
             warped = ants.apply_transforms(ants.image_read(str(atlas)), ants.image_read(str(moving)),
                                            [str(out / "warp.nii.gz")], interpolator="linear").numpy()
             ours_ants = ants.image_read(str(out / "warped.nii.gz")).numpy()

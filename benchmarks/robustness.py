@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -38,6 +37,8 @@ from typing import Any
 
 import numpy as np
 import torch
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, ants_register, bundle_parser
+from failure_detection import load_scans
 from monai.transforms import (
     GaussianSmooth,
     RandAdjustContrast,
@@ -45,10 +46,6 @@ from monai.transforms import (
     RandGaussianNoise,
     ScaleIntensityRangePercentiles,
 )
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser, ants_register
-from failure_detection import load_scans
 
 from monai_probreg.data.pairs import ATLAS_ID
 from monai_probreg.engines.registration import register_pair
@@ -142,8 +139,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     start = time.time()
     bundle_root = args.bundle_root.resolve()
-    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve()),
-                                                         "refine_iterations": args.refine})
+    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve()),
+                                                              "refine_iterations": args.refine})
     model_files = [p.resolve() for p in (args.model_file or [Path(evaluate.get_parsed_content("model_file"))])]
     names = args.label or [p.name for p in model_files]
     if len(names) != len(model_files) or len(set(names)) != len(names):
@@ -153,7 +150,7 @@ def main(argv=None) -> int:
     refinement = evaluate.get_parsed_content("refinement")
     refined = {f"{net} + refine {args.refine}": net for net in networks} if refinement.enabled else {}
     models = [*networks, *refined]
-    ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    ids = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     scans = load_scans(args.dataset_dir, ids, int(evaluate.get_parsed_content("divisor")))
     conditions = select_conditions(args.conditions)
     records: list[dict[str, Any]] = []

@@ -42,10 +42,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, parse_overrides
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
 PAPER_SIZE = [160, 192, 224]
 ANTS_WARMUP_SHRINK = 4  # ANTs' warm-up pair is this many times smaller per axis (loads the code, costs seconds)
 WORKER_TIMEOUT_S = 3600
@@ -200,15 +199,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--samples", type=int, default=10, help="K of the posterior-samples row")
     ap.add_argument("--no-compile", action="store_true", help="skip the torch.compile measurement (levers)")
     ap.add_argument("--synthetic", action="store_true", help="random pairs, no dataset: speed and memory only")
-    ap.add_argument("--out-dir", type=Path, default=HERE / "results", help="where speed_compare.{json,png} go")
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where speed_compare.{json,png} go")
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
     ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                     help="override an evaluate.yaml value (YAML) for the shipped-weights row, e.g. unet_precision=fp32")
     args = ap.parse_args(argv)
-    sys.path.insert(0, str(HERE))
-    from accuracy_table import _parse_overrides
-
-    overrides = _parse_overrides(args.override)
+    overrides = parse_overrides(args.override)
 
     dataset_dir = args.dataset_dir.resolve()
     bundle_root = args.bundle_root.resolve()

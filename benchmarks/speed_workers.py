@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from common import ants_register
 
-REPO = Path(__file__).resolve().parents[1]
 METHODS = ("ours_mean", "ours_mean_no_reuse", "ours_samples", "ours_trained", "voxelmorph", "ants", "levers")
 REUSES_MEMORY = ("ours_mean", "ours_samples", "ours_trained")  # as monai-probreg and the bundle run them
 KIB_PER_MB = 1024  # ru_maxrss is in KiB on Linux
@@ -191,9 +191,6 @@ def run_ants(pairs: list[dict], meta: dict, args: argparse.Namespace) -> dict[st
     """ANTs SyN (antspyx defaults) as benchmarks/accuracy_table.py runs it; warm-up on a 4x smaller pair."""
     import torch.nn.functional as F
 
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    from accuracy_table import ants_register
-
     from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
     from monai_probreg.metrics.scores import score_pair
 
@@ -255,5 +252,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).parent))
     sys.exit(main())

@@ -46,40 +46,36 @@ from typing import Any
 
 import numpy as np
 import torch
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, bundle_parser
 from monai.data import Dataset
 from monai.networks.layers import GaussianFilter
+from uncertainty_figures import figure4, reliability_diagram
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy_table import DEFAULT_DATASET, DEFAULT_OUT, REPO, _parser  # noqa: E402
-from uncertainty_figures import figure4, reliability_diagram  # noqa: E402
-
-from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement  # noqa: E402
-from monai_probreg.blocks.sampling import sample_velocity  # noqa: E402
-from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
-from monai_probreg.data.dataset import (
-    index_dataset,  # noqa: E402
-    labelled_pairs,
-)
-from monai_probreg.engines.registration import register_pair  # noqa: E402
-from monai_probreg.metrics.calibration import (  # noqa: E402
+from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
+from monai_probreg.blocks.sampling import sample_velocity
+from monai_probreg.blocks.warp import warp_image, warp_labels
+from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.engines.registration import register_pair
+from monai_probreg.metrics.calibration import (
     auroc,
     interval_coverage,
     spearman,
     uncertainty_calibration_error,
 )
-from monai_probreg.networks.velocity_unet import VelocityPosterior  # noqa: E402
-from monai_probreg.uncertainty.calibration import (  # noqa: E402
+from monai_probreg.networks.velocity_unet import VelocityPosterior
+from monai_probreg.uncertainty.calibration import (
     Calibration,
     calibrate_log_var,
     fit_calibration,
     save_calibration,
 )
-from monai_probreg.uncertainty.entropy import (  # noqa: E402
+from monai_probreg.uncertainty.entropy import (
     label_entropy,
     sampled_displacement_moments,
     velocity_entropy,
 )
-from monai_probreg.utils.files import write_text  # noqa: E402
+from monai_probreg.utils.files import write_text
+from monai_probreg.utils.tensors import plain_tensor
 from monai_probreg.weights.loading import load_weights
 
 TRUTH_STEPS = 10          # squarings for the true fields (full resolution; the model uses 7 at half resolution)
@@ -91,10 +87,6 @@ FIT_ITERATIONS = 3         # at most this many re-samplings at the fitted pair a
                            # smaller scale and a larger bias fraction: Spearman +0.02, label AUROC -0.004, README)
 FIT_TOLERANCE = 0.02       # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
 SEED_STRIDE = 100         # subject n's deformation r is drawn with seed + SEED_STRIDE * n + r (r < SEED_STRIDE)
-
-
-def plain_tensor(t: torch.Tensor) -> torch.Tensor:
-    return t.as_tensor() if hasattr(t, "as_tensor") else t
 
 
 def random_deformation(fixed: torch.Tensor, rms: float, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -287,10 +279,10 @@ def validation_model(args: argparse.Namespace):
     """(evaluate.yaml's parser, weights file, network with its weights, subjects) for ``args`` of
     :func:`validation_arguments`."""
     bundle_root = args.bundle_root.resolve()
-    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
+    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
     model_file = args.model_file or Path(evaluate.get_parsed_content("model_file"))
     network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
-    subjects = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    subjects = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     return evaluate, model_file, network, subjects
 
 
@@ -322,7 +314,7 @@ def main(argv=None) -> int:
         if args.refine < 0:
             raise SystemExit(f"--refine must be >= 0 steps; got {args.refine}")
         refinement = dataclasses.replace(refinement, num_iterations=args.refine)
-    print(f"calibrating the {'refined' if refinement.enabled else 'network'}'s mean "
+    print(f"calibrating the {'refined mean' if refinement.enabled else 'network mean'} "
           f"({refinement.num_iterations} refinement steps)", flush=True)
     if args.fit_iterations < 1:
         raise SystemExit(f"--fit-iterations must be >= 1; got {args.fit_iterations}")

@@ -29,19 +29,15 @@ import json
 import math
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from monai.data import Dataset
 from scipy.ndimage import distance_transform_edt
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from uncertainty_calibration import (  # noqa: E402
+from uncertainty_calibration import (
     SEED_STRIDE,
     TRUTH_STEPS,
-    plain_tensor,
     population_deformation,
     population_velocities,
     population_velocity,
@@ -50,13 +46,14 @@ from uncertainty_calibration import (  # noqa: E402
     validation_model,
 )
 
-from monai_probreg.blocks.sampling import sample_velocity  # noqa: E402
-from monai_probreg.blocks.warp import warp_image, warp_labels  # noqa: E402
-from monai_probreg.data.dataset import index_dataset, labelled_pairs  # noqa: E402
-from monai_probreg.metrics.calibration import auroc  # noqa: E402
-from monai_probreg.uncertainty.calibration import calibrate_log_var, calibration_for  # noqa: E402
-from monai_probreg.uncertainty.entropy import label_entropy  # noqa: E402
-from monai_probreg.utils.files import write_text  # noqa: E402
+from monai_probreg.blocks.sampling import sample_velocity
+from monai_probreg.blocks.warp import warp_image, warp_labels
+from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.metrics.calibration import auroc
+from monai_probreg.uncertainty.calibration import calibrate_log_var, calibration_for
+from monai_probreg.uncertainty.entropy import label_entropy
+from monai_probreg.utils.files import write_text
+from monai_probreg.utils.tensors import plain_tensor
 
 ORACLE_SCALES = (1 / 64, 1 / 16, 0.25, 1.0, 4.0)  # oracle variance levels, relative to the calibrated posterior's
                                                 # mean variance (label entropy is not scale-free: the best is kept)

@@ -1,0 +1,122 @@
+"""What the benchmark scripts share: default paths, the bundle's config parser, ``--override`` values, ANTs SyN.
+
+Every script runs as ``python benchmarks/<name>.py``, which puts this folder on ``sys.path``, so the scripts import
+this module plainly (``from common import bundle_parser``), never by editing ``sys.path``; the tests get the same
+through pytest's ``pythonpath`` (pyproject.toml). Importing it costs the standard library only: monai, torch and
+antspyx are imported by the functions that use them, so the light scripts (``ddp_scaling.py``) stay light.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import torch
+    from monai.bundle import ConfigParser
+
+__all__ = [
+    "REPO",
+    "SHARED_DATA",
+    "DEFAULT_DATASET",
+    "DEFAULT_NATIVE",
+    "DEFAULT_OUT",
+    "DEFAULT_REFINE_ITERATIONS",
+    "ANTS_INSTALL_HINT",
+    "bundle_parser",
+    "parse_overrides",
+    "ants_available",
+    "ants_register",
+]
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"  # the data sets live next to the checkout, never inside it
+DEFAULT_DATASET = SHARED_DATA / "lpba40"  # ../shared/data/lpba40 from the repository root (preprocessed, labelled)
+DEFAULT_NATIVE = SHARED_DATA / "lpba40-native"  # the same subjects as scanned (native grids and headers)
+DEFAULT_OUT = REPO / "benchmarks" / "results"
+# refinement steps of the "ours + refinement" / default rows (settings chosen on training pairs; evaluate.yaml's
+# refine_iterations); accuracy_table.py and end_to_end.py report the same default
+DEFAULT_REFINE_ITERATIONS = 10
+ANTS_INSTALL_HINT = "pip install -e '.[bench]'"  # antspyx is the optional extra "bench" (pyproject.toml)
+
+
+# ------------------------------------------------------------------------------------------------ configs
+def bundle_parser(bundle_root: Path, names: Sequence[str], overrides: dict[str, Any] | None = None) -> ConfigParser:
+    """A ``monai.bundle.ConfigParser`` over ``bundle_root/configs/<names>`` (merged in order), with ``bundle_root``
+    set to ``bundle_root`` and each ``overrides`` key set after reading, as ``monai.bundle run --key value`` does."""
+    from monai.bundle import ConfigParser
+
+    parser = ConfigParser()
+    parser.read_config([str(bundle_root / "configs" / n) for n in names])
+    parser["bundle_root"] = str(bundle_root)
+    for key, value in (overrides or {}).items():
+        parser[key] = value
+    return parser
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``--override KEY=VALUE`` arguments -> ``{KEY: VALUE}``, each VALUE read as YAML (``network_size=[80,96,80]``,
+    ``network_size=null``).
+
+    Raises:
+        SystemExit: an item without ``=`` or with an empty key (the scripts' usage error).
+    """
+    import yaml
+
+    overrides = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"--override expects KEY=VALUE (VALUE in YAML, e.g. network_size=[80,96,80]); "
+                             f"got {item!r}")
+        overrides[key] = yaml.safe_load(value)
+    return overrides
+
+
+# ------------------------------------------------------------------------------------------------ ANTs
+def ants_available() -> tuple[bool, str]:
+    """Whether antspyx imports: ``(True, its version)``, or ``(False, "antspyx not importable (<the ImportError>)")``
+    for the script to report (rows say ``skipped: ...``, with :data:`ANTS_INSTALL_HINT` where the script gives it).
+
+    Importing it here also loads it, so a later timed call does not pay for the import."""
+    try:
+        import ants
+    except ImportError as err:
+        return False, f"antspyx not importable ({err})"
+    return True, getattr(ants, "__version__", "unknown")
+
+
+def ants_register(moving: torch.Tensor, fixed: torch.Tensor, moving_label: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """ANTs SyN of ``moving`` onto ``fixed`` (both (1, 1, *S) on one grid) with antspyx defaults.
+
+    Returns (moving labels warped nearest neighbour by ANTs (1, 1, *S) int16, the composed forward displacement
+    (1, 3, *S) in our convention, registration wall time in s). The images get spacing 1, origin 0 and identity
+    direction, so ITK's physical x, y, z are array axes 0, 1, 2 in voxels, and ITK's forward transform maps a fixed
+    point x to the moving point x + u(x): exactly our pull-back ``warped[x] = moving[x + u(x)]``.
+    """
+    import ants
+    import numpy as np
+    import torch
+
+    from monai_probreg.utils.tensors import plain_tensor
+
+    def image(t: torch.Tensor) -> ants.ANTsImage:
+        array = np.ascontiguousarray(plain_tensor(t)[0, 0].detach().cpu().numpy(), dtype=np.float32)
+        return ants.from_numpy(array, origin=(0.0, 0.0, 0.0), spacing=(1.0, 1.0, 1.0), direction=np.eye(3))
+
+    fixed_img, moving_img = image(fixed), image(moving)
+    with tempfile.TemporaryDirectory(prefix="ants_syn_") as tmp:
+        start = time.perf_counter()
+        result = ants.registration(fixed_img, moving_img, type_of_transform="SyN", outprefix=f"{tmp}/tx_")
+        runtime = time.perf_counter() - start
+        fwd = result["fwdtransforms"]
+        warped = ants.apply_transforms(fixed_img, image(moving_label.float()), fwd, interpolator="nearestNeighbor")
+        # |J| from the whole forward transform (affine then SyN), on the same finite differences as ours
+        field = ants.image_read(ants.apply_transforms(fixed_img, moving_img, fwd, compose=f"{tmp}/composed_"))
+        displacement = torch.from_numpy(np.ascontiguousarray(field.numpy(), dtype=np.float32))  # (X, Y, Z, 3)
+    labels = torch.from_numpy(np.rint(warped.numpy())).to(torch.int16)[None, None]
+    return labels, displacement.movedim(-1, 0)[None], runtime

@@ -1,30 +1,32 @@
 """Test-time refinement ("instance optimisation") of the posterior mean for the pair at hand.
 
 The network's posterior mean is amortised: one forward pass, whatever the pair. A few gradient steps on the pair's
-own objective, started from that mean, align the pair at hand better (uniGradICON's instance optimisation; our
-measurements: README "Accuracy"). Over the velocity mean ``mu`` on the model's velocity grid we minimise
-(:class:`~monai_probreg.losses.elbo.ProbRegLoss`, ``reduction="mean"``, plus a pull towards the network's mean):
+own objective, started from that mean, align the pair at hand better (uniGradICON's instance optimisation; measured
+by ``benchmarks/accuracy_table.py``, docs/accuracy.md). Over the velocity mean ``mu`` on the model's velocity grid we
+minimise (:class:`~monai_probreg.losses.elbo.ProbRegLoss`, ``reduction="mean"``, plus a pull towards the network's
+mean):
 
     L(mu) = image_weight * D(moving o exp(mu), fixed)  +  lambda / 2 * mu^T L mu / N_velocity
             + posterior_weight / 2 * mean((mu - mu_net)^2 / sigma_net^2)
 
 with Adam, on the grid the network sees (its ``network_size``, else the input grid). ``D`` is MONAI's local
 normalised cross-correlation by default (``image_loss="lncc"``, per-voxel mean in [-1, 0]; it does not assume the two
-scans share an intensity scale, and scored 0.005 Dice above the alternative on training pairs), or the model's own
+scans share an intensity scale, and it scored better than the alternative on training pairs), or the model's own
 Gaussian likelihood ``||fixed - moving o exp(mu)||^2 / (2 sigma^2) / N_image`` (``"gaussian"``: the terms of the
 negative ELBO that depend on ``mu``). The second term is the model's Laplacian smoothness prior; the last keeps ``mu``
 near the network's estimate in units of the network's posterior std (the network, trained with labels, knows more
-than the intensities of one pair: with a quarter of the pull, Dice dropped on training pairs). The log-variance
-stays the network's, so the uncertainty maps (samples, entropy) are centred on the refined mean. Written by hand: no
-MONAI or ITK block optimises a stationary velocity field of a trained model against a pair.
+than the intensities of one pair: a weaker pull scored worse on training pairs). The log-variance stays the
+network's, so the uncertainty maps (samples, entropy) are centred on the refined mean. Written by hand: no MONAI or
+ITK block optimises a stationary velocity field of a trained model against a pair.
 
-The fold guard: the network's mean is measured fold-free (README "Accuracy"), but the optimiser is not bound to a
-diffeomorphic *discrete* field (scaling and squaring of a rough velocity can fold between voxels). When the refined
-displacement folds on the output grid, the refinement's change to the network's mean is halved until it does not
-(``fold_backtracks`` times at most), and the network's mean itself is kept when no fraction is fold-free: a user asking
-for refinement never gets a folded warp the network alone would not have given.
+The fold guard: the optimiser is not bound to a diffeomorphic *discrete* field (scaling and squaring of a rough
+velocity can fold between voxels). When the refined displacement folds on the output grid, the refinement's change to
+the network's mean is halved until it does not (``fold_backtracks`` times at most), and the network's mean itself is
+kept when no fraction is fold-free: a user asking for refinement never gets a folded warp the network alone would not
+have given.
 
-Off by default (``num_iterations = 0``): the bundle's ``refine_iterations`` and the command line's ``--refine``.
+``RefinementSettings()`` does not refine (``num_iterations = 0``): the steps come from the bundle's
+``refine_iterations`` and the command line's ``--refine`` (the shipped configs refine; 0 gives the network alone).
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ __all__ = ["RefinementSettings", "refine_registration"]
 
 @dataclass(frozen=True)
 class RefinementSettings:
-    """How the posterior mean is refined for one pair (values chosen on training pairs, README "Accuracy").
+    """How the posterior mean is refined for one pair (values chosen on training pairs: docs/accuracy.md,
+    "Test-time refinement").
 
     num_iterations: Adam steps (0 = no refinement, the network's mean as it is).
     learning_rate: Adam's step size, in velocity-grid voxels.
@@ -55,10 +58,10 @@ class RefinementSettings:
     prior_lambda: precision scale of the Laplacian prior, velocity-grid voxel units (larger = smoother, fewer folds).
     posterior_weight: weight of the pull towards the network's mean, in units of its posterior std (0 = none).
     image_loss: the image term: "lncc" (MONAI's local normalised cross-correlation over ``lncc_kernel_size``, in
-        [-1, 0]; the default: +0.005 Dice over "gaussian" on training pairs) or "gaussian" (the model's own
+        [-1, 0]; the default: it scored better than "gaussian" on training pairs) or "gaussian" (the model's own
         likelihood with ``image_sigma``, unused for "lncc").
-    image_weight: multiplies the image term (20 for "lncc", chosen on training pairs: 50 gave the same Dice with a
-        rougher field; use 1 with "gaussian", whose values are ~100x larger).
+    image_weight: multiplies the image term (20 for "lncc", chosen on training pairs: a larger weight bought no
+        Dice and a rougher field; use 1 with "gaussian", whose values are about two orders of magnitude larger).
     lncc_kernel_size: side of LNCC's local window, network-grid voxels (odd; 9 = 18 mm at the shipped 2 mm grid).
     fold_backtracks: the fold guard. If the refined field folds (any |J| <= 0 on the output grid), the refinement's
         change to the network's mean is halved, at most this many times; if it still folds, the network's mean is

@@ -204,9 +204,8 @@ class ProbRegNet(nn.Module):
 
         The UNet runs once; all K velocities are drawn at once (so the result does not depend on the batching) and
         integrated ``samples_per_batch`` at a time. None (default): all K in one batch on a GPU, one at a time on a
-        CPU, where ``benchmarks/speed_compare.py`` measured the fused batch slower (K = 10 at 160x192x224, 2 threads:
-        5.12 s against 4.71 s on AMD Zen 4, 2.72 s against 2.24 s on an Intel CPU with AMX; README "Speed").
-        Independent of train/eval mode. Shapes: moving, fixed (B, C, *S) -> displacements (K, B, D, *S).
+        CPU, where ``benchmarks/speed_compare.py`` measures the fused batch slower (docs/speed.md). Independent of
+        train/eval mode. Shapes: moving, fixed (B, C, *S) -> displacements (K, B, D, *S).
         """
         if samples_per_batch is not None and (isinstance(samples_per_batch, bool) or not isinstance(samples_per_batch, int)
                                               or samples_per_batch < 1):

@@ -2,9 +2,9 @@
 results: :mod:`monai_probreg.spatial.affine_settings`, re-exported here).
 
 Two backends run the same method (rigid, then affine, Mattes mutual information over a pyramid):
-``"torch"`` (the default, :mod:`monai_probreg.spatial.affine_torch`: about 2-4 s on a native scan, reproducible
-with any number of threads) and ``"itk"`` (this module, ITK's v4 framework as antsRegistration uses it: 10-20 s
-plus about 7 s to load ITK's registration modules). :func:`align` picks one from the settings.
+``"torch"`` (the default, :mod:`monai_probreg.spatial.affine_torch`: several times faster, reproducible with any
+number of threads) and ``"itk"`` (this module, ITK's v4 framework as antsRegistration uses it, plus the time to load
+ITK's registration modules; both timed in docs/speed.md). :func:`align` picks one from the settings.
 
 Two stages, as ``antsRegistration`` runs them (``-t Rigid -t Affine``), each with
 ``itk.ImageRegistrationMethodv4``:
@@ -23,7 +23,7 @@ when the metric has changed by less than ``convergence`` over a window of 10 ite
 
 Reproducibility: a fixed seed is not enough. ITK's Mattes metric merges its per-thread derivative buffers in the
 order the threads finish (ITK pull request #6622, open in 5.4), so two multi-threaded runs of the same
-registration differ (measured on a native LPBA40 scan: up to 0.33 mm of translation, Dice 0.5364 to 0.5369).
+registration differ (by a fraction of a millimetre of translation on a native LPBA40 scan).
 ``deterministic=True`` (the default) computes the metric in one work unit; the image pyramid and everything else
 stay multi-threaded.
 

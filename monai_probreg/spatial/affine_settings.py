@@ -20,16 +20,15 @@ class AffineSettings:
     """Settings of the affine pre-alignment; per-level tuples run coarse to fine.
 
     Defaults: the torch backend, tuned on brain MRI (a native LPBA40 scan onto the LPBA40 atlas: affine-only Dice
-    as ANTs ``Affine``'s, in 2-4 s). Levels at 1/4, 1/2 and the full fixed grid with 2, 1 and 0 mm smoothing; 5% of
+    as ANTs ``Affine``'s, in seconds). Levels at 1/4, 1/2 and the full fixed grid with 2, 1 and 0 mm smoothing; 5% of
     each level's voxels sampled; the rigid stage stops at half resolution. :meth:`itk_defaults` gives the ITK
     backend's (two levels at 1/4 and 1/2, 20% sampled, as ``antsRegistrationSyNQuick.sh``'s linear stages stop at
     half resolution).
 
     ``max_samples`` caps the sample points of a level (torch backend): 5% of the full-resolution level is 245,000
-    points on a 1 mm brain grid, eight times the half-resolution level's, for the same alignment. Measured on the
-    native S20 and five validation subjects moved by random rigid transforms (``benchmarks/affine_levers.py``: mean
-    affine-only Dice over their labels, 2 threads): no cap 0.6130 in 1.59 s per scan, 50,000 points 0.6122 in 0.95 s,
-    20,000 points 0.6101 in 0.75 s, dropping the full-resolution level 0.6036 in 0.64 s.
+    points on a 1 mm brain grid, eight times the half-resolution level's, for the same alignment. The cap trades
+    affine-only Dice for time: ``benchmarks/affine_levers.py`` measures both for each cap and for dropping the
+    full-resolution level (docs/speed.md, "The command's levers").
 
     Iterations are maxima (both backends stop a level earlier when converged). ITK backend only: ``max_step_mm``,
     ``convergence`` and ``deterministic`` (the line search's step bound, the stopping threshold, and the metric in

@@ -1,9 +1,9 @@
-"""Affine pre-alignment in torch: the same two stages as :mod:`monai_probreg.spatial.affine`'s ITK backend, in 2-4 s.
+"""Affine pre-alignment in torch: the same two stages as :mod:`monai_probreg.spatial.affine`'s ITK backend, faster.
 
-Why a second implementation: ITK's v4 registration cost this command most of its time (measured on a native
-LPBA40 scan, 2 threads: about 7 s to load ITK's lazily imported registration modules, 13-23 s to register), and its
-Mattes metric is only reproducible in one work unit (ITK pull request #6622). Nothing in MONAI or torch registers
-two images affinely, and MONAI's ``GlobalMutualInformationLoss`` is too slow for an optimiser's inner loop
+Why a second implementation: ITK's v4 registration cost this command most of its time (loading ITK's lazily imported
+registration modules, then registering; docs/speed.md, "The command's levers"), and its Mattes metric is only
+reproducible in one work unit (ITK pull request #6622). Nothing in MONAI or torch registers two images affinely, and
+MONAI's ``GlobalMutualInformationLoss`` is too slow for an optimiser's inner loop
 (:func:`mutual_information`), so the loop and the metric are written here; the rest is borrowed: MONAI's
 ``ScaleIntensityRangePercentiles`` and ``GaussianSmooth``, ``torch.nn.functional.grid_sample`` for interpolation and
 ``torch.optim.LBFGS``.
@@ -83,7 +83,7 @@ def mutual_information(moving: torch.Tensor, fixed_bins: torch.Tensor, bins: int
     image, zero order for the fixed), as ITK's Mattes metric.
 
     Written here because MONAI's ``GlobalMutualInformationLoss`` weighs every sample against every bin
-    (O(N x bins): 1 s per evaluation at 123,000 samples on 2 threads) and a differentiable ``index_add`` into the
+    (O(N x bins) per evaluation, too slow for an optimiser's inner loop) and a differentiable ``index_add`` into the
     histogram is slower still; here each sample adds to the 4 bins its window covers (``bincount``) and the
     gradient is the exact one, ``dMI/dJ[a, b] = (log p[a, b] - log p_moving[b]) / N`` chained through the window
     weights (each sample's weights sum to 1, so the other terms of dMI/dJ cancel)."""
@@ -107,7 +107,8 @@ def mutual_information(moving: torch.Tensor, fixed_bins: torch.Tensor, bins: int
 def _scaled(volume: Volume) -> torch.Tensor:
     scale = ScaleIntensityRangePercentiles(lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0,
                                            clip=True)
-    # plain tensors from here on: MONAI's MetaTensor would track every operation of the optimisation (4x slower)
+    # plain tensors from here on: MONAI's MetaTensor would track every operation of the optimisation (several times
+    # slower)
     return convert_to_tensor(scale(torch.from_numpy(np.asarray(volume.array, np.float32))[None]), track_meta=False)[0]
 
 

@@ -17,8 +17,8 @@ keeps a registration that changes almost nothing (a scan onto a near copy of its
 rounding of the UNet's arithmetic (bf16 on CPUs with native bf16, fp32 elsewhere): ``benchmarks/lncc_margin.py``
 measures both precisions (docs/uncertainty.md). That rule is not fitted: the clipping above hides such a case from
 the linear models whenever the pair is more alike than any training pair (a scan registered to a copy of itself, the
-demo's synthetic subject), and in ``benchmarks/failure_detection.py``'s records (0.11.0 weights) the drop occurs in 27
-registrations, every one of them a failure, and in none of the 105 normal ones. Both models are fitted
+demo's synthetic subject); ``benchmarks/failure_detection.py`` counts how often the drop occurs among its failures and
+its normal registrations (docs/uncertainty.md). Both models are fitted
 by ``benchmarks/failure_detection.py`` on *training* subjects only (normal pairs and a failure set: wrong
 orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast), through both paths
 that compute the features (the bundle's, on the dataset grid, and the whole command's, affine stage and model grid

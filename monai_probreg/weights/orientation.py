@@ -9,9 +9,8 @@ mirroring, the converted network ``f'`` satisfies ``f'(M x) = M f(x)`` for every
 convolutions on even sizes sample the mirrored grid one voxel off (and no shift repairs it: nearest upsampling
 would then be off instead), so the whole UNet is equivariant only approximately: a warm start, to be fine-tuned.
 ``tests/weights/test_orientation.py`` measures both on a small random network (1.3% relative velocity error). A trained
-network is far more sensitive to that phase: the 0.5.0 weights mirrored along axes 0 and 1 (the LPBA40 header fix)
-scored mean Dice 0.535 on the validation subjects -> S01, while the unconverted network fed the turned images stayed
-near its old 0.72 (a scratch check on two subjects); one epoch of fine-tuning brought it to 0.645, two to 0.663 (bundle docs, "Orientation fix").
+network is far more sensitive to that phase: converted weights score well below the original on the turned images and
+need a short fine-tuning to recover (the LPBA40 header fix: bundle docs, "Orientation fix").
 
 No library offers this for arbitrary state dicts (it is written here by hand); it is ``torch.flip`` on every
 convolution kernel plus a sign on the velocity head.

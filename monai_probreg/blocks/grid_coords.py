@@ -16,6 +16,11 @@ Two forms of the same rule, both used by the package:
 :func:`normalise_index` (one axis, MONAI's order of operations, so identity grids are bit-identical to MONAI's
 ``Warp``) and :func:`index_scale` (its slope) are the pieces the one-pass sampling grid of
 :mod:`monai_probreg.blocks.warp` is built from. All functions compile with ``torch.jit.script``.
+
+Two orders of operations, on purpose: :func:`normalise_index` computes ``(i * 2) / (n - 1) - 1`` (MONAI's), while
+:func:`index_to_grid` and the matrix multiply by the slope first, ``i * (2 / (n - 1)) - 1`` (what a matrix product
+does). The two differ by rounding only (an ulp or so); each caller keeps the order it always had, so moving the rule
+here changed no caller's result by a bit (``tests/blocks/test_grid_coords.py``).
 """
 
 from __future__ import annotations
@@ -42,8 +47,9 @@ def index_to_grid(index: Tensor, spatial_shape: list[int]) -> Tensor:
     dims = len(spatial_shape)
     if index.shape[-1] != dims:
         raise ValueError("index must end in an axis of " + str(dims) + " coordinates; got " + str(index.shape[-1]))
-    # grid channel k (x, y, z) is tensor axis dims - 1 - k: the flip to grid_sample's order
-    return torch.stack([normalise_index(index[..., dims - 1 - k], spatial_shape[dims - 1 - k])
+    # grid channel k (x, y, z) is tensor axis dims - 1 - k: the flip to grid_sample's order; slope first, then -1
+    # (the matrix form's arithmetic, see the module docstring)
+    return torch.stack([index[..., dims - 1 - k] * index_scale(spatial_shape[dims - 1 - k]) - 1
                         for k in range(dims)], dim=-1)
 
 

@@ -48,6 +48,23 @@ def test_matrix_form_is_the_same_map(shape):
     torch.testing.assert_close(matrix[dims], torch.eye(dims + 1, dtype=torch.float64)[dims])
 
 
+@pytest.mark.parametrize("shape", [*SHAPES, (1, 6, 9)])
+def test_callers_arithmetic_is_kept_bit_for_bit(shape):
+    """Each form computes exactly what its callers computed before the rule moved here: point sampling's
+    ``(index * 2 / max(n - 1, 1) - 1).flip(-1)`` with the slope first, the affine stage's and the inverse field's
+    homogeneous matrix ``diag(slopes) - 1``, its rows reversed. MONAI's order (``normalise_index``, the warp's grid)
+    differs from the slope-first one in the last bit, which is why both exist."""
+    dims = len(shape)
+    points = torch.rand(1000, dims, dtype=torch.float64) * (torch.tensor(shape, dtype=torch.float64) - 1)
+    slopes = 2.0 / torch.clamp(torch.tensor(shape, dtype=torch.float64) - 1.0, min=1.0)
+    assert torch.equal(index_to_grid(points, list(shape)), (points * slopes - 1.0).flip(-1))
+    before = torch.diag(torch.cat([slopes, torch.ones(1, dtype=torch.float64)]))
+    before[:dims, dims] = -1.0
+    assert torch.equal(index_to_grid_matrix(list(shape)), before[[*reversed(range(dims)), dims]])
+    monai_order = torch.stack([normalise_index(points[:, k], n) for k, n in enumerate(shape)], dim=-1).flip(-1)
+    torch.testing.assert_close(monai_order, index_to_grid(points, list(shape)), rtol=0, atol=1e-15)
+
+
 def test_singleton_axis_maps_to_minus_one_and_scale_is_the_slope():
     assert normalise_index(torch.zeros(1), 1).item() == -1.0
     assert index_scale(1) == 2.0 and index_scale(9) == 0.25

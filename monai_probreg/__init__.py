@@ -1,10 +1,10 @@
 """monai_probreg: probabilistic diffeomorphic registration (Dalca et al., MICCAI 2018) as MONAI components.
 
-Conventions, written once for the whole package (README "Conventions" repeats them with examples):
+Conventions, written once for the whole package (docs/design.md, "Conventions", repeats them with examples):
 
 1. Images are (B, C, *S); fields (velocity, displacement) are (B, spatial_dims, *S). Channel k of a field
-   is the component along tensor axis 2 + k (no xyz flip anywhere in our code; the single flip to
-   ``grid_sample``'s xyz order is inside MONAI's ``Warp``).
+   is the component along tensor axis 2 + k (no xyz flip anywhere else in our code: the single flip to
+   ``grid_sample``'s xyz order is :mod:`monai_probreg.blocks.grid_coords`, or MONAI's ``Warp`` on its own path).
 2. Fields are in voxels of the grid they live on: velocities on the velocity grid (image / int_downsize),
    displacements returned by the model on the image grid.
 3. Warping pulls back: ``warped[x] = moving[x + displacement[x]]``, linear interpolation with voxel centres

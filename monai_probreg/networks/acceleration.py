@@ -14,12 +14,12 @@ leaves :func:`accelerated_posterior`.
   float32 accumulation); ``"fp32"`` never; ``"auto"`` (default) only on a CPU with native bf16 arithmetic (AVX512-BF16
   or AMX, :func:`native_bf16_supported`), where it is fast; elsewhere bf16 would be emulated and slower, and on CUDA it
   has not been measured, so ``"auto"`` keeps float32 there. bf16 keeps 8 bits of mantissa: the velocity moves by
-  a fraction of a voxel, which ``tests/networks/test_acceleration.py`` bounds and the README quantifies on LPBA40.
-  The environment variable ``MONAI_PROBREG_UNET_PRECISION`` (:data:`PRECISION_ENV`), ``bf16`` or ``fp32``, decides
-  what ``"auto"`` means on every machine: the test suite runs both ways through it (README), so a result that
-  depends on the arithmetic is caught on any CPU, not only on the one whose default differs.
+  a fraction of a voxel, which ``tests/networks/test_acceleration.py`` bounds and docs/uncertainty.md quantifies on
+  LPBA40. The environment variable ``MONAI_PROBREG_UNET_PRECISION`` (:data:`PRECISION_ENV`), ``bf16`` or ``fp32``,
+  decides what ``"auto"`` means on every machine: the test suite runs both ways through it (docs/design.md), so a
+  result that depends on the arithmetic is caught on any CPU, not only on the one whose default differs.
 
-Measured numbers for each lever: README "Speed", ``benchmarks/speed_compare.py``.
+Measured numbers for each lever: docs/speed.md, ``benchmarks/speed_compare.py``.
 """
 
 from __future__ import annotations

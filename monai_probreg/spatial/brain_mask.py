@@ -2,13 +2,15 @@
 
 Templates and atlases are usually skull-stripped (LPBA40's, the MNI152 template nilearn ships); raw scans are not.
 A network trained on brain-to-brain pairs, shown a whole head against a brain, pulls brain tissue towards the skull
-(measured on the native S20 scan: README "Register your own scans"). After the affine pre-alignment the fixed image's
-own support says where the brain is: ``mask = dilate(fixed > min(fixed), margin_mm)``, and the moving scan on the
-fixed grid is set to its background value outside it before intensity scaling. For a fixed image with a head around
-the brain (no background at its minimum), the mask is the whole grid or the head: nothing of the brain is hidden.
+(seen on the native S20 scan; docs/cli.md, "Registering your own scans"). After the affine pre-alignment the fixed
+image's own support says where the brain is: ``mask = dilate(fixed > min(fixed), margin_mm)``, and the moving scan
+on the fixed grid is set to its background value outside it before intensity scaling. For a fixed image with a head
+around the brain (no background at its minimum), the mask is the whole grid or the head: nothing of the brain is
+hidden.
 
-The dilation is a (separable) max-pool with a per-axis radius of ``ceil(margin_mm / spacing)`` voxels (a box, written here because
-the package does not otherwise depend on scipy.ndimage; a box of radius r contains the ball of radius r).
+The dilation is a (separable) max-pool with a per-axis radius of ``ceil(margin_mm / spacing)`` voxels (a box, written
+here because the package does not otherwise depend on scipy.ndimage; a box of radius r contains the ball of radius
+r).
 """
 
 from __future__ import annotations

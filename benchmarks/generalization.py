@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.metadata
 import json
 import os
 import sys
@@ -127,7 +128,7 @@ class AntsCache:
         if key in self.records:
             return {**self.records[key], "cached": True}
         record = {**compute(), "computed_at": time.strftime("%Y-%m-%d %H:%M:%S"),
-                  "antspyx": library_versions().get("antspyx")}
+                  "antspyx": importlib.metadata.version("antspyx")}
         self.records[key] = record
         if self.path is not None:
             write_text(self.path, json.dumps(self.records, indent=1) + "\n")

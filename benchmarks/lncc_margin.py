@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import DEFAULT_DATASET, DEFAULT_OUT, REPO
-from common import bundle_parser as _parser
+from common import bundle_parser
 from failure_detection import NORMAL, cases_for, load_scans, run_case
 
 from monai_probreg.data.pairs import ATLAS_ID
@@ -86,11 +86,11 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     start = time.time()
     bundle_root = args.bundle_root.resolve()
-    evaluate = _parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
+    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
     model_file = (args.model_file or Path(evaluate.get_parsed_content("model_file"))).resolve()
     network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
     calibration = calibration_for(model_file)
-    val_ids = args.subjects or list(_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
+    val_ids = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     scans = load_scans(args.dataset_dir, val_ids, int(evaluate.get_parsed_content("divisor")))
     normal = [c for c in cases_for(val_ids, 0, training=False) if c["perturbation"] == NORMAL]
     self_cases = [{"moving": s, "fixed": s, "perturbation": NORMAL, "seed": 0} for s in [*val_ids, ATLAS_ID]]

@@ -25,8 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import DEFAULT_DATASET, DEFAULT_OUT, REPO
-from common import bundle_parser
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, bundle_parser
 from failure_detection import NORMAL, cases_for, load_scans, run_case
 
 from monai_probreg.data.pairs import ATLAS_ID

@@ -87,7 +87,7 @@ ANTS_SETTINGS = {
     "image_geometry": "evaluate.yaml-preprocessed arrays, spacing 1 mm, origin 0, identity direction",
     "labels": 'ants.apply_transforms(fixed, moving_label, fwdtransforms, interpolator="nearestNeighbor")',
     "jacobian": "monai_probreg jacobian_determinant of the composed (affine + SyN) forward displacement field "
-                "(ants.apply_transforms(..., compose=...)), in voxels since 1 voxel = 1 mm here",
+    "(ants.apply_transforms(..., compose=...)), in voxels since 1 voxel = 1 mm here",
     "threads": "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS",
 }
 
@@ -109,9 +109,15 @@ def _stat(values: Sequence[float]) -> dict[str, float | None]:
 def _pair_record(s: PairScores) -> dict[str, Any]:
     def num(v: float) -> float | None:
         return None if math.isnan(v) else float(v)
-    return {"mean_dice": num(s.mean_dice), "dice": {str(k): num(v) for k, v in s.dice.items()},
-            "num_folding": int(s.num_folding), "percent_folding": float(s.percent_folding),
-            "std_log_jacobian": num(s.std_log_jacobian), "runtime_s": float(s.runtime_s)}
+
+    return {
+        "mean_dice": num(s.mean_dice),
+        "dice": {str(k): num(v) for k, v in s.dice.items()},
+        "num_folding": int(s.num_folding),
+        "percent_folding": float(s.percent_folding),
+        "std_log_jacobian": num(s.std_log_jacobian),
+        "runtime_s": float(s.runtime_s),
+    }
 
 
 def _aggregate(scores: Sequence[PairScores]) -> dict[str, dict[str, float | None]]:
@@ -122,9 +128,12 @@ def _aggregate(scores: Sequence[PairScores]) -> dict[str, dict[str, float | None
 def markdown_table(methods: dict[str, dict[str, Any]], tasks: Sequence[str]) -> str:
     """The README table: one row per method, a Dice column per task; rows that did not run say why."""
     names = [TASKS[t] for t in tasks]
-    lines = ["| method | " + " | ".join(f"{n}: mean Dice (std)" for n in names)
-             + " | \\|J\\|<=0 per pair | std log\\|J\\| | s per pair | threads |",
-             "|---|" + "---|" * (len(names) + 4)]
+    lines = [
+        "| method | "
+        + " | ".join(f"{n}: mean Dice (std)" for n in names)
+        + " | \\|J\\|<=0 per pair | std log\\|J\\| | s per pair | threads |",
+        "|---|" + "---|" * (len(names) + 4),
+    ]
     for row in methods.values():
         if row["status"] != "ok":
             lines.append(f"| {row['name']} | {row['status']} |" + " |" * (len(names) + 3))
@@ -135,8 +144,10 @@ def markdown_table(methods: dict[str, dict[str, Any]], tasks: Sequence[str]) -> 
         folding = f"{every['num_folding']['mean']:.1f}"
         std_log = "n/a" if every["std_log_jacobian"]["mean"] is None else f"{every['std_log_jacobian']['mean']:.3f}"
         seconds = f"{every['runtime_s']['mean']:.2f}" if timed else "–"
-        lines.append(f"| {row['name']} | " + " | ".join(dice) + f" | {folding} | {std_log} | {seconds} | "
-                     f"{row['threads'] or '–'} |")
+        lines.append(
+            f"| {row['name']} | " + " | ".join(dice) + f" | {folding} | {std_log} | {seconds} | "
+            f"{row['threads'] or '–'} |"
+        )
     return "\n".join(lines)
 
 
@@ -148,16 +159,17 @@ def bar_chart(methods: dict[str, dict[str, Any]], tasks: Sequence[str], path: Pa
     import matplotlib.pyplot as plt
 
     rows = [r for r in methods.values() if r["status"] == "ok"]
-    fig, axes = plt.subplots(1, len(tasks), figsize=(1.5 + 1.6 * max(len(rows), 1) * len(tasks), 4.5),
-                             layout="constrained", squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(tasks), figsize=(1.5 + 1.6 * max(len(rows), 1) * len(tasks), 4.5), layout="constrained", squeeze=False
+    )
     for ax, task in zip(axes[0], tasks):
         for i, row in enumerate(rows):
             agg = row["aggregate"][task]["mean_dice"]
             ax.bar(i, agg["mean"], yerr=agg["std"], capsize=6, color=f"C{i}", alpha=0.8)
-            dots = [p["mean_dice"] for p in row["per_pair"].values()
-                    if p["task"] == task and p["mean_dice"] is not None]
-            ax.scatter(np.full(len(dots), i) + np.linspace(-0.2, 0.2, len(dots)), dots, s=8, color="black",
-                       zorder=3)
+            dots = [
+                p["mean_dice"] for p in row["per_pair"].values() if p["task"] == task and p["mean_dice"] is not None
+            ]
+            ax.scatter(np.full(len(dots), i) + np.linspace(-0.2, 0.2, len(dots)), dots, s=8, color="black", zorder=3)
             ax.text(i, min(agg["mean"] + agg["std"] + 0.02, 0.97), f"{agg['mean']:.3f}", ha="center", fontsize=9)
         ax.set_xticks(range(len(rows)), [r["name"].replace(" + ", "\n+ ") for r in rows], fontsize=9)
         ax.set_ylim(0, 1)
@@ -173,8 +185,15 @@ def bar_chart(methods: dict[str, dict[str, Any]], tasks: Sequence[str], path: Pa
 
 
 # ------------------------------------------------------------------------------------------------ main
-def _methods(keys: Sequence[str], evaluate: ConfigParser, model_file: Path, refinement: RefinementSettings,
-             device: torch.device, labels: Sequence[int] | None, threads: int):
+def _methods(
+    keys: Sequence[str],
+    evaluate: ConfigParser,
+    model_file: Path,
+    refinement: RefinementSettings,
+    device: torch.device,
+    labels: Sequence[int] | None,
+    threads: int,
+):
     """Table rows (in :data:`METHODS` order) and, for the rows that can run, ``pair dict -> PairScores``.
 
     Returns (rows, runners, networks to warm up, antspyx version or None). A row that cannot run keeps a status
@@ -206,8 +225,13 @@ def _methods(keys: Sequence[str], evaluate: ConfigParser, model_file: Path, refi
             if settings is not None:
                 row["refinement"] = settings.as_dict()
             row["threads"] = threads if device.type == "cpu" else str(device)
-            runners[key] = (lambda net, r: lambda p: evaluate_pair(net, p["moving"], p["fixed"], p["moving_label"],
-                                                                    p["fixed_label"], labels, r)[0])(network, settings)
+            runners[key] = (
+                lambda net, r: (
+                    lambda p: evaluate_pair(
+                        net, p["moving"], p["fixed"], p["moving_label"], p["fixed_label"], labels, r
+                    )[0]
+                )
+            )(network, settings)
     return rows, runners, warmup, antspyx
 
 
@@ -225,22 +249,33 @@ def _task_pairs(dataset_dir: Path, subjects: Sequence[str], tasks: Sequence[str]
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET,
-                    help="atlas/, images/, labels/ (default: %(default)s)")
+    ap.add_argument(
+        "--dataset-dir", type=Path, default=DEFAULT_DATASET, help="atlas/, images/, labels/ (default: %(default)s)"
+    )
     ap.add_argument("--subjects", nargs="+", default=None, help="subject ids (default: val_ids of configs/train.yaml)")
     ap.add_argument("--tasks", nargs="+", choices=list(TASKS), default=list(TASKS), help="columns to compute")
     ap.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="rows to compute")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="CPU threads for torch and ITK (default: torch's default)")
+    ap.add_argument(
+        "--threads", type=int, default=None, help="CPU threads for torch and ITK (default: torch's default)"
+    )
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where accuracy_table.{json,png} go")
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle", help="bundle with configs/ and models/")
     ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
-    ap.add_argument("--refine-iterations", type=int, default=DEFAULT_REFINE_ITERATIONS,
-                    help="steps of the 'ours + refinement' row (default: %(default)s; the other settings: "
-                         "evaluate.yaml's refine_*)")
+    ap.add_argument(
+        "--refine-iterations",
+        type=int,
+        default=DEFAULT_REFINE_ITERATIONS,
+        help="steps of the 'ours + refinement' row (default: %(default)s; the other settings: "
+        "evaluate.yaml's refine_*)",
+    )
     ap.add_argument("--device", default=None, help="torch device for our models (default: evaluate.yaml's)")
-    ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
-                    help="override an evaluate.yaml value (YAML), e.g. network_size=[80,96,80]; repeatable")
+    ap.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an evaluate.yaml value (YAML), e.g. network_size=[80,96,80]; repeatable",
+    )
     args = ap.parse_args(argv)
 
     dataset_dir = args.dataset_dir.resolve()
@@ -255,8 +290,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(threads)  # ITK reads it once, at its first use
     bundle_root = args.bundle_root.resolve()
     overrides = parse_overrides(args.override)
-    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {**overrides, "dataset_dir": str(dataset_dir),
-                                                              "refine_iterations": args.refine_iterations})
+    evaluate = bundle_parser(
+        bundle_root,
+        ["evaluate.yaml"],
+        {**overrides, "dataset_dir": str(dataset_dir), "refine_iterations": args.refine_iterations},
+    )
     subjects = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     tasks = [t for t in TASKS if t in args.tasks]
     model_file = args.model_file or Path(evaluate.get_parsed_content("model_file"))
@@ -266,26 +304,39 @@ def main(argv: Sequence[str] | None = None) -> int:
     pairs = _task_pairs(dataset_dir, subjects, tasks)
     dataset = Dataset(pairs, transform=evaluate.get_parsed_content("preprocessing"))
     rows, runners, warmup, antspyx = _methods(args.methods, evaluate, model_file, refinement, device, labels, threads)
-    versions = {"python": platform.python_version(), "torch": torch.__version__, "monai": monai.__version__,
-                "numpy": np.__version__, "monai_probreg": monai_probreg.__version__, "antspyx": antspyx}
+    versions = {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "monai": monai.__version__,
+        "numpy": np.__version__,
+        "monai_probreg": monai_probreg.__version__,
+        "antspyx": antspyx,
+    }
     for row in rows.values():
         if row["status"] != "ok":
             print(f"{row['name']}: {row['status']}", flush=True)
 
-    print(f"{len(pairs)} pairs ({', '.join(tasks)}) of {len(subjects)} subjects; {threads} threads; device {device}",
-          flush=True)
+    print(
+        f"{len(pairs)} pairs ({', '.join(tasks)}) of {len(subjects)} subjects; {threads} threads; device {device}",
+        flush=True,
+    )
     scores: dict[str, dict[str, list[PairScores]]] = {key: {t: [] for t in tasks} for key in runners}
     for i, item in enumerate(dataset):
-        pair = {k: (v[None].to(device) if k in ("moving", "fixed") else v[None]) if isinstance(v, torch.Tensor) else v
-                for k, v in item.items()}
+        pair = {
+            k: (v[None].to(device) if k in ("moving", "fixed") else v[None]) if isinstance(v, torch.Tensor) else v
+            for k, v in item.items()
+        }
         for key, run in runners.items():
             if key in warmup:
                 register_pair(warmup.pop(key), pair["moving"], pair["fixed"])
             s = run(pair)
             scores[key][pair["task"]].append(s)
             rows[key]["per_pair"][pair["id"]] = {"task": pair["task"], **_pair_record(s)}
-            print(f"[{i + 1}/{len(pairs)}] {pair['id']} {METHODS[key]}: Dice {s.mean_dice:.3f}, "
-                  f"|J|<=0 {s.num_folding}, {s.runtime_s:.2f} s", flush=True)
+            print(
+                f"[{i + 1}/{len(pairs)}] {pair['id']} {METHODS[key]}: Dice {s.mean_dice:.3f}, "
+                f"|J|<=0 {s.num_folding}, {s.runtime_s:.2f} s",
+                flush=True,
+            )
     for key, row in rows.items():
         if key in scores:
             row["aggregate"] = {t: _aggregate(scores[key][t]) for t in tasks}
@@ -307,11 +358,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             "preprocessing (evaluate.yaml)": evaluate["preprocessing"],  # every method is scored on this grid
             "labels_scored": "every non-zero label of the fixed image" if labels is None else list(labels),
             "dice": "score_pair: nearest-neighbour warped moving labels vs fixed labels; std = population std over "
-                    "the pairs of a task",
+            "the pairs of a task",
             "folding": "|J| <= 0 voxels over the whole fixed grid; std log|J| over voxels with J > 0; both over "
-                       "every pair of every task",
+            "every pair of every task",
             "runtime": "ours: network + integration + warp (+ refinement) after one warm-up pass; ANTs: the "
-                       "ants.registration call",
+            "ants.registration call",
             "ants": ANTS_SETTINGS,
         },
         "versions": {**versions, "platform": platform.platform(), "cpu": platform.processor() or platform.machine()},

@@ -42,12 +42,18 @@ MAX_ROTATION_DEG, MAX_TRANSLATION_MM, MOVED_SPACING = 15.0, 20.0, (0.9, 1.5, 0.9
 
 def settings_to_compare() -> dict[str, AffineSettings]:
     default = AffineSettings()
-    two_levels = {"shrink_factors": (4, 2), "smoothing_sigmas_mm": (2.0, 1.0), "rigid_iterations": (30, 15),
-                  "affine_iterations": (30, 15)}
-    return {"no cap (5% of each level)": AffineSettings(max_samples=None),
-            f"default: at most {default.max_samples} points per level": default,
-            "at most 20000 points per level": AffineSettings(max_samples=20_000),
-            "levels 4 2 (no full-resolution level), no cap": AffineSettings(max_samples=None, **two_levels)}
+    two_levels = {
+        "shrink_factors": (4, 2),
+        "smoothing_sigmas_mm": (2.0, 1.0),
+        "rigid_iterations": (30, 15),
+        "affine_iterations": (30, 15),
+    }
+    return {
+        "no cap (5% of each level)": AffineSettings(max_samples=None),
+        f"default: at most {default.max_samples} points per level": default,
+        "at most 20000 points per level": AffineSettings(max_samples=20_000),
+        "levels 4 2 (no full-resolution level), no cap": AffineSettings(max_samples=None, **two_levels),
+    }
 
 
 def load_cases(dataset_dir: Path, native_dir: Path, subjects: Sequence[str], atlas) -> list[tuple[str, object, object]]:
@@ -63,8 +69,9 @@ def load_cases(dataset_dir: Path, native_dir: Path, subjects: Sequence[str], atl
     rng = np.random.default_rng(MOVE_SEED)
     for sid in subjects:
         image, labels = read_image(index.images[sid]), read_label(index.labels[sid])
-        moved, moved_labels, *_ = misalign(image, labels, atlas, rng, MAX_ROTATION_DEG, MAX_TRANSLATION_MM,
-                                           MOVED_SPACING)
+        moved, moved_labels, *_ = misalign(
+            image, labels, atlas, rng, MAX_ROTATION_DEG, MAX_TRANSLATION_MM, MOVED_SPACING
+        )
         cases.append((f"{sid} moved", moved, moved_labels))
     return cases
 
@@ -72,8 +79,9 @@ def load_cases(dataset_dir: Path, native_dir: Path, subjects: Sequence[str], atl
 def affine_dice(fixed, matrix: np.ndarray, moving_labels) -> float:
     warped = sample_nearest(moving_labels, apply_affine(matrix, fixed.points))
     ids = sorted(set(fixed.label_ids) & {int(v) for v in np.unique(moving_labels.array) if v != 0})
-    return mean_dice(label_dice(torch.from_numpy(warped.astype(np.int64)),
-                                torch.from_numpy(fixed.label.array.astype(np.int64)), ids))
+    return mean_dice(
+        label_dice(torch.from_numpy(warped.astype(np.int64)), torch.from_numpy(fixed.label.array.astype(np.int64)), ids)
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -100,16 +108,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             result = align(fixed.image, moving, settings, fixed.itk_image)
             seconds = time.perf_counter() - start
             per_case[cid] = {"dice": affine_dice(fixed, result.matrix, moving_labels), "seconds": seconds}
-        rows[name] = {"mean_dice": float(np.mean([c["dice"] for c in per_case.values()])),
-                      "mean_seconds": float(np.mean([c["seconds"] for c in per_case.values()])),
-                      "settings": settings.as_dict(), "cases": per_case}
-        print(f"{name}: affine-only Dice {rows[name]['mean_dice']:.4f}, {rows[name]['mean_seconds']:.2f} s per case",
-              flush=True)
+        rows[name] = {
+            "mean_dice": float(np.mean([c["dice"] for c in per_case.values()])),
+            "mean_seconds": float(np.mean([c["seconds"] for c in per_case.values()])),
+            "settings": settings.as_dict(),
+            "cases": per_case,
+        }
+        print(
+            f"{name}: affine-only Dice {rows[name]['mean_dice']:.4f}, {rows[name]['mean_seconds']:.2f} s per case",
+            flush=True,
+        )
     lines = ["| setting | mean affine-only Dice | s per case |", "|---|---|---|"]
     lines += [f"| {name} | {r['mean_dice']:.4f} | {r['mean_seconds']:.2f} |" for name, r in rows.items()]
     table = "\n".join(lines)
-    result = {"cases": [cid for cid, *_ in cases], "threads": args.threads, "move_seed": MOVE_SEED, "rows": rows,
-              "markdown": table, "versions": library_versions()}  # write_text creates the folder
+    result = {
+        "cases": [cid for cid, *_ in cases],
+        "threads": args.threads,
+        "move_seed": MOVE_SEED,
+        "rows": rows,
+        "markdown": table,
+        "versions": library_versions(),
+    }  # write_text creates the folder
     path = write_text(args.out_dir / "affine_levers.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{table}\n\nwrote {path}", flush=True)
     return 0

@@ -70,10 +70,15 @@ def process_seconds(code: str, repeats: int) -> float:
 def gzip_row(repeats: int) -> dict:
     rng = np.random.default_rng(SEED)
     field = (rng.normal(size=(*MOVING_SHAPE, 3)) * 3.0).astype(np.float32).tobytes()
-    return {"before": best_of(lambda: gzip.compress(field, 1, mtime=0), repeats),
-            "after": best_of(lambda: igzip.compress(field, GZIP_LEVEL, mtime=0), repeats),
-            "megabytes": {"raw": len(field) / 1e6, "zlib": len(gzip.compress(field, 1, mtime=0)) / 1e6,
-                          "isal": len(igzip.compress(field, GZIP_LEVEL, mtime=0)) / 1e6}}
+    return {
+        "before": best_of(lambda: gzip.compress(field, 1, mtime=0), repeats),
+        "after": best_of(lambda: igzip.compress(field, GZIP_LEVEL, mtime=0), repeats),
+        "megabytes": {
+            "raw": len(field) / 1e6,
+            "zlib": len(gzip.compress(field, 1, mtime=0)) / 1e6,
+            "isal": len(igzip.compress(field, GZIP_LEVEL, mtime=0)) / 1e6,
+        },
+    }
 
 
 def point_transform_row(repeats: int) -> dict:
@@ -96,26 +101,35 @@ def jacobian_row(repeats: int) -> dict:
         return torch.linalg.det(jac.movedim((1, 2), (-2, -1)))
 
     difference = float((stacked_det() - jacobian_determinant(ddf)).abs().max())
-    return {"before": best_of(stacked_det, repeats), "after": best_of(lambda: jacobian_determinant(ddf), repeats),
-            "max_difference": difference}
+    return {
+        "before": best_of(stacked_det, repeats),
+        "after": best_of(lambda: jacobian_determinant(ddf), repeats),
+        "max_difference": difference,
+    }
 
 
 def exit_row(repeats: int) -> dict:
     imports = "import monai_probreg.cli.pipeline"
-    return {"before": process_seconds(imports, repeats),
-            "after": process_seconds(f"{imports}; import os, sys; sys.stdout.flush(); os._exit(0)", repeats)}
+    return {
+        "before": process_seconds(imports, repeats),
+        "after": process_seconds(f"{imports}; import os, sys; sys.stdout.flush(); os._exit(0)", repeats),
+    }
 
 
 def dynamo_row(repeats: int) -> dict:
-    return {"before": process_seconds("import torch", repeats),
-            "after": process_seconds("import torch, torch._dynamo", repeats)}
+    return {
+        "before": process_seconds("import torch", repeats),
+        "after": process_seconds("import torch, torch._dynamo", repeats),
+    }
 
 
-ROWS = {"gzip (98 MB field): zlib 1 -> ISA-L 1": gzip_row,
-        "point transform (4.9 M points): numpy -> torch.addmm": point_transform_row,
-        "jacobian (160x192x160): linalg.det -> cofactors": jacobian_row,
-        "process exit after the command's imports: teardown -> os._exit": exit_row,
-        "import torch -> + torch._dynamo (first LBFGS)": dynamo_row}
+ROWS = {
+    "gzip (98 MB field): zlib 1 -> ISA-L 1": gzip_row,
+    "point transform (4.9 M points): numpy -> torch.addmm": point_transform_row,
+    "jacobian (160x192x160): linalg.det -> cofactors": jacobian_row,
+    "process exit after the command's imports: teardown -> os._exit": exit_row,
+    "import torch -> + torch._dynamo (first LBFGS)": dynamo_row,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -130,11 +144,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows[name] = measure(args.repeats)
         print(f"{name}: {rows[name]['before']:.3f} s -> {rows[name]['after']:.3f} s", flush=True)
     lines = ["| lever | before (s) | after (s) | ratio |", "|---|---|---|---|"]
-    lines += [f"| {name} | {r['before']:.3f} | {r['after']:.3f} | {r['before'] / r['after']:.2f} |"
-              for name, r in rows.items()]
+    lines += [
+        f"| {name} | {r['before']:.3f} | {r['after']:.3f} | {r['before'] / r['after']:.2f} |"
+        for name, r in rows.items()
+    ]
     table = "\n".join(lines)
-    result = {"threads": args.threads, "repeats": args.repeats, "rows": rows, "markdown": table,
-              "versions": {**library_versions(), "platform": platform.platform()}}  # write_text creates the folder
+    result = {
+        "threads": args.threads,
+        "repeats": args.repeats,
+        "rows": rows,
+        "markdown": table,
+        "versions": {**library_versions(), "platform": platform.platform()},
+    }  # write_text creates the folder
     path = write_text(args.out_dir / "command_levers.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{table}\n\nwrote {path}", flush=True)
     return 0

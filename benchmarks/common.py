@@ -70,8 +70,9 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise SystemExit(f"--override expects KEY=VALUE (VALUE in YAML, e.g. network_size=[80,96,80]); "
-                             f"got {item!r}")
+            raise SystemExit(
+                f"--override expects KEY=VALUE (VALUE in YAML, e.g. network_size=[80,96,80]); got {item!r}"
+            )
         overrides[key] = yaml.safe_load(value)
     return overrides
 
@@ -89,8 +90,9 @@ def ants_available() -> tuple[bool, str]:
     return True, getattr(ants, "__version__", "unknown")
 
 
-def ants_register(moving: torch.Tensor, fixed: torch.Tensor, moving_label: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor, float]:
+def ants_register(
+    moving: torch.Tensor, fixed: torch.Tensor, moving_label: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, float]:
     """ANTs SyN of ``moving`` onto ``fixed`` (both (1, 1, *S) on one grid) with antspyx defaults.
 
     Returns (moving labels warped nearest neighbour by ANTs (1, 1, *S) int16, the composed forward displacement

@@ -41,13 +41,40 @@ def epoch_times(log: str) -> dict[int, float]:
 
 def train(nproc: int, args: argparse.Namespace, work: Path) -> dict[int, float]:
     configs = [str(REPO / "bundle" / "configs" / n) for n in ("train.yaml", "multi_gpu_train.yaml")]
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
-           "-m", "monai.bundle", "run", "--config_file", "[" + ",".join(f"'{c}'" for c in configs) + "]",
-           "--bundle_root", str(REPO / "bundle"), "--dataset_dir", str(args.dataset_dir),
-           "--ckpt_dir", str(work / f"ckpt{nproc}"), "--output_dir", str(work / f"runs{nproc}"),
-           "--network_size", str(list(args.network_size)), "--train_ids", str(list(args.train_ids)),
-           "--val_ids", str([args.val_id]), "--val_interval", str(args.epochs + 1), "--max_epochs", str(args.epochs),
-           "--num_workers", "0", "--resume", "false"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        f"--nproc_per_node={nproc}",
+        "-m",
+        "monai.bundle",
+        "run",
+        "--config_file",
+        "[" + ",".join(f"'{c}'" for c in configs) + "]",
+        "--bundle_root",
+        str(REPO / "bundle"),
+        "--dataset_dir",
+        str(args.dataset_dir),
+        "--ckpt_dir",
+        str(work / f"ckpt{nproc}"),
+        "--output_dir",
+        str(work / f"runs{nproc}"),
+        "--network_size",
+        str(list(args.network_size)),
+        "--train_ids",
+        str(list(args.train_ids)),
+        "--val_ids",
+        str([args.val_id]),
+        "--val_interval",
+        str(args.epochs + 1),
+        "--max_epochs",
+        str(args.epochs),
+        "--num_workers",
+        "0",
+        "--resume",
+        "false",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "CUDA_VISIBLE_DEVICES": ""}
     print(f"training with {nproc} process(es) x {args.threads} thread(s) ...", flush=True)
     done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
@@ -75,12 +102,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         runs = {n: train(n, args, Path(tmp)) for n in (1, args.nproc)}
     timed = {n: statistics.median([t for e, t in times.items() if e > WARMUP_EPOCHS]) for n, times in runs.items()}
     speedup = timed[1] / timed[args.nproc]
-    result = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-              "epoch_times_s": {str(n): runs[n] for n in runs}, "median_epoch_s": {str(n): timed[n] for n in timed},
-              "speedup": speedup, "efficiency": speedup / args.nproc}
-    table = ("| processes x threads | s per epoch (median, epochs > 1) | speed-up | efficiency |\n|---|---|---|---|\n"
-             + "\n".join(f"| {n} x {args.threads} | {timed[n]:.2f} | {timed[1] / timed[n]:.2f} | "
-                         f"{timed[1] / timed[n] / n:.0%} |" for n in (1, args.nproc)))
+    result = {
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "epoch_times_s": {str(n): runs[n] for n in runs},
+        "median_epoch_s": {str(n): timed[n] for n in timed},
+        "speedup": speedup,
+        "efficiency": speedup / args.nproc,
+    }
+    table = (
+        "| processes x threads | s per epoch (median, epochs > 1) | speed-up | efficiency |\n|---|---|---|---|\n"
+        + "\n".join(
+            f"| {n} x {args.threads} | {timed[n]:.2f} | {timed[1] / timed[n]:.2f} | {timed[1] / timed[n] / n:.0%} |"
+            for n in (1, args.nproc)
+        )
+    )
     args.out_dir.mkdir(parents=True, exist_ok=True)
     path = args.out_dir / "ddp_scaling.json"
     path.write_text(json.dumps({**result, "markdown": table}, indent=2) + "\n")

@@ -75,8 +75,9 @@ def ants_case(fixed, seed: int, settings: SyntheticSettings) -> dict:
         start = time.perf_counter()
         result = ants.registration(fixed_img, moving_img, type_of_transform="SyN", outprefix=f"{tmp}/tx_")
         seconds = time.perf_counter() - start
-        field = ants.image_read(ants.apply_transforms(fixed_img, moving_img, result["fwdtransforms"],
-                                                      compose=f"{tmp}/composed_"))  # double vectors: ITK's Python can't
+        field = ants.image_read(
+            ants.apply_transforms(fixed_img, moving_img, result["fwdtransforms"], compose=f"{tmp}/composed_")
+        )  # double vectors: ITK's Python can't
     # ANTs' arrays are in ITK index order (i, j, k), like our Volumes; the vectors are LPS mm (ITK's physical space)
     warp = np.ascontiguousarray(field.numpy(), dtype=np.float64)
     index_to_lps = np.eye(4)
@@ -90,13 +91,20 @@ def ants_case(fixed, seed: int, settings: SyntheticSettings) -> dict:
 
 def _row_means(cases: dict[str, dict]) -> dict:
     drawn = [c for name, c in cases.items() if name != "identity"]
-    mean = lambda key, part: (None if drawn[0][key] is None else float(np.mean([c[key][part] for c in drawn])))
-    return {"before_median_mm": mean("before", "median_mm"), "affine_median_mm": mean("affine_only", "median_mm"),
-            "after_median_mm": mean("after", "median_mm"), "after_p95_mm": mean("after", "p95_mm"),
-            "coverage": None if drawn[0]["coverage"] is None else float(np.mean([c["coverage"] for c in drawn])),
-            "identity_after_median_mm": cases["identity"]["after"]["median_mm"],
-            "identity_coverage": cases["identity"]["coverage"],
-            "seconds": float(np.mean([c["seconds"] for c in drawn]))}
+
+    def mean(key, part):
+        return None if drawn[0][key] is None else float(np.mean([c[key][part] for c in drawn]))
+
+    return {
+        "before_median_mm": mean("before", "median_mm"),
+        "affine_median_mm": mean("affine_only", "median_mm"),
+        "after_median_mm": mean("after", "median_mm"),
+        "after_p95_mm": mean("after", "p95_mm"),
+        "coverage": None if drawn[0]["coverage"] is None else float(np.mean([c["coverage"] for c in drawn])),
+        "identity_after_median_mm": cases["identity"]["after"]["median_mm"],
+        "identity_coverage": cases["identity"]["coverage"],
+        "seconds": float(np.mean([c["seconds"] for c in drawn])),
+    }
 
 
 def _cell(value: float | None, digits: int = 2) -> str:
@@ -120,39 +128,65 @@ def main(argv: Sequence[str] | None = None) -> int:
     for model_file in args.model_files:
         model = load_model(model_file=model_file)
         for steps in args.refine:
-            options = RegistrationOptions(samples=args.samples, refinement=dataclasses.replace(
-                model.refinement, num_iterations=steps))
+            options = RegistrationOptions(
+                samples=args.samples, refinement=dataclasses.replace(model.refinement, num_iterations=steps)
+            )
             name = f"{model.model_file.name}" + (f" + refine {steps}" if steps else "")
             cases = {"identity": one_case(model, fixed, 0, IDENTITY, options)}
             for seed in args.seeds:
                 seeded = dataclasses.replace(options, seed=seed, affine=dataclasses.replace(options.affine, seed=seed))
                 cases[f"seed {seed}"] = one_case(model, fixed, seed, SyntheticSettings(), seeded)  # as the command
                 c = cases[f"seed {seed}"]
-                print(f"{name}, seed {seed}: before {c['before']['median_mm']:.2f}, affine "
-                      f"{c['affine_only']['median_mm']:.2f}, after {c['after']['median_mm']:.2f} mm median; "
-                      f"coverage {c['coverage']:.3f}; {c['seconds']:.1f} s", flush=True)
-            rows[name] = {"model_file": str(model.model_file), "refine": steps, "means": _row_means(cases),
-                          "cases": cases}
+                print(
+                    f"{name}, seed {seed}: before {c['before']['median_mm']:.2f}, affine "
+                    f"{c['affine_only']['median_mm']:.2f}, after {c['after']['median_mm']:.2f} mm median; "
+                    f"coverage {c['coverage']:.3f}; {c['seconds']:.1f} s",
+                    flush=True,
+                )
+            rows[name] = {
+                "model_file": str(model.model_file),
+                "refine": steps,
+                "means": _row_means(cases),
+                "cases": cases,
+            }
     if args.ants:
         cases = {"identity": ants_case(fixed, 0, IDENTITY)}
         for seed in args.seeds:
             cases[f"seed {seed}"] = c = ants_case(fixed, seed, SyntheticSettings())
-            print(f"ANTs SyN, seed {seed}: before {c['before']['median_mm']:.2f}, after {c['after']['median_mm']:.2f} "
-                  f"mm median; {c['seconds']:.1f} s", flush=True)
-        rows["ANTs SyN"] = {"call": 'ants.registration(fixed, moving, type_of_transform="SyN")', "refine": 0,
-                            "means": _row_means(cases), "cases": cases}
-    lines = ["| weights | before | affine only | after (median / p95) | 95% coverage | identity: after | s |",
-             "|---|---|---|---|---|---|---|"]
+            print(
+                f"ANTs SyN, seed {seed}: before {c['before']['median_mm']:.2f}, after {c['after']['median_mm']:.2f} "
+                f"mm median; {c['seconds']:.1f} s",
+                flush=True,
+            )
+        rows["ANTs SyN"] = {
+            "call": 'ants.registration(fixed, moving, type_of_transform="SyN")',
+            "refine": 0,
+            "means": _row_means(cases),
+            "cases": cases,
+        }
+    lines = [
+        "| weights | before | affine only | after (median / p95) | 95% coverage | identity: after | s |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, row in rows.items():
         m = row["means"]
-        lines.append(f"| {name} | {m['before_median_mm']:.2f} | {_cell(m['affine_median_mm'])} | "
-                     f"{m['after_median_mm']:.2f} / {m['after_p95_mm']:.2f} | {_cell(m['coverage'], 3)} | "
-                     f"{m['identity_after_median_mm']:.2f} | {m['seconds']:.1f} |")
+        lines.append(
+            f"| {name} | {m['before_median_mm']:.2f} | {_cell(m['affine_median_mm'])} | "
+            f"{m['after_median_mm']:.2f} / {m['after_p95_mm']:.2f} | {_cell(m['coverage'], 3)} | "
+            f"{m['identity_after_median_mm']:.2f} | {m['seconds']:.1f} |"
+        )
     table = "\n".join(lines)
-    result = {"seeds": args.seeds, "samples": args.samples, "threads": args.threads, "rows": rows,
-              "settings": SyntheticSettings().as_dict(), "template": str(mni152_template_path()),
-              "errors": "mean over the seeds of each subject's median (and 95th percentile) error in the brain, mm",
-              "markdown": table, "versions": library_versions()}
+    result = {
+        "seeds": args.seeds,
+        "samples": args.samples,
+        "threads": args.threads,
+        "rows": rows,
+        "settings": SyntheticSettings().as_dict(),
+        "template": str(mni152_template_path()),
+        "errors": "mean over the seeds of each subject's median (and 95th percentile) error in the brain, mm",
+        "markdown": table,
+        "versions": library_versions(),
+    }
     path = write_text(args.out_dir / "demo_recovery.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{table}\n\nwrote {path}", flush=True)
     return 0

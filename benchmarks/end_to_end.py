@@ -62,8 +62,12 @@ LEAN = ("--no-inverse", "--no-maps", "--no-qc")
 DEFAULT_BATCH_SIZE = 8  # register-batch throughput over this many scans (the issue asks for >= 8)
 STAGES = ("read", "affine", "resample", "model", "refine", "maps", "samples", "quality", "compose", "qc", "write")
 # the floor of start-up: fresh processes that only import (each is timed from process start to exit)
-IMPORT_FLOOR = {"python": "pass", "torch": "import torch", "monai": "import monai",
-                "the command's modules": "import monai_probreg.cli.pipeline"}
+IMPORT_FLOOR = {
+    "python": "pass",
+    "torch": "import torch",
+    "monai": "import monai",
+    "the command's modules": "import monai_probreg.cli.pipeline",
+}
 REPRODUCED_FILES = ("warp.nii.gz", "affine.tfm")  # compared byte for byte between "ours" and "ours, again"
 
 
@@ -92,18 +96,40 @@ def atlas_files(dataset_dir: Path) -> tuple[Path, Path]:
 def shared_dice(warped_label: np.ndarray, fixed_label: np.ndarray, moving_ids: set[int]) -> dict:
     """Dice per label over the labels of both maps (the moving map's ids before warping), with the package's rule."""
     ids = sorted(moving_ids & {int(v) for v in np.unique(fixed_label) if v != 0})
-    per_label = label_dice(torch.from_numpy(np.rint(warped_label).astype(np.int64)),
-                           torch.from_numpy(fixed_label.astype(np.int64)), ids)
-    return {"mean": mean_dice(per_label), "num_labels": len(ids),
-            "per_label": {str(k): v for k, v in per_label.items()}}
+    per_label = label_dice(
+        torch.from_numpy(np.rint(warped_label).astype(np.int64)), torch.from_numpy(fixed_label.astype(np.int64)), ids
+    )
+    return {
+        "mean": mean_dice(per_label),
+        "num_labels": len(ids),
+        "per_label": {str(k): v for k, v in per_label.items()},
+    }
 
 
-def run_ours(scan: Path, labels: Path, atlas: Path, atlas_label: Path, out: Path, threads: int,
-             extra: Sequence[str] = ()) -> dict:
+def run_ours(
+    scan: Path, labels: Path, atlas: Path, atlas_label: Path, out: Path, threads: int, extra: Sequence[str] = ()
+) -> dict:
     """The command in a fresh process; its summary.json plus the process wall time."""
-    cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register", "--moving", str(scan), "--moving-label",
-           str(labels), "--fixed", str(atlas), "--fixed-label", str(atlas_label), "--out", str(out), "--threads",
-           str(threads), "--quiet", *extra]
+    cmd = [
+        sys.executable,
+        "-m",
+        "monai_probreg.cli.main",
+        "register",
+        "--moving",
+        str(scan),
+        "--moving-label",
+        str(labels),
+        "--fixed",
+        str(atlas),
+        "--fixed-label",
+        str(atlas_label),
+        "--out",
+        str(out),
+        "--threads",
+        str(threads),
+        "--quiet",
+        *extra,
+    ]
     start = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - start
@@ -122,8 +148,9 @@ def run_ants(kind: str, scan: Path, labels: Path, atlas: Path) -> tuple[np.ndarr
         start = time.perf_counter()
         result = ants.registration(fixed, moving, type_of_transform=kind, outprefix=f"{tmp}/tx_")
         seconds = time.perf_counter() - start
-        warped = ants.apply_transforms(fixed, ants.image_read(str(labels)), result["fwdtransforms"],
-                                       interpolator="nearestNeighbor")
+        warped = ants.apply_transforms(
+            fixed, ants.image_read(str(labels)), result["fwdtransforms"], interpolator="nearestNeighbor"
+        )
     return warped.numpy(), seconds
 
 
@@ -137,13 +164,20 @@ def synthetic_scan(dataset_dir: Path, subject: str, atlas: Path, folder: Path) -
     index = index_dataset(dataset_dir)
     image, labels = read_image(index.images[subject]), read_label(index.labels[subject])
     image = image.with_array((image.array - image.array.min()) / (image.array.max() - image.array.min()))
-    moved, moved_labels, _, angles, translation = misalign(image, labels, read_image(atlas), np.random.default_rng(0),
-                                                           15.0, 20.0, (0.9, 1.5, 0.9))
+    moved, moved_labels, _, angles, translation = misalign(
+        image, labels, read_image(atlas), np.random.default_rng(0), 15.0, 20.0, (0.9, 1.5, 0.9)
+    )
     sid = f"{subject}_moved"
-    print(f"{sid}: rotation {np.round(angles, 1).tolist()} deg, translation {np.round(translation, 1).tolist()} mm, "
-          f"grid {list(moved.shape)}", flush=True)
-    return (sid, write_volume(folder / f"{sid}.nii.gz", moved, np.int16),
-            write_volume(folder / f"{sid}_labels.nii.gz", moved_labels, np.int16))
+    print(
+        f"{sid}: rotation {np.round(angles, 1).tolist()} deg, translation {np.round(translation, 1).tolist()} mm, "
+        f"grid {list(moved.shape)}",
+        flush=True,
+    )
+    return (
+        sid,
+        write_volume(folder / f"{sid}.nii.gz", moved, np.int16),
+        write_volume(folder / f"{sid}_labels.nii.gz", moved_labels, np.int16),
+    )
 
 
 def run_batch(dataset_dir: Path, atlas: Path, threads: int, size: int) -> dict | None:
@@ -159,16 +193,34 @@ def run_batch(dataset_dir: Path, atlas: Path, threads: int, size: int) -> dict |
         scans.mkdir()
         for image in images:
             (scans / Path(image).name).symlink_to(image)
-        cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register-batch", "--moving", str(scans), "--fixed",
-               str(atlas), "--out", f"{tmp}/out", "--threads", str(threads), "--quiet"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "monai_probreg.cli.main",
+            "register-batch",
+            "--moving",
+            str(scans),
+            "--fixed",
+            str(atlas),
+            "--out",
+            f"{tmp}/out",
+            "--threads",
+            str(threads),
+            "--quiet",
+        ]
         start = time.perf_counter()
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)
         wall = time.perf_counter() - start
         if done.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr[-2000:]}")
         totals = [json.loads(p.read_text())["timings_s"]["total"] for p in Path(tmp, "out").glob("*/summary.json")]
-    return {"num_scans": len(totals), "wall_s": wall, "scan_totals_s": totals,
-            "scans_per_minute": 60.0 * len(totals) / sum(totals), "scans_per_minute_whole": 60.0 * len(totals) / wall}
+    return {
+        "num_scans": len(totals),
+        "wall_s": wall,
+        "scan_totals_s": totals,
+        "scans_per_minute": 60.0 * len(totals) / sum(totals),
+        "scans_per_minute_whole": 60.0 * len(totals) / wall,
+    }
 
 
 def import_floor(repeats: int = 3) -> dict[str, float]:
@@ -187,11 +239,16 @@ def import_floor(repeats: int = 3) -> dict[str, float]:
 
 def row_names(refine_iterations: int) -> dict[str, str]:
     """Table and figure labels of the rows."""
-    return {"ours": "ours (command, process wall)", "ours_again": "ours, again (same files as the first run?)",
-            "ours_lean": "ours, lean (" + " ".join(LEAN) + ")", "ours_itk": "ours, --affine-backend itk",
-            "ours_itk_nondeterministic": "ours, --affine-backend itk --nondeterministic-affine",
-            "ours_refined": f"ours + refinement ({refine_iterations} steps)",
-            "ants_affine": "ANTs Affine (registration call)", "ants_syn": "ANTs SyN (registration call)"}
+    return {
+        "ours": "ours (command, process wall)",
+        "ours_again": "ours, again (same files as the first run?)",
+        "ours_lean": "ours, lean (" + " ".join(LEAN) + ")",
+        "ours_itk": "ours, --affine-backend itk",
+        "ours_itk_nondeterministic": "ours, --affine-backend itk --nondeterministic-affine",
+        "ours_refined": f"ours + refinement ({refine_iterations} steps)",
+        "ants_affine": "ANTs Affine (registration call)",
+        "ants_syn": "ANTs SyN (registration call)",
+    }
 
 
 def stage_figure(rows: dict, names: dict, path: Path) -> Path:
@@ -209,7 +266,8 @@ def stage_figure(rows: dict, names: dict, path: Path) -> Path:
         r = next(iter(rows[key].values()))
         left = 0.0
         parts = [("start-up", r["wall_s"] - r["stages_s"]["total"])] + [
-            (s, r["stages_s"][s]) for s in STAGES if s in r["stages_s"]]
+            (s, r["stages_s"][s]) for s in STAGES if s in r["stages_s"]
+        ]
         for stage, seconds in parts:
             ax.barh(row, seconds, left=left, color=colours[stage], label=None if stage in labelled else stage)
             labelled.add(stage)
@@ -231,13 +289,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE, help="native scans with <id>_labels.nii.gz")
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where end_to_end.json goes")
     ap.add_argument("--threads", type=int, default=2, help="threads for every tool (default: %(default)s)")
-    ap.add_argument("--refine-iterations", type=int, default=DEFAULT_REFINE_ITERATIONS,
-                    help="--refine of the 'ours + refinement' row (default: %(default)s)")
+    ap.add_argument(
+        "--refine-iterations",
+        type=int,
+        default=DEFAULT_REFINE_ITERATIONS,
+        help="--refine of the 'ours + refinement' row (default: %(default)s)",
+    )
     ap.add_argument("--no-ants", action="store_true", help="leave the ANTs rows out")
-    ap.add_argument("--synthetic", default="S11", help="subject moved and resampled as one more scan ('' for none; "
-                    "default: %(default)s)")
-    ap.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE,
-                    help="scans for the register-batch throughput (0: leave it out; default: %(default)s)")
+    ap.add_argument(
+        "--synthetic",
+        default="S11",
+        help="subject moved and resampled as one more scan ('' for none; default: %(default)s)",
+    )
+    ap.add_argument(
+        "--batch-size",
+        type=int,
+        default=DEFAULT_BATCH_SIZE,
+        help="scans for the register-batch throughput (0: leave it out; default: %(default)s)",
+    )
     args = ap.parse_args(argv)
     for folder in (args.dataset_dir, args.native_dir):
         if not folder.resolve().is_dir():
@@ -262,10 +331,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for sid, scan, labels in scans:
         moving_ids = {int(v) for v in np.unique(np.asanyarray(nib.load(labels).dataobj)) if v != 0}
         with tempfile.TemporaryDirectory(prefix="e2e_") as tmp:
-            variants = (("ours", []), ("ours_again", []), ("ours_lean", list(LEAN)),
-                        ("ours_itk", ["--affine-backend", "itk"]),
-                        ("ours_itk_nondeterministic", ["--affine-backend", "itk", "--nondeterministic-affine"]),
-                        ("ours_refined", ["--refine", str(args.refine_iterations)]))
+            variants = (
+                ("ours", []),
+                ("ours_again", []),
+                ("ours_lean", list(LEAN)),
+                ("ours_itk", ["--affine-backend", "itk"]),
+                ("ours_itk_nondeterministic", ["--affine-backend", "itk", "--nondeterministic-affine"]),
+                ("ours_refined", ["--refine", str(args.refine_iterations)]),
+            )
             for key, extra in variants:
                 out = Path(tmp) / key
                 ran = run_ours(scan, labels, atlas, atlas_label, out, args.threads, extra)
@@ -276,10 +349,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "dice_affine_only": summary["dice"]["mean_affine_only"],
                     "dice_command_summary": summary["dice"]["mean"],
                     "num_folding": summary["jacobian"]["num_nonpositive"],
-                    "wall_s": ran["wall_s"], "stages_s": summary["timings_s"], "sha256": file_digests(out)}
-                print(f"{sid} {key}: Dice {rows[key][sid]['dice']['mean']:.3f} (affine only "
-                      f"{rows[key][sid]['dice_affine_only']:.3f}), |J|<=0 {rows[key][sid]['num_folding']}, "
-                      f"{ran['wall_s']:.1f} s wall", flush=True)
+                    "wall_s": ran["wall_s"],
+                    "stages_s": summary["timings_s"],
+                    "sha256": file_digests(out),
+                }
+                print(
+                    f"{sid} {key}: Dice {rows[key][sid]['dice']['mean']:.3f} (affine only "
+                    f"{rows[key][sid]['dice_affine_only']:.3f}), |J|<=0 {rows[key][sid]['num_folding']}, "
+                    f"{ran['wall_s']:.1f} s wall",
+                    flush=True,
+                )
         for key, kind in ANTS_TYPES.items():
             if antspyx is None or antspyx.startswith("skipped"):
                 continue
@@ -291,24 +370,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     for sid, again in rows.get("ours_again", {}).items():
         again["identical_to_first_run"] = again["sha256"] == rows["ours"][sid]["sha256"]
     names = row_names(args.refine_iterations)
-    lines = ["| scan | method | mean Dice (labels of both maps) | affine-only Dice | \\|J\\|<=0 | s |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "| scan | method | mean Dice (labels of both maps) | affine-only Dice | \\|J\\|<=0 | s |",
+        "|---|---|---|---|---|---|",
+    ]
     for key, per_scan in rows.items():
         for sid, r in per_scan.items():
             affine = f"{r['dice_affine_only']:.3f}" if "dice_affine_only" in r else "–"
             folding = r.get("num_folding", "–")
             same = {True: ": identical", False: ": DIFFERENT"}.get(r.get("identical_to_first_run"), "")
-            lines.append(f"| {sid} | {names[key]}{same} | {r['dice']['mean']:.3f} ({r['dice']['num_labels']} labels) | "
-                         f"{affine} | {folding} | {r['wall_s']:.1f} |")
+            lines.append(
+                f"| {sid} | {names[key]}{same} | {r['dice']['mean']:.3f} ({r['dice']['num_labels']} labels) | "
+                f"{affine} | {folding} | {r['wall_s']:.1f} |"
+            )
     if antspyx is not None and antspyx.startswith("skipped"):
         lines.append(f"| all | ANTs | {antspyx} | | | |")
     for sid, r in rows.get("ours_itk_nondeterministic", {}).items():
-        lines.append(f"| {sid} | ITK backend's cost of determinism: one work unit / multi-threaded, process wall | "
-                     f"{rows['ours_itk'][sid]['wall_s'] / r['wall_s']:.2f}x | affine stage "
-                     f"{rows['ours_itk'][sid]['stages_s']['affine'] / r['stages_s']['affine']:.2f}x | | |")
-        lines.append(f"| {sid} | ours (torch affine, deterministic) / ITK multi-threaded, process wall | "
-                     f"{rows['ours'][sid]['wall_s'] / r['wall_s']:.2f}x | affine stage "
-                     f"{rows['ours'][sid]['stages_s']['affine'] / r['stages_s']['affine']:.2f}x | | |")
+        lines.append(
+            f"| {sid} | ITK backend's cost of determinism: one work unit / multi-threaded, process wall | "
+            f"{rows['ours_itk'][sid]['wall_s'] / r['wall_s']:.2f}x | affine stage "
+            f"{rows['ours_itk'][sid]['stages_s']['affine'] / r['stages_s']['affine']:.2f}x | | |"
+        )
+        lines.append(
+            f"| {sid} | ours (torch affine, deterministic) / ITK multi-threaded, process wall | "
+            f"{rows['ours'][sid]['wall_s'] / r['wall_s']:.2f}x | affine stage "
+            f"{rows['ours'][sid]['stages_s']['affine'] / r['stages_s']['affine']:.2f}x | | |"
+        )
     for sid, r in rows.get("ants_syn", {}).items():
         for key in ("ours", "ours_lean"):
             if sid in rows.get(key, {}):
@@ -316,19 +403,36 @@ def main(argv: Sequence[str] | None = None) -> int:
                 lines.append(f"| {sid} | {names[key]}: faster than ANTs SyN by (wall) | {ratio:.1f}x | | | |")
     batch = run_batch(args.dataset_dir.resolve(), atlas, args.threads, args.batch_size) if args.batch_size else None
     if batch is not None:
-        lines.append(f"| {batch['num_scans']} aligned scans | register-batch: {batch['scans_per_minute']:.1f} scans/min "
-                     f"after start-up ({batch['scans_per_minute_whole']:.1f} over the whole process) | | | | "
-                     f"{batch['wall_s']:.1f} |")
+        lines.append(
+            f"| {batch['num_scans']} aligned scans | register-batch: {batch['scans_per_minute']:.1f} scans/min "
+            f"after start-up ({batch['scans_per_minute_whole']:.1f} over the whole process) | | | | "
+            f"{batch['wall_s']:.1f} |"
+        )
     floor = import_floor()
-    lines.append("| floor | fresh process, import and exit: " + ", ".join(f"{k} {v:.1f} s" for k, v in floor.items())
-                 + " | | | | |")
+    lines.append(
+        "| floor | fresh process, import and exit: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in floor.items())
+        + " | | | | |"
+    )
     table = "\n".join(lines)
-    result = {"import_floor_s": floor, "atlas": str(atlas), "atlas_label": str(atlas_label), "scans": [str(s) for _, s, _ in scans],
-              "threads": args.threads, "refine_iterations": args.refine_iterations, "rows": rows, "batch": batch,
-              "markdown": table,
-              "versions": {"python": platform.python_version(), "torch": torch.__version__,
-                           "monai_probreg": monai_probreg.__version__, "antspyx": antspyx,
-                           "platform": platform.platform()}}
+    result = {
+        "import_floor_s": floor,
+        "atlas": str(atlas),
+        "atlas_label": str(atlas_label),
+        "scans": [str(s) for _, s, _ in scans],
+        "threads": args.threads,
+        "refine_iterations": args.refine_iterations,
+        "rows": rows,
+        "batch": batch,
+        "markdown": table,
+        "versions": {
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "monai_probreg": monai_probreg.__version__,
+            "antspyx": antspyx,
+            "platform": platform.platform(),
+        },
+    }
     args.out_dir.mkdir(parents=True, exist_ok=True)
     path = write_text(args.out_dir / "end_to_end.json", json.dumps(result, indent=2) + "\n")
     figure = stage_figure(rows, names, args.out_dir / "end_to_end.png")

@@ -81,8 +81,11 @@ def load_scans(dataset_dir: Path, ids: list[str], divisor: int) -> dict[str, dic
     for item in Dataset(scan_dicts(index, ids, include_atlas=True, require_labels=True), transform=transform):
         image = item["image"]
         spacing = np.linalg.norm(np.asarray(image.affine)[:3, :3], axis=0).tolist()
-        out[item["id"]] = {"image": plain_tensor(image)[None].float(), "label": plain_tensor(item["label"])[None],
-                           "spacing": spacing}
+        out[item["id"]] = {
+            "image": plain_tensor(image)[None].float(),
+            "label": plain_tensor(item["label"])[None],
+            "spacing": spacing,
+        }
     return out
 
 
@@ -94,11 +97,11 @@ def cases_for(ids: list[str], seed: int, training: bool) -> list[dict[str, Any]]
     cases = []
     for n, sid in enumerate(ids):
         cases.append({"moving": sid, "fixed": ATLAS_ID, "perturbation": NORMAL})
-        others = [o for o in ids[n + 1:] + ids[:n]]
+        others = [o for o in ids[n + 1 :] + ids[:n]]
         for other in others[:TRAIN_PARTNERS] if training else others:
             cases.append({"moving": sid, "fixed": other, "perturbation": NORMAL})
     for n, sid in enumerate(ids):
-        others = [o for o in ids[n + 1:] + ids[:n]] or [ATLAS_ID]
+        others = [o for o in ids[n + 1 :] + ids[:n]] or [ATLAS_ID]
         for k, name in enumerate(PERTURBATIONS):
             other = others[k % len(others)]
             targets = [(ATLAS_ID, other)[(n + k) % 2]] if training else [ATLAS_ID, other]
@@ -117,18 +120,42 @@ def run_case(network, calibration, scans: dict, case: dict, refinement=None) -> 
         image, label = PERTURBATIONS[case["perturbation"]](image, label, g)
     output = register_pair(network, image, fixed["image"], refinement)
     shape = output.displacement.shape[2:]
-    entropy = posterior_maps(network, output.velocity_mean, output.velocity_log_var, shape,
-                             std_scale=calibration.std_scale, bias_fraction=calibration.bias_fraction).velocity_entropy
-    features = quality_features(image[0, 0], fixed["image"][0, 0], output.warped[0, 0], output.displacement[0],
-                                entropy, fixed["spacing"], jacobian=jacobian_determinant(output.displacement)[0])
+    entropy = posterior_maps(
+        network,
+        output.velocity_mean,
+        output.velocity_log_var,
+        shape,
+        std_scale=calibration.std_scale,
+        bias_fraction=calibration.bias_fraction,
+    ).velocity_entropy
+    features = quality_features(
+        image[0, 0],
+        fixed["image"][0, 0],
+        output.warped[0, 0],
+        output.displacement[0],
+        entropy,
+        fixed["spacing"],
+        jacobian=jacobian_determinant(output.displacement)[0],
+    )
     after = score_pair(output.displacement, label, fixed["label"]).mean_dice
     identity = score_pair(None, label, fixed["label"]).mean_dice
-    return {**case, "dice": after, "dice_identity": identity, "failed": failed(after, identity, identity),
-            "features": features._asdict()}
+    return {
+        **case,
+        "dice": after,
+        "dice_identity": identity,
+        "failed": failed(after, identity, identity),
+        "features": features._asdict(),
+    }
 
 
-def command_cases(dataset_dir: Path, ids: list[str], bundle_root: Path, model_file: Path | None,
-                  identity_dice: dict[str, float], seed: int) -> list[dict]:
+def command_cases(
+    dataset_dir: Path,
+    ids: list[str],
+    bundle_root: Path,
+    model_file: Path | None,
+    identity_dice: dict[str, float],
+    seed: int,
+) -> list[dict]:
     """Each subject through the whole command onto the atlas, its header as it is and turned (module docstring)."""
     from monai_probreg.cli.model import load_model  # the command line's own loading, calibration and brain mask
     from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
@@ -137,8 +164,17 @@ def command_cases(dataset_dir: Path, ids: list[str], bundle_root: Path, model_fi
     # the summary records the features only when the weights have a quality model; the one being fitted has none yet,
     # so a neutral one (every coefficient 0) stands in: its estimate is ignored, the features are what is kept
     n = len(QualityFeatures._fields)
-    neutral = QualityModel(list(QualityFeatures._fields), [-math.inf] * n, [math.inf] * n, [0.0] * n, [1.0] * n,
-                           [0.0] * n, 0.5, [0.0] * n, 0.0)
+    neutral = QualityModel(
+        list(QualityFeatures._fields),
+        [-math.inf] * n,
+        [math.inf] * n,
+        [0.0] * n,
+        [1.0] * n,
+        [0.0] * n,
+        0.5,
+        [0.0] * n,
+        0.0,
+    )
     model = dataclasses.replace(load_model(bundle_root, model_file, quality=False), quality=neutral)
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
     records = []
@@ -146,15 +182,33 @@ def command_cases(dataset_dir: Path, ids: list[str], bundle_root: Path, model_fi
         for sid in ids:
             for degrees, name in zip(HEADER_TURNS, COMMAND_NAMES):
                 scan, labels = turned_inputs(index.images[sid], index.labels[sid], degrees, Path(tmp))
-                summary = register_scan(model, fixed, scan, Path(tmp) / f"{sid}_{degrees}", labels,
-                                        RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed))
+                summary = register_scan(
+                    model,
+                    fixed,
+                    scan,
+                    Path(tmp) / f"{sid}_{degrees}",
+                    labels,
+                    RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed),
+                )
                 dice, before = summary["dice"]["mean"], summary["dice"]["mean_affine_only"]
-                records.append({"moving": sid, "fixed": ATLAS_ID, "perturbation": name, "seed": seed,
-                                "dice": dice, "dice_identity": identity_dice[sid], "dice_before": before,
-                                "failed": failed(dice, before, identity_dice[sid]),
-                                "features": summary["quality"]["features"]})
-                print(f"[command] {sid} header turned {degrees} deg: Dice {before:.3f} (affine) -> {dice:.3f}"
-                      f"{' FAILED' if records[-1]['failed'] else ''}", flush=True)
+                records.append(
+                    {
+                        "moving": sid,
+                        "fixed": ATLAS_ID,
+                        "perturbation": name,
+                        "seed": seed,
+                        "dice": dice,
+                        "dice_identity": identity_dice[sid],
+                        "dice_before": before,
+                        "failed": failed(dice, before, identity_dice[sid]),
+                        "features": summary["quality"]["features"],
+                    }
+                )
+                print(
+                    f"[command] {sid} header turned {degrees} deg: Dice {before:.3f} (affine) -> {dice:.3f}"
+                    f"{' FAILED' if records[-1]['failed'] else ''}",
+                    flush=True,
+                )
     return records
 
 
@@ -171,47 +225,69 @@ def score(model, records: list[dict]) -> dict[str, Any]:
     to_atlas = [r for r in normal if r["fixed"] == ATLAS_ID]
 
     def rho(rs):
-        return (spearman(np.asarray([r["predicted_dice"] for r in rs]), np.asarray([r["dice"] for r in rs]))
-                if len(rs) > 2 else math.nan)
+        return (
+            spearman(np.asarray([r["predicted_dice"] for r in rs]), np.asarray([r["dice"] for r in rs]))
+            if len(rs) > 2
+            else math.nan
+        )
 
     outcome = [r["failed"] for r in records]
     per = {}
     for name in [NORMAL, *PERTURBATIONS, *COMMAND_NAMES]:
         rs = [r for r in records if r["perturbation"] == name]
         if rs:
-            per[name] = {"n": len(rs), "dice_before": float(np.mean([r["dice_identity"] for r in rs])),
-                         "dice_after": float(np.mean([r["dice"] for r in rs])),
-                         "failed": float(np.mean([r["failed"] for r in rs])),
-                         "warned": float(np.mean([r["warned"] for r in rs])),
-                         "warned_of_failed": (float(np.mean([r["warned"] for r in rs if r["failed"]]))
-                                              if any(r["failed"] for r in rs) else None)}
+            per[name] = {
+                "n": len(rs),
+                "dice_before": float(np.mean([r["dice_identity"] for r in rs])),
+                "dice_after": float(np.mean([r["dice"] for r in rs])),
+                "failed": float(np.mean([r["failed"] for r in rs])),
+                "warned": float(np.mean([r["warned"] for r in rs])),
+                "warned_of_failed": (
+                    float(np.mean([r["warned"] for r in rs if r["failed"]])) if any(r["failed"] for r in rs) else None
+                ),
+            }
     return {
-        "spearman_normal_pairs": rho(normal), "spearman_between_subjects": rho(between), "spearman_to_atlas": rho(to_atlas),
+        "spearman_normal_pairs": rho(normal),
+        "spearman_between_subjects": rho(between),
+        "spearman_to_atlas": rho(to_atlas),
         "auroc_failure": auroc(np.asarray([r["failure_probability"] for r in records]), np.asarray(outcome))
         if 0 < sum(outcome) < len(outcome)
         else math.nan,
         "false_warnings_normal": float(np.mean([r["warned"] for r in normal])) if normal else math.nan,
-        "num_registrations": len(records), "num_failed": int(sum(outcome)),
+        "num_registrations": len(records),
+        "num_failed": int(sum(outcome)),
         "warned_of_failed": float(np.mean([r["warned"] for r in records if r["failed"]])) if any(outcome) else None,
         "per_perturbation": per,
     }
 
 
 def markdown(result: dict[str, Any], threshold: float) -> str:
-    lines = ["| what | value | target |", "|---|---|---|",
-             (f"| Spearman(predicted, actual Dice), normal validation pairs (to atlas and between subjects) | "
-              f"{result['spearman_normal_pairs']:.3f} (between subjects {result['spearman_between_subjects']:.3f}, to "
-              f"atlas {result['spearman_to_atlas']:.3f}) | >= 0.5 |"),
-             (f"| failure detection AUROC ({result['num_failed']} failed of {result['num_registrations']}) | "
-              f"{result['auroc_failure']:.3f} | >= 0.9 |"),
-             (f"| false warnings on normal validation pairs (threshold {threshold:.2f}) | "
-              f"{100 * result['false_warnings_normal']:.1f}% | <= 5% |"), "",
-             "| perturbation of the moving scan | n | Dice before | Dice after | failed | warned | warned, of the failed |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| what | value | target |",
+        "|---|---|---|",
+        (
+            f"| Spearman(predicted, actual Dice), normal validation pairs (to atlas and between subjects) | "
+            f"{result['spearman_normal_pairs']:.3f} (between subjects {result['spearman_between_subjects']:.3f}, to "
+            f"atlas {result['spearman_to_atlas']:.3f}) | >= 0.5 |"
+        ),
+        (
+            f"| failure detection AUROC ({result['num_failed']} failed of {result['num_registrations']}) | "
+            f"{result['auroc_failure']:.3f} | >= 0.9 |"
+        ),
+        (
+            f"| false warnings on normal validation pairs (threshold {threshold:.2f}) | "
+            f"{100 * result['false_warnings_normal']:.1f}% | <= 5% |"
+        ),
+        "",
+        "| perturbation of the moving scan | n | Dice before | Dice after | failed | warned | warned, of the failed |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, p in result["per_perturbation"].items():
         wf = "–" if p["warned_of_failed"] is None else f"{100 * p['warned_of_failed']:.0f}%"
-        lines.append(f"| {name} | {p['n']} | {p['dice_before']:.3f} | {p['dice_after']:.3f} | {100 * p['failed']:.0f}% "
-                     f"| {100 * p['warned']:.0f}% | {wf} |")
+        lines.append(
+            f"| {name} | {p['n']} | {p['dice_before']:.3f} | {p['dice_after']:.3f} | {100 * p['failed']:.0f}% "
+            f"| {100 * p['warned']:.0f}% | {wf} |"
+        )
     return "\n".join(lines)
 
 
@@ -227,8 +303,14 @@ def figure(records: list[dict], path: Path) -> None:
     for name, colour in zip(names, colours):
         rs = [r for r in records if r["perturbation"] == name]
         if rs:
-            ax.scatter([r["dice"] for r in rs], [r["failure_probability"] for r in rs], s=18, color=colour,
-                       marker="o" if name in (NORMAL, COMMAND) else "x", label=name)
+            ax.scatter(
+                [r["dice"] for r in rs],
+                [r["failure_probability"] for r in rs],
+                s=18,
+                color=colour,
+                marker="o" if name in (NORMAL, COMMAND) else "x",
+                label=name,
+            )
     ax.set_xlabel("actual mean Dice")
     ax.set_ylabel("estimated probability of failure")
     ax.set_title("validation registrations: the quality estimate (fitted on training subjects)")
@@ -278,9 +360,23 @@ def native_cases(native_dir: Path, dataset_dir: Path, threads: int) -> list[dict
             for degrees in HEADER_TURNS:
                 moving, moving_labels = turned_inputs(scan, labels if labels.is_file() else None, degrees, Path(tmp))
                 out = Path(tmp) / f"{sid}_{degrees}"
-                cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register", "--moving", str(moving), "--fixed",
-                       str(index.atlas_image), "--out", str(out), "--threads", str(threads), "--quiet", "--no-qc",
-                       "--no-inverse"]
+                cmd = [
+                    sys.executable,
+                    "-m",
+                    "monai_probreg.cli.main",
+                    "register",
+                    "--moving",
+                    str(moving),
+                    "--fixed",
+                    str(index.atlas_image),
+                    "--out",
+                    str(out),
+                    "--threads",
+                    str(threads),
+                    "--quiet",
+                    "--no-qc",
+                    "--no-inverse",
+                ]
                 if labels.is_file():
                     cmd += ["--moving-label", str(moving_labels), "--fixed-label", str(index.atlas_label)]
                 done = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -288,25 +384,43 @@ def native_cases(native_dir: Path, dataset_dir: Path, threads: int) -> list[dict
                     raise RuntimeError(f"{' '.join(cmd)} failed: {done.stderr[-1500:]}")
                 summary = json.loads((out / "summary.json").read_text())
                 dice, quality = summary["dice"] or {}, summary["quality"] or {}
-                rows.append({"scan": sid, "header_turn_deg": degrees, "dice": dice.get("mean"),
-                             "dice_affine_only": dice.get("mean_affine_only"),
-                             "predicted_dice": quality.get("predicted_dice"),
-                             "failure_probability": quality.get("failure_probability"),
-                             "warning": summary["warning"], "printed": "warning:" in done.stderr})
-                print(f"native {sid}, header turned {degrees} deg: Dice {rows[-1]['dice']}, predicted "
-                      f"{rows[-1]['predicted_dice']}, failure probability {rows[-1]['failure_probability']}, "
-                      f"{'WARNED' if rows[-1]['warning'] else 'no warning'}", flush=True)
+                rows.append(
+                    {
+                        "scan": sid,
+                        "header_turn_deg": degrees,
+                        "dice": dice.get("mean"),
+                        "dice_affine_only": dice.get("mean_affine_only"),
+                        "predicted_dice": quality.get("predicted_dice"),
+                        "failure_probability": quality.get("failure_probability"),
+                        "warning": summary["warning"],
+                        "printed": "warning:" in done.stderr,
+                    }
+                )
+                print(
+                    f"native {sid}, header turned {degrees} deg: Dice {rows[-1]['dice']}, predicted "
+                    f"{rows[-1]['predicted_dice']}, failure probability {rows[-1]['failure_probability']}, "
+                    f"{'WARNED' if rows[-1]['warning'] else 'no warning'}",
+                    flush=True,
+                )
     return rows
 
 
 def native_markdown(rows: list[dict]) -> str:
     def num(v):
         return "–" if v is None else f"{v:.3f}"
-    lines = [("| native scan (whole command) | header turned | Dice (affine only) | predicted Dice | failure probability "
-              "| warning |"), "|---|---|---|---|---|---|"]
+
+    lines = [
+        (
+            "| native scan (whole command) | header turned | Dice (affine only) | predicted Dice | failure probability "
+            "| warning |"
+        ),
+        "|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r['scan']} | {r['header_turn_deg']} deg | {num(r['dice'])} ({num(r['dice_affine_only'])}) | "
-                     f"{num(r['predicted_dice'])} | {num(r['failure_probability'])} | {'yes' if r['warning'] else 'no'} |")
+        lines.append(
+            f"| {r['scan']} | {r['header_turn_deg']} deg | {num(r['dice'])} ({num(r['dice_affine_only'])}) | "
+            f"{num(r['predicted_dice'])} | {num(r['failure_probability'])} | {'yes' if r['warning'] else 'no'} |"
+        )
     return "\n".join(lines)
 
 
@@ -322,13 +436,26 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
-    ap.add_argument("--refine", type=int, default=None, metavar="N",
-                    help="refinement steps of the bundle-path registrations (default: evaluate.yaml's "
-                         "refine_iterations, the default path; the whole-command cases follow inference.yaml's)")
-    ap.add_argument("--no-command-cases", dest="command_cases", action="store_false",
-                    help="leave out the whole-command registrations (module docstring)")
-    ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE,
-                    help="native scans for the whole-command check (after --fit; absent: skipped)")
+    ap.add_argument(
+        "--refine",
+        type=int,
+        default=None,
+        metavar="N",
+        help="refinement steps of the bundle-path registrations (default: evaluate.yaml's "
+        "refine_iterations, the default path; the whole-command cases follow inference.yaml's)",
+    )
+    ap.add_argument(
+        "--no-command-cases",
+        dest="command_cases",
+        action="store_false",
+        help="leave out the whole-command registrations (module docstring)",
+    )
+    ap.add_argument(
+        "--native-dir",
+        type=Path,
+        default=DEFAULT_NATIVE,
+        help="native scans for the whole-command check (after --fit; absent: skipped)",
+    )
     args = ap.parse_args(argv)
     if args.records is None and not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir}")
@@ -348,8 +475,11 @@ def main(argv=None) -> int:
         refinement = evaluate.get_parsed_content("refinement")
         if args.refine is not None:
             refinement = dataclasses.replace(refinement, num_iterations=args.refine)
-        print(f"registrations: the network's mean{' refined' if refinement.enabled else ''} "
-              f"({refinement.num_iterations} refinement steps)", flush=True)
+        print(
+            f"registrations: the network's mean{' refined' if refinement.enabled else ''} "
+            f"({refinement.num_iterations} refinement steps)",
+            flush=True,
+        )
         refinement_record = refinement.as_dict()
         val_ids = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
         index = index_dataset(args.dataset_dir)
@@ -362,30 +492,56 @@ def main(argv=None) -> int:
             for n, case in enumerate(cases):
                 r = run_case(network, calibration, scans, case, refinement)
                 records[split].append(r)
-                print(f"[{split} {n + 1}/{len(cases)}] {r['moving']} -> {r['fixed']} ({r['perturbation']}): Dice "
-                      f"{r['dice_identity']:.3f} -> {r['dice']:.3f}{' FAILED' if r['failed'] else ''}  "
-                      f"ncc {r['features']['ncc_before']:.2f} -> {r['features']['ncc_after']:.2f}", flush=True)
+                print(
+                    f"[{split} {n + 1}/{len(cases)}] {r['moving']} -> {r['fixed']} ({r['perturbation']}): Dice "
+                    f"{r['dice_identity']:.3f} -> {r['dice']:.3f}{' FAILED' if r['failed'] else ''}  "
+                    f"ncc {r['features']['ncc_before']:.2f} -> {r['features']['ncc_after']:.2f}",
+                    flush=True,
+                )
         train_records, val_records = records["train"], records["val"]
         args.out_dir.mkdir(parents=True, exist_ok=True)  # the registrations first: a refit needs only these
-        write_text(args.out_dir / "failure_detection.json", json.dumps(
-            {"model_file": str(model_file), "refinement": refinement_record, "train_records": train_records,
-             "val_records": val_records}) + "\n")
-    if (args.command_cases and args.dataset_dir.is_dir()
-            and not any(r["perturbation"] in COMMAND_NAMES for r in train_records)):
-        native_ids = {p.name.split(".")[0] for p in args.native_dir.glob("*.nii.gz")} if args.native_dir.is_dir() else set()
-        identity = {r["moving"]: r["dice_identity"] for r in train_records + val_records
-                    if r["fixed"] == ATLAS_ID and r["perturbation"] == NORMAL}
+        write_text(
+            args.out_dir / "failure_detection.json",
+            json.dumps(
+                {
+                    "model_file": str(model_file),
+                    "refinement": refinement_record,
+                    "train_records": train_records,
+                    "val_records": val_records,
+                }
+            )
+            + "\n",
+        )
+    if (
+        args.command_cases
+        and args.dataset_dir.is_dir()
+        and not any(r["perturbation"] in COMMAND_NAMES for r in train_records)
+    ):
+        native_ids = (
+            {p.name.split(".")[0] for p in args.native_dir.glob("*.nii.gz")} if args.native_dir.is_dir() else set()
+        )
+        identity = {
+            r["moving"]: r["dice_identity"]
+            for r in train_records + val_records
+            if r["fixed"] == ATLAS_ID and r["perturbation"] == NORMAL
+        }
         for records, seed in ((train_records, args.seed), (val_records, args.seed + 100_000)):
             ids = sorted({r["moving"] for r in records} - native_ids)
             records += command_cases(args.dataset_dir, ids, bundle_root, model_file, identity, seed)
     fitted_on = sorted({r["moving"] for r in train_records})
-    model = fit_quality_model(_features(train_records), [r["dice"] for r in train_records],
-                              [r["failed"] for r in train_records], fitted_on=fitted_on)
+    model = fit_quality_model(
+        _features(train_records),
+        [r["dice"] for r in train_records],
+        [r["failed"] for r in train_records],
+        fitted_on=fitted_on,
+    )
     train_result, result = score(model, train_records), score(model, val_records)
     table = markdown(result, model.threshold)
     print(table)
-    print(f"(training registrations, the fit itself: AUROC {train_result['auroc_failure']:.3f}, Spearman normal "
-          f"{train_result['spearman_normal_pairs']:.3f}, false warnings {100 * train_result['false_warnings_normal']:.1f}%)")
+    print(
+        f"(training registrations, the fit itself: AUROC {train_result['auroc_failure']:.3f}, Spearman normal "
+        f"{train_result['spearman_normal_pairs']:.3f}, false warnings {100 * train_result['false_warnings_normal']:.1f}%)"
+    )
     native = []
     if args.fit:
         print(f"wrote {save_quality_model(model, model_file)}")
@@ -394,12 +550,25 @@ def main(argv=None) -> int:
             table += "\n\n" + native_markdown(native)
             print(native_markdown(native))
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    write_text(args.out_dir / "failure_detection.json", json.dumps({
-        "model_file": str(model_file), "refinement": refinement_record, "validation": result,
-        "training_fit": train_result, "markdown": table,
-        "native": native,
-        "model": {k: v for k, v in model.__dict__.items()}, "seconds": round(time.time() - start, 1),
-        "train_records": train_records, "val_records": val_records}, indent=1) + "\n")
+    write_text(
+        args.out_dir / "failure_detection.json",
+        json.dumps(
+            {
+                "model_file": str(model_file),
+                "refinement": refinement_record,
+                "validation": result,
+                "training_fit": train_result,
+                "markdown": table,
+                "native": native,
+                "model": {k: v for k, v in model.__dict__.items()},
+                "seconds": round(time.time() - start, 1),
+                "train_records": train_records,
+                "val_records": val_records,
+            },
+            indent=1,
+        )
+        + "\n",
+    )
     figure(val_records, args.out_dir / "failure_detection.png")
     print(f"wrote {args.out_dir / 'failure_detection.json'} and failure_detection.png")
     return 0

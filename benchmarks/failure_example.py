@@ -36,8 +36,20 @@ ROTATION_DEG, TRANSLATION_MM, SPACING_MM = 8.0, 6.0, (1.2, 1.0, 1.1)  # the move
 
 
 def register(moving: Path, out: Path, threads: int) -> dict:
-    cmd = [sys.executable, "-m", "monai_probreg.cli.main", "register", "--moving", str(moving), "--out", str(out),
-           "--threads", str(threads), "--quiet", "--no-inverse"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "monai_probreg.cli.main",
+        "register",
+        "--moving",
+        str(moving),
+        "--out",
+        str(out),
+        "--threads",
+        str(threads),
+        "--quiet",
+        "--no-inverse",
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed: {done.stderr[-1500:]}")
@@ -53,19 +65,25 @@ def main(argv=None) -> int:
     template = read_image(mni152_template_path())
     image = template.with_array((template.array - template.array.min()) / np.ptp(template.array))
     empty = Volume(np.zeros(image.shape, np.int16), image.index_to_lps)
-    moved, _, _, angles, translation = misalign(image, empty, template, np.random.default_rng(args.seed),
-                                                ROTATION_DEG, TRANSLATION_MM, SPACING_MM)
+    moved, _, _, angles, translation = misalign(
+        image, empty, template, np.random.default_rng(args.seed), ROTATION_DEG, TRANSLATION_MM, SPACING_MM
+    )
     rows = []
     with tempfile.TemporaryDirectory(prefix="failure_example_") as tmp:
         scan = write_volume(Path(tmp) / "mni_moved.nii.gz", moved, np.int16)
-        cases = (("as it is", scan), ("header turned by 180 degrees about S",
-                                      turned_header(scan, 180.0, Path(tmp) / "mni_moved_turned.nii.gz")))
+        cases = (
+            ("as it is", scan),
+            ("header turned by 180 degrees about S", turned_header(scan, 180.0, Path(tmp) / "mni_moved_turned.nii.gz")),
+        )
         for n, (name, path) in enumerate(cases):
             summary = register(path, Path(tmp) / f"out{n}", args.threads)
             quality = summary["quality"] or {}
             rows.append((name, plt.imread(Path(tmp) / f"out{n}" / "qc.png")))
-            print(f"{name}: predicted Dice {quality.get('predicted_dice')}, failure probability "
-                  f"{quality.get('failure_probability')}, warning: {summary['warning']}", flush=True)
+            print(
+                f"{name}: predicted Dice {quality.get('predicted_dice')}, failure probability "
+                f"{quality.get('failure_probability')}, warning: {summary['warning']}",
+                flush=True,
+            )
     print(f"moved by rotation {np.round(angles, 1).tolist()} deg, translation {np.round(translation, 1).tolist()} mm")
     height = sum(r[1].shape[0] for r in rows)
     fig = plt.figure(figsize=(rows[0][1].shape[1] / 100, height / 100), dpi=100)

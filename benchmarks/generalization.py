@@ -70,9 +70,9 @@ DEMO_SEEDS = (0, 1, 2)
 NATIVE_SCAN = "S20"
 SYNTH_MAPS = ("training_seg_11", "training_seg_12")  # never in a training run (train_synth.yaml uses 01-10)
 SYNTH_SEEDS = (0, 1)
-SYNTH_DEFORM_RMS_MM = 2.5         # the random deformation of each synthetic head: RMS velocity, mm (1 mm voxels)
-SYNTH_DEFORM_SPACING_MM = 16.0    # its control-point spacing, mm (the demo's)
-SYNTH_CROP_MARGIN = 8             # voxels kept around the head's bounding box (a scanner's field of view)
+SYNTH_DEFORM_RMS_MM = 2.5  # the random deformation of each synthetic head: RMS velocity, mm (1 mm voxels)
+SYNTH_DEFORM_SPACING_MM = 16.0  # its control-point spacing, mm (the demo's)
+SYNTH_CROP_MARGIN = 8  # voxels kept around the head's bounding box (a scanner's field of view)
 ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
 
 
@@ -106,8 +106,9 @@ def ants_whole(fixed_path: Path, moving_path: Path, moving_label: Path | None, o
     ants.image_write(warped, str(out_dir / "warped.nii.gz"))
     record = {}
     if moving_label is not None:
-        labels = ants.apply_transforms(fixed, ants.image_read(str(moving_label)), result["fwdtransforms"],
-                                       interpolator="genericLabel")
+        labels = ants.apply_transforms(
+            fixed, ants.image_read(str(moving_label)), result["fwdtransforms"], interpolator="genericLabel"
+        )
         ants.image_write(labels, str(out_dir / "warped_label.nii.gz"))
     record["seconds"] = round(time.perf_counter() - start, 2)
     jacobian = ants.create_jacobian_determinant_image(fixed, result["fwdtransforms"][0]).numpy()
@@ -127,8 +128,11 @@ class AntsCache:
     def get(self, key: str, compute: Callable[[], dict]) -> dict:
         if key in self.records:
             return {**self.records[key], "cached": True}
-        record = {**compute(), "computed_at": time.strftime("%Y-%m-%d %H:%M:%S"),
-                  "antspyx": importlib.metadata.version("antspyx")}
+        record = {
+            **compute(),
+            "computed_at": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "antspyx": importlib.metadata.version("antspyx"),
+        }
         self.records[key] = record
         if self.path is not None:
             write_text(self.path, json.dumps(self.records, indent=1) + "\n")
@@ -153,8 +157,9 @@ def part_demo(models: dict, options: dict, fixed, ants: AntsCache | None) -> dic
     if ants is not None:
         settings = SyntheticSettings()
         key = f"demo:{_sha(Path(fixed.image.path))}:{json.dumps(settings.as_dict(), sort_keys=True)}:seed"
-        rows["ANTs SyN"] = _demo_row({seed: ants.get(f"{key}{seed}", lambda seed=seed: ants_case(fixed, seed, settings))
-                                      for seed in DEMO_SEEDS})
+        rows["ANTs SyN"] = _demo_row(
+            {seed: ants.get(f"{key}{seed}", lambda seed=seed: ants_case(fixed, seed, settings)) for seed in DEMO_SEEDS}
+        )
         print(f"[demo] ANTs SyN: {rows['ANTs SyN']}", flush=True)
     return rows
 
@@ -162,13 +167,20 @@ def part_demo(models: dict, options: dict, fixed, ants: AntsCache | None) -> dic
 def _demo_row(cases: dict) -> dict:
     mean = lambda key, part: float(np.mean([c[key][part] for c in cases.values()]))  # noqa: E731
     first = next(iter(cases.values()))
-    return {"after_median_mm": mean("after", "median_mm"), "after_p95_mm": mean("after", "p95_mm"),
-            "affine_median_mm": None if first.get("affine_only") is None else mean("affine_only", "median_mm"),
-            "coverage": (None if first.get("coverage") is None
-                         else float(np.mean([c["coverage"] for c in cases.values()]))),
-            "after_below_affine_every_seed": (None if first.get("affine_only") is None else all(
-                c["after"]["median_mm"] < c["affine_only"]["median_mm"] for c in cases.values())),
-            "per_seed_after_median_mm": [c["after"]["median_mm"] for c in cases.values()]}
+    return {
+        "after_median_mm": mean("after", "median_mm"),
+        "after_p95_mm": mean("after", "p95_mm"),
+        "affine_median_mm": None if first.get("affine_only") is None else mean("affine_only", "median_mm"),
+        "coverage": (
+            None if first.get("coverage") is None else float(np.mean([c["coverage"] for c in cases.values()]))
+        ),
+        "after_below_affine_every_seed": (
+            None
+            if first.get("affine_only") is None
+            else all(c["after"]["median_mm"] < c["affine_only"]["median_mm"] for c in cases.values())
+        ),
+        "per_seed_after_median_mm": [c["after"]["median_mm"] for c in cases.values()],
+    }
 
 
 def part_native(models: dict, options: dict, native_dir: Path, ants: AntsCache | None) -> dict:
@@ -187,10 +199,14 @@ def part_native(models: dict, options: dict, native_dir: Path, ants: AntsCache |
                 summary = register_scan(model, fixed, scan, out, None, _options(model, steps, 0))
                 seconds = time.perf_counter() - start
                 warped = read_image(out / "warped.nii.gz").array
-                rows[f"{method} ({name})"] = {"ncc": brain_ncc(warped, template), "seconds": round(seconds, 2),
-                                              "num_folding": summary["jacobian"]["num_nonpositive"]}
+                rows[f"{method} ({name})"] = {
+                    "ncc": brain_ncc(warped, template),
+                    "seconds": round(seconds, 2),
+                    "num_folding": summary["jacobian"]["num_nonpositive"],
+                }
                 print(f"[native] {method} ({name}): {rows[f'{method} ({name})']}", flush=True)
         if ants is not None:
+
             def compute() -> dict:
                 out = Path(tmp) / "ants"
                 out.mkdir()
@@ -209,12 +225,16 @@ def synthetic_head(label_map: Path, seed: int, out_dir: Path) -> tuple[Path, Pat
     nonzero = np.argwhere(labels.array > 0)
     lo = np.maximum(nonzero.min(0) - SYNTH_CROP_MARGIN, 0)
     hi = np.minimum(nonzero.max(0) + SYNTH_CROP_MARGIN + 1, labels.shape)
-    cropped = labels.array[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    cropped = labels.array[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     index_to_lps = labels.index_to_lps.copy()
     index_to_lps[:3, 3] = labels.index_to_lps[:3, :3] @ lo + labels.index_to_lps[:3, 3]
     spacing = float(np.mean(labels.spacing))
-    deform = RandDiffeomorphicd(keys=[], label_keys=["label"], magnitude=SYNTH_DEFORM_RMS_MM / spacing,
-                                control_spacing=SYNTH_DEFORM_SPACING_MM / spacing)
+    deform = RandDiffeomorphicd(
+        keys=[],
+        label_keys=["label"],
+        magnitude=SYNTH_DEFORM_RMS_MM / spacing,
+        control_spacing=SYNTH_DEFORM_SPACING_MM / spacing,
+    )
     deform.set_random_state(seed=seed)
     warped = deform({"label": torch.from_numpy(cropped.astype(np.int32))[None]})["label"][0].numpy()
     volume = Volume(warped.astype(np.int32), index_to_lps)
@@ -244,20 +264,28 @@ def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: A
                         score = dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS)
                         _add(rows, f"{method} ({name})", pair, score, summary["jacobian"]["num_nonpositive"])
                 if ants is not None:
-                    def compute(pair=pair, moving=moving, moving_label=moving_label, fixed_image=fixed_image,
-                                target=target) -> dict:
+
+                    def compute(
+                        pair=pair, moving=moving, moving_label=moving_label, fixed_image=fixed_image, target=target
+                    ) -> dict:
                         out = Path(tmp) / f"{pair}_ants"
                         out.mkdir()
                         record = ants_whole(fixed_image, moving, moving_label, out)
-                        return {**record, "dice": dice(read_label(out / "warped_label.nii.gz").array, target,
-                                                       ASEG_LABELS)}
+                        return {
+                            **record,
+                            "dice": dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS),
+                        }
 
-                    key = (f"synthetic:{_sha(*paths)}:{SYNTH_DEFORM_RMS_MM}:{SYNTH_DEFORM_SPACING_MM}:"
-                           f"{SYNTH_CROP_MARGIN}:{pair}")
+                    key = (
+                        f"synthetic:{_sha(*paths)}:{SYNTH_DEFORM_RMS_MM}:{SYNTH_DEFORM_SPACING_MM}:"
+                        f"{SYNTH_CROP_MARGIN}:{pair}"
+                    )
                     record = ants.get(key, compute)
                     _add(rows, "ANTs SyN", pair, record["dice"], record["num_folding"])
-                print(f"[synthetic] {pair}: " + ", ".join(f"{k} {v['per_pair'][pair]:.3f}" for k, v in rows.items()),
-                      flush=True)
+                print(
+                    f"[synthetic] {pair}: " + ", ".join(f"{k} {v['per_pair'][pair]:.3f}" for k, v in rows.items()),
+                    flush=True,
+                )
     for row in rows.values():
         row["dice"] = float(np.mean(list(row["per_pair"].values())))
     return rows
@@ -269,8 +297,9 @@ def _add(rows: dict, key: str, pair: str, score: float, folds: int) -> None:
     row["num_folding"] += int(folds)
 
 
-def part_lpba40(model_files: list[Path | None], steps: int, dataset_dir: Path | None, threads: int,
-                ants: AntsCache | None) -> dict:
+def part_lpba40(
+    model_files: list[Path | None], steps: int, dataset_dir: Path | None, threads: int, ants: AntsCache | None
+) -> dict:
     """``accuracy_table.py``'s validation -> S01 and pairs, per weights: network and default rows; ANTs SyN once."""
     dataset = (dataset_dir or accuracy_table.DEFAULT_DATASET).resolve()
     if not dataset.is_dir():
@@ -281,19 +310,34 @@ def part_lpba40(model_files: list[Path | None], steps: int, dataset_dir: Path | 
     with tempfile.TemporaryDirectory(prefix="generalization_lpba40_") as tmp:
         for n, model_file in enumerate(model_files):
             methods = ["ours", "refined"] + (["ants"] if run_ants and n == 0 else [])
-            argv = ["--threads", str(threads), "--out-dir", tmp, "--refine-iterations", str(steps),
-                    "--dataset-dir", str(dataset), "--methods", *methods]
+            argv = [
+                "--threads",
+                str(threads),
+                "--out-dir",
+                tmp,
+                "--refine-iterations",
+                str(steps),
+                "--dataset-dir",
+                str(dataset),
+                "--methods",
+                *methods,
+            ]
             argv += ["--model-file", str(model_file)] if model_file else []
             accuracy_table.main(argv)
             result = json.loads((Path(tmp) / "accuracy_table.json").read_text())
             name = _name(model_file)
-            for method, label in (("ours", f"network ({name})"), ("refined", f"default ({name})"),
-                                  ("ants", "ANTs SyN")):
+            for method, label in (
+                ("ours", f"network ({name})"),
+                ("refined", f"default ({name})"),
+                ("ants", "ANTs SyN"),
+            ):
                 row = result["methods"].get(method)
                 if row and row.get("aggregate"):
-                    rows[label] = {"to_atlas": row["aggregate"]["atlas"]["mean_dice"]["mean"],
-                                   "pairs": row["aggregate"]["pairs"]["mean_dice"]["mean"],
-                                   "num_folding_per_pair": row["aggregate_all"]["num_folding"]["mean"]}
+                    rows[label] = {
+                        "to_atlas": row["aggregate"]["atlas"]["mean_dice"]["mean"],
+                        "pairs": row["aggregate"]["pairs"]["mean_dice"]["mean"],
+                        "num_folding_per_pair": row["aggregate_all"]["num_folding"]["mean"],
+                    }
     if ants is not None:
         computed = rows.pop("ANTs SyN", None)
         rows["ANTs SyN"] = ants.get(ants_key, lambda: computed)
@@ -304,10 +348,16 @@ def part_lpba40(model_files: list[Path | None], steps: int, dataset_dir: Path | 
 def _options(model, steps: int, seed: int, samples: bool = False) -> RegistrationOptions:
     """The command's options with ``steps`` refinement steps (the bundle's other refinement settings) and ``seed``;
     ``samples``: the demo's posterior samples (its coverage), else none and no maps (what is scored needs none)."""
-    base = (RegistrationOptions(samples=DEMO_SAMPLES, seed=seed) if samples
-            else RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed))
-    return dataclasses.replace(base, affine=dataclasses.replace(base.affine, seed=seed),
-                               refinement=dataclasses.replace(model.refinement, num_iterations=steps))
+    base = (
+        RegistrationOptions(samples=DEMO_SAMPLES, seed=seed)
+        if samples
+        else RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed)
+    )
+    return dataclasses.replace(
+        base,
+        affine=dataclasses.replace(base.affine, seed=seed),
+        refinement=dataclasses.replace(model.refinement, num_iterations=steps),
+    )
 
 
 def _name(model_file: Path | None) -> str:
@@ -315,20 +365,31 @@ def _name(model_file: Path | None) -> str:
 
 
 def markdown(result: dict) -> str:
-    lines = ["| method | demo: median / p95 mm (affine) | demo 95% coverage | S20 -> MNI152: NCC, folds, s | "
-             "unseen label maps: Dice | LPBA40 -> S01 / pairs |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| method | demo: median / p95 mm (affine) | demo 95% coverage | S20 -> MNI152: NCC, folds, s | "
+        "unseen label maps: Dice | LPBA40 -> S01 / pairs |",
+        "|---|---|---|---|---|---|",
+    ]
     parts = result["parts"]
     names = list(dict.fromkeys(k for p in parts.values() if "skipped" not in p for k in p))
     for name in names:
         d, n, s, l4 = (parts.get(p, {}).get(name) for p in PARTS)
         cell = lambda v, f: "–" if v is None else f.format(v)  # noqa: E731
         lines.append(
-            f"| {name} | " + ("–" if d is None else f"{d['after_median_mm']:.2f} / {d['after_p95_mm']:.2f} "
-                                                      f"({cell(d['affine_median_mm'], '{:.2f}')})")
+            f"| {name} | "
+            + (
+                "–"
+                if d is None
+                else f"{d['after_median_mm']:.2f} / {d['after_p95_mm']:.2f} ({cell(d['affine_median_mm'], '{:.2f}')})"
+            )
             + f" | {cell(d and d['coverage'], '{:.3f}')} | "
-            + ("–" if n is None else f"{n['ncc']:.3f}, {n['num_folding']}, {n['seconds']:.1f}") + " | "
-            + ("–" if s is None else f"{s['dice']:.3f}") + " | "
-            + ("–" if l4 is None else f"{l4['to_atlas']:.3f} / {l4['pairs']:.3f}") + " |")
+            + ("–" if n is None else f"{n['ncc']:.3f}, {n['num_folding']}, {n['seconds']:.1f}")
+            + " | "
+            + ("–" if s is None else f"{s['dice']:.3f}")
+            + " | "
+            + ("–" if l4 is None else f"{l4['to_atlas']:.3f} / {l4['pairs']:.3f}")
+            + " |"
+        )
     return "\n".join(lines)
 
 
@@ -339,10 +400,12 @@ def figure(result: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [("demo", "after_median_mm", "demo: median error, mm (lower is better)"),
-              ("native", "ncc", "S20 -> MNI152: NCC in the brain"),
-              ("synthetic", "dice", "unseen label maps: mean Dice"),
-              ("lpba40", "pairs", "LPBA40: pairs between unseen subjects, Dice")]
+    panels = [
+        ("demo", "after_median_mm", "demo: median error, mm (lower is better)"),
+        ("native", "ncc", "S20 -> MNI152: NCC in the brain"),
+        ("synthetic", "dice", "unseen label maps: mean Dice"),
+        ("lpba40", "pairs", "LPBA40: pairs between unseen subjects, Dice"),
+    ]
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6))
     for ax, (part, key, title) in zip(axes, panels):
         rows = {k: v for k, v in result["parts"].get(part, {}).items() if isinstance(v, dict) and key in v}
@@ -363,14 +426,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
     ap.add_argument("--model-files", nargs="+", type=Path, default=None, help="weights (default: the bundle's)")
-    ap.add_argument("--refine-iterations", type=int, default=accuracy_table.DEFAULT_REFINE_ITERATIONS,
-                    help="refinement steps of the default path (default: %(default)s)")
+    ap.add_argument(
+        "--refine-iterations",
+        type=int,
+        default=accuracy_table.DEFAULT_REFINE_ITERATIONS,
+        help="refinement steps of the default path (default: %(default)s)",
+    )
     ap.add_argument("--label-maps", type=Path, default=None, help="folder with SynthSeg's training_seg_*.nii.gz")
     ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE)
     ap.add_argument("--dataset-dir", type=Path, default=None, help="LPBA40 (default: accuracy_table.py's)")
     ap.add_argument("--no-ants", dest="ants", action="store_false", help="leave ANTs SyN out")
-    ap.add_argument("--ants-cache", type=Path, default=None,
-                    help="JSON file of ANTs SyN's records to reuse and extend (AntsCache; default: none, all run)")
+    ap.add_argument(
+        "--ants-cache",
+        type=Path,
+        default=None,
+        help="JSON file of ANTs SyN's records to reuse and extend (AntsCache; default: none, all run)",
+    )
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
@@ -396,13 +467,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         parts["synthetic"] = part_synthetic(models, options, args.label_maps, ants)
     if "lpba40" in args.parts:
         parts["lpba40"] = part_lpba40(model_files, args.refine_iterations, args.dataset_dir, args.threads, ants)
-    result = {"parts": parts, "threads": args.threads, "refine_iterations": args.refine_iterations,
-              "model_files": {k: str(m.model_file) for k, m in models.items()},
-              "ants": ANTS_CALL if args.ants else None,
-              "synthetic": {"label_maps": list(SYNTH_MAPS), "seeds": list(SYNTH_SEEDS),
-                            "deform_rms_mm": SYNTH_DEFORM_RMS_MM, "deform_spacing_mm": SYNTH_DEFORM_SPACING_MM,
-                            "labels": list(ASEG_LABELS)},
-              "seconds": round(time.perf_counter() - start, 1), "versions": library_versions()}
+    result = {
+        "parts": parts,
+        "threads": args.threads,
+        "refine_iterations": args.refine_iterations,
+        "model_files": {k: str(m.model_file) for k, m in models.items()},
+        "ants": ANTS_CALL if args.ants else None,
+        "synthetic": {
+            "label_maps": list(SYNTH_MAPS),
+            "seeds": list(SYNTH_SEEDS),
+            "deform_rms_mm": SYNTH_DEFORM_RMS_MM,
+            "deform_spacing_mm": SYNTH_DEFORM_SPACING_MM,
+            "labels": list(ASEG_LABELS),
+        },
+        "seconds": round(time.perf_counter() - start, 1),
+        "versions": library_versions(),
+    }
     result["markdown"] = markdown(result)
     path = write_text(args.out_dir / "generalization.json", json.dumps(result, indent=2) + "\n")
     png = figure(result, args.out_dir / "generalization.png")

@@ -47,8 +47,11 @@ def lncc_records(network, calibration, scans: dict, cases: list[dict]) -> list[d
             features = run_case(network, calibration, scans, case)["features"]
             row[precision] = {"lncc_before": features["lncc_before"], "lncc_after": features["lncc_after"]}
         out.append(row)
-        print(f"{row['moving']} -> {row['fixed']}: lncc {row['fp32']['lncc_before']:.4f} -> "
-              f"{row['fp32']['lncc_after']:.4f} (fp32), {row['bf16']['lncc_after']:.4f} (bf16)", flush=True)
+        print(
+            f"{row['moving']} -> {row['fixed']}: lncc {row['fp32']['lncc_before']:.4f} -> "
+            f"{row['fp32']['lncc_after']:.4f} (fp32), {row['bf16']['lncc_after']:.4f} (bf16)",
+            flush=True,
+        )
     return out
 
 
@@ -63,8 +66,9 @@ def summarise(normal: list[dict], self_pairs: list[dict], failure_drops: list[fl
         "normal_warned": {p: int(sum(drop(r, p) > margin for r in normal)) for p in PRECISIONS},
         "precision_shift_of_lncc_after": {"max": float(max(shift)), "median": float(np.median(shift))},
         "self_pair_drop": {p: [float(drop(r, p)) for r in self_pairs] for p in PRECISIONS},
-        "self_pairs_disagreeing": int(sum((drop(r, "bf16") > margin) != (drop(r, "fp32") > margin)
-                                          for r in self_pairs)),
+        "self_pairs_disagreeing": int(
+            sum((drop(r, "bf16") > margin) != (drop(r, "fp32") > margin) for r in self_pairs)
+        ),
         "failure_set_positive_drops_below_margin": int(sum(0 < d <= margin for d in failure_drops)),
         "failure_set_positive_drops": len([d for d in failure_drops if d > 0]),
     }
@@ -99,14 +103,28 @@ def main(argv=None) -> int:
     failure_drops = []
     if stored.is_file():
         records = json.loads(stored.read_text())
-        failure_drops = [r["features"]["lncc_before"] - r["features"]["lncc_after"]
-                         for r in records.get("train_records", []) + records.get("val_records", []) if r["failed"]]
+        failure_drops = [
+            r["features"]["lncc_before"] - r["features"]["lncc_after"]
+            for r in records.get("train_records", []) + records.get("val_records", [])
+            if r["failed"]
+        ]
     summary = summarise(normal_rows, self_rows, failure_drops, LNCC_DROP_MARGIN)
     print(json.dumps(summary, indent=1))
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    write_text(args.out_dir / "lncc_margin.json", json.dumps(
-        {"model_file": str(model_file), "summary": summary, "seconds": round(time.time() - start, 1),
-         "normal": normal_rows, "self_pairs": self_rows}, indent=1) + "\n")
+    write_text(
+        args.out_dir / "lncc_margin.json",
+        json.dumps(
+            {
+                "model_file": str(model_file),
+                "summary": summary,
+                "seconds": round(time.time() - start, 1),
+                "normal": normal_rows,
+                "self_pairs": self_rows,
+            },
+            indent=1,
+        )
+        + "\n",
+    )
     print(f"wrote {args.out_dir / 'lncc_margin.json'}")
     return 0
 

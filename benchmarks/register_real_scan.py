@@ -45,8 +45,16 @@ from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, ants_available
 DIRECTION = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-def misalign(image, labels, atlas, rng: np.random.Generator, max_rotation: float, max_translation: float,
-             spacing: Sequence[float], margin_mm: float = 10.0):
+def misalign(
+    image,
+    labels,
+    atlas,
+    rng: np.random.Generator,
+    max_rotation: float,
+    max_translation: float,
+    spacing: Sequence[float],
+    margin_mm: float = 10.0,
+):
     """(moved image Volume int16, moved labels Volume, true fixed -> moving (4, 4), angles, translation)."""
     from scipy.spatial.transform import Rotation
 
@@ -82,7 +90,8 @@ def aligned_bundle_dice(model, subject: Path, label: Path, atlas: Path, atlas_la
     from monai_probreg.metrics.scores import score_pair
 
     data = registration_transforms(with_labels=True, divisor=model.divisor)(
-        {"moving": str(subject), "fixed": str(atlas), "moving_label": str(label), "fixed_label": str(atlas_label)})
+        {"moving": str(subject), "fixed": str(atlas), "moving_label": str(label), "fixed_label": str(atlas_label)}
+    )
     output = register_pair(model.network, data["moving"][None].to(model.device), data["fixed"][None].to(model.device))
     return score_pair(output.displacement, data["moving_label"][None], data["fixed_label"][None], labels=ids).mean_dice
 
@@ -100,7 +109,10 @@ def transform_dice(warp: Path, truth: np.ndarray, labels, atlas_labels, ids: lis
     field = field_from_itk(itk.imread(str(warp)))
     points = grid_points(field.shape, field.index_to_lps) + field.array
     pulled = sample_nearest(labels, apply_affine(np.linalg.inv(truth), points))
-    as_tensor = (lambda a: torch.from_numpy(a.astype(np.int64))[None, None])
+
+    def as_tensor(a):
+        return torch.from_numpy(a.astype(np.int64))[None, None]
+
     return score_pair(None, as_tensor(pulled), as_tensor(atlas_labels.array), labels=ids).mean_dice
 
 
@@ -114,11 +126,16 @@ def itk_reproduction(moving: Path, moving_label: Path, atlas: Path, out: Path, w
     reference = itk.imread(str(atlas), itk.F)
     ours = itk.array_from_image(itk.imread(str(out / "warped.nii.gz"), itk.F))
     theirs = itk.array_from_image(resample_with_itk(itk.imread(str(moving), itk.F), reference, transform))
-    labels = itk.array_from_image(resample_with_itk(itk.imread(str(moving_label), itk.SS), reference, transform,
-                                                    nearest=True))
+    labels = itk.array_from_image(
+        resample_with_itk(itk.imread(str(moving_label), itk.SS), reference, transform, nearest=True)
+    )
     our_labels = itk.array_from_image(itk.imread(str(out / "warped_label.nii.gz"), itk.SS))
-    result = {"max_abs_diff": float(np.abs(theirs - ours).max()), "intensity_range": float(ours.max() - ours.min()),
-              "label_mismatches": int((labels != our_labels).sum()), "voxels": int(labels.size)}
+    result = {
+        "max_abs_diff": float(np.abs(theirs - ours).max()),
+        "intensity_range": float(ours.max() - ours.min()),
+        "label_mismatches": int((labels != our_labels).sum()),
+        "voxels": int(labels.size),
+    }
     if with_ants:
         ok, message = ants_available()
         if not ok:
@@ -126,8 +143,12 @@ def itk_reproduction(moving: Path, moving_label: Path, atlas: Path, out: Path, w
         else:
             import ants
 
-            warped = ants.apply_transforms(ants.image_read(str(atlas)), ants.image_read(str(moving)),
-                                           [str(out / "warp.nii.gz")], interpolator="linear").numpy()
+            warped = ants.apply_transforms(
+                ants.image_read(str(atlas)),
+                ants.image_read(str(moving)),
+                [str(out / "warp.nii.gz")],
+                interpolator="linear",
+            ).numpy()
             ours_ants = ants.image_read(str(out / "warped.nii.gz")).numpy()
             result["ants_max_abs_diff"] = float(np.abs(warped - ours_ants).max())
     return result
@@ -147,10 +168,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where register_real_scan.json goes")
     ap.add_argument("--keep-dir", type=Path, default=None, help="keep the scans and outputs here (default: temp)")
     ap.add_argument("--no-ants", action="store_true", help="skip the antsApplyTransforms check")
-    ap.add_argument("--in-process", action="store_true", help="run the moved scan's command in this process "
-                    "(faster; its wall time then excludes Python start-up, imports and ITK's module loading)")
-    ap.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more monai-probreg options, e.g. "
-                    "--extra --affine-levels 2 1 (must come last)")
+    ap.add_argument(
+        "--in-process",
+        action="store_true",
+        help="run the moved scan's command in this process "
+        "(faster; its wall time then excludes Python start-up, imports and ITK's module loading)",
+    )
+    ap.add_argument(
+        "--extra",
+        nargs=argparse.REMAINDER,
+        default=[],
+        help="more monai-probreg options, e.g. --extra --affine-levels 2 1 (must come last)",
+    )
     args = ap.parse_args(argv)
 
     dataset = args.dataset_dir.resolve()
@@ -173,8 +202,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(threads)
     os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(threads)
     model_file = args.model_file or args.bundle_root / "models" / "model.pt"
-    common = ["--fixed", str(atlas), "--fixed-label", str(atlas_label), "--bundle-root", str(args.bundle_root),
-              "--model-file", str(model_file), "--threads", str(threads), *args.extra]
+    common = [
+        "--fixed",
+        str(atlas),
+        "--fixed-label",
+        str(atlas_label),
+        "--bundle-root",
+        str(args.bundle_root),
+        "--model-file",
+        str(model_file),
+        "--threads",
+        str(threads),
+        *args.extra,
+    ]
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep_dir or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -183,23 +223,41 @@ def main(argv: Sequence[str] | None = None) -> int:
         image, labels = read_image(subject), read_label(label)
         image = image.with_array((image.array - image.array.min()) / (image.array.max() - image.array.min()))
         moved, moved_labels, truth, angles, translation = misalign(
-            image, labels, atlas_volume, np.random.default_rng(args.seed), args.max_rotation, args.max_translation,
-            args.spacing)
+            image,
+            labels,
+            atlas_volume,
+            np.random.default_rng(args.seed),
+            args.max_rotation,
+            args.max_translation,
+            args.spacing,
+        )
         moved_path = write_volume(work / f"{args.subject}_moved.nii.gz", moved, np.int16)
         moved_label_path = write_volume(work / f"{args.subject}_moved_label.nii.gz", moved_labels, np.int16)
-        print(f"{args.subject} moved: rotation {np.round(angles, 1).tolist()} deg, translation "
-              f"{np.round(translation, 1).tolist()} mm, grid {list(moved.shape)} x {args.spacing} mm "
-              f"{read_image(moved_path).axcodes}, intensities {int(moved.array.min())}..{int(moved.array.max())}",
-              flush=True)
+        print(
+            f"{args.subject} moved: rotation {np.round(angles, 1).tolist()} deg, translation "
+            f"{np.round(translation, 1).tolist()} mm, grid {list(moved.shape)} x {args.spacing} mm "
+            f"{read_image(moved_path).axcodes}, intensities {int(moved.array.min())}..{int(moved.array.max())}",
+            flush=True,
+        )
 
         start = time.perf_counter()
-        argv = ["register", "--moving", str(moved_path), "--moving-label", str(moved_label_path), "--out",
-                str(work / "misaligned"), *common]
+        argv = [
+            "register",
+            "--moving",
+            str(moved_path),
+            "--moving-label",
+            str(moved_label_path),
+            "--out",
+            str(work / "misaligned"),
+            *common,
+        ]
         if args.in_process:
             if cli_main(argv) != 0:
                 return 1
         else:
-            done = subprocess.run([sys.executable, "-m", "monai_probreg.cli.main", *argv], capture_output=True, text=True)
+            done = subprocess.run(
+                [sys.executable, "-m", "monai_probreg.cli.main", *argv], capture_output=True, text=True
+            )
             if done.returncode != 0:
                 print(done.stderr[-3000:], file=sys.stderr)
                 return 1
@@ -209,8 +267,23 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         model = load_model(args.bundle_root, model_file, None, "cpu")
         bundle_dice = aligned_bundle_dice(model, subject, label, atlas, atlas_label, ids)
-        if cli_main(["register", "--moving", str(subject), "--moving-label", str(label), "--out",
-                     str(work / "aligned"), "--no-qc", "--quiet", *common]) != 0:
+        if (
+            cli_main(
+                [
+                    "register",
+                    "--moving",
+                    str(subject),
+                    "--moving-label",
+                    str(label),
+                    "--out",
+                    str(work / "aligned"),
+                    "--no-qc",
+                    "--quiet",
+                    *common,
+                ]
+            )
+            != 0
+        ):
             return 1
         aligned = json.loads((work / "aligned" / "summary.json").read_text())
         reproduction = itk_reproduction(moved_path, moved_label_path, atlas, work / "misaligned", not args.no_ants)
@@ -224,40 +297,70 @@ def main(argv: Sequence[str] | None = None) -> int:
     affine_error = np.linalg.norm(apply_affine(found, brain) - apply_affine(expected, brain), axis=-1)
     difference = misaligned["dice"]["mean"] - aligned["dice"]["mean"]
     result = {
-        "subject": args.subject, "atlas": str(atlas), "model_file": str(model_file), "threads": threads,
-        "misalignment": {"rotation_deg": angles.tolist(), "translation_mm": translation.tolist(),
-                         "grid": list(moved.shape), "spacing_mm": list(args.spacing),
-                         "orientation": read_image(atlas).axcodes + " -> AIL", "intensities": "int16, 50..3050"},
-        "mean_dice": {"aligned_bundle_path": bundle_dice, "aligned_command": aligned["dice"]["mean"],
-                      "misaligned_command": misaligned["dice"]["mean"],
-                      "misaligned_affine_only": misaligned["dice"]["mean_affine_only"],
-                      "misaligned_transform_original_labels": transform_only,
-                      "misaligned_minus_aligned_command": difference, "target_abs_difference": 0.02},
-        "affine_consistency_mm": {"mean": float(affine_error.mean()), "max": float(affine_error.max()),
-                                  "what": "|A_moved(p) - truth(A_aligned(p))| over the atlas brain voxels"},
+        "subject": args.subject,
+        "atlas": str(atlas),
+        "model_file": str(model_file),
+        "threads": threads,
+        "misalignment": {
+            "rotation_deg": angles.tolist(),
+            "translation_mm": translation.tolist(),
+            "grid": list(moved.shape),
+            "spacing_mm": list(args.spacing),
+            "orientation": read_image(atlas).axcodes + " -> AIL",
+            "intensities": "int16, 50..3050",
+        },
+        "mean_dice": {
+            "aligned_bundle_path": bundle_dice,
+            "aligned_command": aligned["dice"]["mean"],
+            "misaligned_command": misaligned["dice"]["mean"],
+            "misaligned_affine_only": misaligned["dice"]["mean_affine_only"],
+            "misaligned_transform_original_labels": transform_only,
+            "misaligned_minus_aligned_command": difference,
+            "target_abs_difference": 0.02,
+        },
+        "affine_consistency_mm": {
+            "mean": float(affine_error.mean()),
+            "max": float(affine_error.max()),
+            "what": "|A_moved(p) - truth(A_aligned(p))| over the atlas brain voxels",
+        },
         "itk_reproduction": reproduction,
         "jacobian_nonpositive": misaligned["jacobian"]["num_nonpositive"],
-        "timings_s": {**misaligned["timings_s"], "command_wall": round(wall, 2), "in_process": args.in_process,
-                      "startup (wall - total)": round(wall - misaligned["timings_s"]["total"], 2)},
+        "timings_s": {
+            **misaligned["timings_s"],
+            "command_wall": round(wall, 2),
+            "in_process": args.in_process,
+            "startup (wall - total)": round(wall - misaligned["timings_s"]["total"], 2),
+        },
         "versions": {"python": platform.python_version(), "torch": torch.__version__},
     }
     args.out_dir.mkdir(parents=True, exist_ok=True)
     from monai_probreg.utils.files import write_text
+
     write_text(args.out_dir / "register_real_scan.json", json.dumps(result, indent=2) + "\n")
     rows = [
         ("mean Dice, aligned subject, bundle path (evaluate.yaml)", f"{bundle_dice:.4f}"),
         ("mean Dice, aligned subject, monai-probreg register", f"{aligned['dice']['mean']:.4f}"),
-        ("mean Dice, moved scan, monai-probreg register",
-         f"{misaligned['dice']['mean']:.4f} (affine only {misaligned['dice']['mean_affine_only']:.4f})"),
+        (
+            "mean Dice, moved scan, monai-probreg register",
+            f"{misaligned['dice']['mean']:.4f} (affine only {misaligned['dice']['mean_affine_only']:.4f})",
+        ),
         ("moved - aligned (target: within 0.02)", f"{difference:+.4f}"),
-        ("mean Dice, subject's original labels through the moved scan's transform",
-         f"{transform_only:.4f} ({transform_only - aligned['dice']['mean']:+.4f} vs aligned)"),
-        ("affine: moved scan vs misalignment o aligned scan's (mm, brain)", f"mean {affine_error.mean():.2f}, "
-                                                                            f"max {affine_error.max():.2f}"),
-        ("ITK reproduction of warped.nii.gz, max |diff|",
-         f"{reproduction['max_abs_diff']:.3g} (range {reproduction['intensity_range']:.0f})"),
-        ("ITK reproduction of warped_label.nii.gz", f"{reproduction['label_mismatches']} of "
-                                                    f"{reproduction['voxels']} voxels differ"),
+        (
+            "mean Dice, subject's original labels through the moved scan's transform",
+            f"{transform_only:.4f} ({transform_only - aligned['dice']['mean']:+.4f} vs aligned)",
+        ),
+        (
+            "affine: moved scan vs misalignment o aligned scan's (mm, brain)",
+            f"mean {affine_error.mean():.2f}, max {affine_error.max():.2f}",
+        ),
+        (
+            "ITK reproduction of warped.nii.gz, max |diff|",
+            f"{reproduction['max_abs_diff']:.3g} (range {reproduction['intensity_range']:.0f})",
+        ),
+        (
+            "ITK reproduction of warped_label.nii.gz",
+            f"{reproduction['label_mismatches']} of {reproduction['voxels']} voxels differ",
+        ),
         ("|J| <= 0 voxels (moved scan)", str(misaligned["jacobian"]["num_nonpositive"])),
         ("command wall time (s)", f"{wall:.1f}"),
         *[(f"  stage {k} (s)", f"{v:.1f}") for k, v in misaligned["timings_s"].items()],

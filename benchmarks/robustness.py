@@ -100,8 +100,10 @@ def select_conditions(selected: list[str] | None) -> list[tuple[str, str]]:
         name, _, side = item.partition(":")
         matches = [c for c in ALL_CONDITIONS if c[0] == name and (not side or c[1] == side)]
         if not matches:
-            raise SystemExit(f"--conditions: expected NAME[:SIDE] with NAME in {sorted({c[0] for c in ALL_CONDITIONS})}"
-                             f" and SIDE in {list(SIDES)}; got {item!r}")
+            raise SystemExit(
+                f"--conditions: expected NAME[:SIDE] with NAME in {sorted({c[0] for c in ALL_CONDITIONS})}"
+                f" and SIDE in {list(SIDES)}; got {item!r}"
+            )
         chosen.update(matches)
     return [c for c in ALL_CONDITIONS if c in chosen]
 
@@ -114,22 +116,41 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET)
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
-    ap.add_argument("--model-file", type=Path, action="append", default=None,
-                    help="weights to compare (repeatable; default: evaluate.yaml's model_file)")
-    ap.add_argument("--label", action="append", default=None,
-                    help="a name for each --model-file in the table and figure, in order (default: the file names)")
+    ap.add_argument(
+        "--model-file",
+        type=Path,
+        action="append",
+        default=None,
+        help="weights to compare (repeatable; default: evaluate.yaml's model_file)",
+    )
+    ap.add_argument(
+        "--label",
+        action="append",
+        default=None,
+        help="a name for each --model-file in the table and figure, in order (default: the file names)",
+    )
     ap.add_argument("--subjects", nargs="+", default=None, help="default: val_ids of train.yaml")
     ap.add_argument("--ants", action="store_true", help="add ANTs SyN (antspyx) side by side")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
-    ap.add_argument("--conditions", nargs="+", default=None, metavar="NAME[:SIDE]",
-                    help="only these conditions, e.g. 'clean all:moving all:both' (a name alone: every side); "
-                         "default all. With --ants, ANTs' ~40 s per pair makes a subset worth it")
+    ap.add_argument(
+        "--conditions",
+        nargs="+",
+        default=None,
+        metavar="NAME[:SIDE]",
+        help="only these conditions, e.g. 'clean all:moving all:both' (a name alone: every side); "
+        "default all. With --ants, ANTs' ~40 s per pair makes a subset worth it",
+    )
     ap.add_argument("--name", default="robustness", help="stem of the JSON and PNG written (default: %(default)s)")
-    ap.add_argument("--refine", type=int, default=0, metavar="N",
-                    help="also each model with its mean refined for the pair (N steps, evaluate.yaml's other "
-                         "refine_* settings; monai_probreg.engines.refinement); default 0: not run")
+    ap.add_argument(
+        "--refine",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also each model with its mean refined for the pair (N steps, evaluate.yaml's other "
+        "refine_* settings; monai_probreg.engines.refinement); default 0: not run",
+    )
     args = ap.parse_args(argv)
     if args.refine < 0:
         raise SystemExit(f"--refine must be >= 0 steps; got {args.refine}")
@@ -139,14 +160,19 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     start = time.time()
     bundle_root = args.bundle_root.resolve()
-    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve()),
-                                                              "refine_iterations": args.refine})
+    evaluate = bundle_parser(
+        bundle_root,
+        ["evaluate.yaml"],
+        {"dataset_dir": str(args.dataset_dir.resolve()), "refine_iterations": args.refine},
+    )
     model_files = [p.resolve() for p in (args.model_file or [Path(evaluate.get_parsed_content("model_file"))])]
     names = args.label or [p.name for p in model_files]
     if len(names) != len(model_files) or len(set(names)) != len(names):
         raise SystemExit(f"--label: one distinct name per --model-file ({len(model_files)}); got {names}")
-    networks = {name: load_weights(evaluate.get_parsed_content("network_def", lazy=False), p, "cpu")
-                for name, p in zip(names, model_files)}
+    networks = {
+        name: load_weights(evaluate.get_parsed_content("network_def", lazy=False), p, "cpu")
+        for name, p in zip(names, model_files)
+    }
     refinement = evaluate.get_parsed_content("refinement")
     refined = {f"{net} + refine {args.refine}": net for net in networks} if refinement.enabled else {}
     models = [*networks, *refined]
@@ -163,8 +189,13 @@ def main(argv=None) -> int:
             if side in ("fixed", "both"):
                 fixed = perturb(fixed, name, seed + 1)
             labels = scans[moving_id]["label"], scans[fixed_id]["label"]
-            row = {"perturbation": name, "side": side, "moving": moving_id, "fixed": fixed_id,
-                   "affine_alone": score_pair(None, *labels).mean_dice}
+            row = {
+                "perturbation": name,
+                "side": side,
+                "moving": moving_id,
+                "fixed": fixed_id,
+                "affine_alone": score_pair(None, *labels).mean_dice,
+            }
             for key, network in networks.items():
                 row[key] = score_pair(register_pair(network, moving, fixed).displacement, *labels).mean_dice
             for key, base in refined.items():
@@ -175,18 +206,35 @@ def main(argv=None) -> int:
                 row["ANTs SyN"] = score_pair(None, warped_label, labels[1]).mean_dice
             records.append(row)
         done = [r for r in records if (r["perturbation"], r["side"]) == (name, side)]
-        print(f"[{c + 1}/{len(conditions)}] {name} ({side}): " + ", ".join(
-            f"{_name(k)} {np.mean([r[k] for r in done]):.3f}"
-            for k in ["affine_alone", *models, *(["ANTs SyN"] if args.ants else [])]), flush=True)
+        print(
+            f"[{c + 1}/{len(conditions)}] {name} ({side}): "
+            + ", ".join(
+                f"{_name(k)} {np.mean([r[k] for r in done]):.3f}"
+                for k in ["affine_alone", *models, *(["ANTs SyN"] if args.ants else [])]
+            ),
+            flush=True,
+        )
     methods = ["affine_alone", *models, *(["ANTs SyN"] if args.ants else [])]
     table = table_markdown(records, conditions, methods, models)
     print(table)
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    write_text(args.out_dir / f"{args.name}.json", json.dumps({
-        "pairs": [f"{m}_to_{f}" for m, f in pairs_for(ids)], "methods": methods, "markdown": table,
-        "model_files": {name: str(p) for name, p in zip(names, model_files)},
-        "refinement": refinement.as_dict() if refined else None,
-        "threads": args.threads, "seconds": round(time.time() - start, 1), "records": records}, indent=1) + "\n")
+    write_text(
+        args.out_dir / f"{args.name}.json",
+        json.dumps(
+            {
+                "pairs": [f"{m}_to_{f}" for m, f in pairs_for(ids)],
+                "methods": methods,
+                "markdown": table,
+                "model_files": {name: str(p) for name, p in zip(names, model_files)},
+                "refinement": refinement.as_dict() if refined else None,
+                "threads": args.threads,
+                "seconds": round(time.time() - start, 1),
+                "records": records,
+            },
+            indent=1,
+        )
+        + "\n",
+    )
     figure(records, conditions, methods, args.out_dir / f"{args.name}.png")
     print(f"wrote {args.out_dir / args.name}.json and {args.name}.png")
     return 0
@@ -202,8 +250,11 @@ def table_markdown(records: list[dict], conditions, methods: list[str], models: 
     for name, side in conditions:
         rs = [r for r in records if (r["perturbation"], r["side"]) == (name, side)]
         below = ", ".join(f"{sum(r[m] < r['affine_alone'] for r in rs)}" for m in models)
-        lines.append(f"| {name} | {side} | " + " | ".join(f"{np.mean([r[m] for r in rs]):.3f}" for m in methods)
-                     + f" | {below} |")
+        lines.append(
+            f"| {name} | {side} | "
+            + " | ".join(f"{np.mean([r[m] for r in rs]):.3f}" for m in methods)
+            + f" | {below} |"
+        )
     return "\n".join(lines)
 
 

@@ -58,8 +58,9 @@ ROWS = {  # method key -> row name (table order)
 }
 
 
-def prepare_pairs(dataset_dir: Path, subjects: Sequence[str] | None, num_pairs: int, size: Sequence[int],
-                  bundle_root: Path) -> tuple[list[dict], list[int]]:
+def prepare_pairs(
+    dataset_dir: Path, subjects: Sequence[str] | None, num_pairs: int, size: Sequence[int], bundle_root: Path
+) -> tuple[list[dict], list[int]]:
     """evaluate.yaml-preprocessed pairs padded/cropped to ``size``: dicts of (1, 1, *size) tensors; native grid."""
     from monai.bundle import ConfigParser
     from monai.data import Dataset
@@ -79,28 +80,53 @@ def prepare_pairs(dataset_dir: Path, subjects: Sequence[str] | None, num_pairs: 
     pairs, native = [], None
     for item in dataset:
         native = list(item["moving"].shape[1:])
-        pair = {k: pad_or_crop(item[k]).as_tensor()[None].float() for k in ("moving", "fixed", "moving_label",
-                                                                            "fixed_label")}
+        pair = {
+            k: pad_or_crop(item[k]).as_tensor()[None].float()
+            for k in ("moving", "fixed", "moving_label", "fixed_label")
+        }
         pairs.append({"id": item["id"], **pair})
     return pairs, native
 
 
 def synthetic_pairs(num_pairs: int, size: Sequence[int]) -> list[dict]:
     g = torch.Generator().manual_seed(0)
-    return [{"id": f"random{i}", "moving": torch.rand(1, 1, *size, generator=g),
-             "fixed": torch.rand(1, 1, *size, generator=g)} for i in range(num_pairs)]
+    return [
+        {
+            "id": f"random{i}",
+            "moving": torch.rand(1, 1, *size, generator=g),
+            "fixed": torch.rand(1, 1, *size, generator=g),
+        }
+        for i in range(num_pairs)
+    ]
 
 
 def run_worker(method: str, pairs_file: Path, work: Path, args: argparse.Namespace) -> dict[str, Any]:
     """One method in its own process (speed_workers.py); its result, or a status saying why there is none."""
     out = work / f"{method}.json"
     repeats = args.ants_repeats if method == "ants" else args.repeats
-    cmd = [sys.executable, str(HERE / "speed_workers.py"), method, "--pairs", str(pairs_file), "--out", str(out),
-           "--threads", str(args.threads), "--repeats", str(repeats), "--samples", str(args.samples)]
+    cmd = [
+        sys.executable,
+        str(HERE / "speed_workers.py"),
+        method,
+        "--pairs",
+        str(pairs_file),
+        "--out",
+        str(out),
+        "--threads",
+        str(args.threads),
+        "--repeats",
+        str(repeats),
+        "--samples",
+        str(args.samples),
+    ]
     cmd += ["--no-compile"] if args.no_compile else []
     threads = str(args.threads)
-    env = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
-           "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS": threads}
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": threads,
+        "MKL_NUM_THREADS": threads,
+        "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS": threads,
+    }
     print(f"running {method} ...", flush=True)
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=WORKER_TIMEOUT_S)
     if done.returncode != 0 or not out.is_file():
@@ -124,10 +150,14 @@ def summarise(results: dict[str, dict], k: int) -> list[dict[str, Any]]:
         row = {"key": key, "name": name.format(k=k), "status": r["status"]}
         if r["status"] == "ok":
             scores = list(r.get("scores", {}).values())
-            row.update(median_s=r["median_s"], ratio_to_ours=r["median_s"] / base if base else None,
-                       peak_rss_gb=r["peak_rss_mb"] / 1024, threads=r["threads"],
-                       mean_dice=_mean([s["mean_dice"] for s in scores]),
-                       folding_per_pair=_mean([s["num_folding"] for s in scores]))
+            row.update(
+                median_s=r["median_s"],
+                ratio_to_ours=r["median_s"] / base if base else None,
+                peak_rss_gb=r["peak_rss_mb"] / 1024,
+                threads=r["threads"],
+                mean_dice=_mean([s["mean_dice"] for s in scores]),
+                folding_per_pair=_mean([s["num_folding"] for s in scores]),
+            )
         rows.append(row)
     return rows
 
@@ -135,15 +165,20 @@ def summarise(results: dict[str, dict], k: int) -> list[dict[str, Any]]:
 def markdown(rows: list[dict[str, Any]]) -> str:
     def fmt(value: float | None, spec: str) -> str:
         return "–" if value is None else format(value, spec)
-    lines = ["| method | s per pair (median) | × ours (mean) | peak memory (GB) | mean Dice | \\|J\\|≤0 per pair | threads |",
-             "|---|---|---|---|---|---|---|"]
+
+    lines = [
+        "| method | s per pair (median) | × ours (mean) | peak memory (GB) | mean Dice | \\|J\\|≤0 per pair | threads |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for row in rows:
         if row["status"] != "ok":
             lines.append(f"| {row['name']} | {row['status']} | | | | | |")
             continue
-        lines.append(f"| {row['name']} | {fmt(row['median_s'], '.3g')} | {fmt(row['ratio_to_ours'], '.1f')} | "
-                     f"{row['peak_rss_gb']:.2f} | {fmt(row['mean_dice'], '.3f')} | {fmt(row['folding_per_pair'], '.1f')} "
-                     f"| {row['threads']} |")
+        lines.append(
+            f"| {row['name']} | {fmt(row['median_s'], '.3g')} | {fmt(row['ratio_to_ours'], '.1f')} | "
+            f"{row['peak_rss_gb']:.2f} | {fmt(row['mean_dice'], '.3f')} | {fmt(row['folding_per_pair'], '.1f')} "
+            f"| {row['threads']} |"
+        )
     return "\n".join(lines)
 
 
@@ -153,8 +188,10 @@ def levers_markdown(levers: dict[str, Any]) -> str:
     lines += [f"| {name} | {t:.3f} | {plain / t:.2f} |" for name, t in levers["levers"].items()]
     stages = levers["stages"]
     lines += ["", "| stage | plain (s) | default levers (s) |", "|---|---|---|"]
-    lines += [f"| {a} | {stages['plain'][a]:.3f} | {stages['default'][b]:.3f} |"
-              for a, b in zip(stages["plain"], stages["default"])]
+    lines += [
+        f"| {a} | {stages['plain'][a]:.3f} | {stages['default'][b]:.3f} |"
+        for a, b in zip(stages["plain"], stages["default"])
+    ]
     return "\n".join(lines)
 
 
@@ -168,8 +205,10 @@ def bar_chart(rows: list[dict[str, Any]], path: Path, title: str) -> None:
     ok = [r for r in rows if r["status"] == "ok"]
     names = [r["name"].replace(" (", "\n(") for r in ok]
     fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(13, 4.8), layout="constrained")
-    for ax, key, label, log in ((ax_t, "median_s", "seconds per pair (median, log scale)", True),
-                                (ax_m, "peak_rss_gb", "peak resident memory (GB)", False)):
+    for ax, key, label, log in (
+        (ax_t, "median_s", "seconds per pair (median, log scale)", True),
+        (ax_m, "peak_rss_gb", "peak resident memory (GB)", False),
+    ):
         values = [r[key] for r in ok]
         ax.barh(range(len(ok)), values, color=[f"C{i}" for i in range(len(ok))], alpha=0.85)
         for i, v in enumerate(values):
@@ -201,8 +240,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--synthetic", action="store_true", help="random pairs, no dataset: speed and memory only")
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where speed_compare.{json,png} go")
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
-    ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
-                    help="override an evaluate.yaml value (YAML) for the shipped-weights row, e.g. unet_precision=fp32")
+    ap.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an evaluate.yaml value (YAML) for the shipped-weights row, e.g. unet_precision=fp32",
+    )
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.override)
 
@@ -221,10 +265,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "ants" in methods and importlib.util.find_spec("ants") is None:
         results["ants"] = {"status": "skipped: antspyx not installed (pip install -e '.[bench]')"}
         methods.remove("ants")
-    meta = {"size": list(args.size), "native": native, "bundle_root": str(bundle_root), "overrides": overrides,
-            "ants_warmup_shrink": ANTS_WARMUP_SHRINK, "subjects": [p["id"] for p in pairs]}
-    print(f"{len(pairs)} pairs {meta['subjects']} at {'x'.join(map(str, args.size))}, {args.threads} threads",
-          flush=True)
+    meta = {
+        "size": list(args.size),
+        "native": native,
+        "bundle_root": str(bundle_root),
+        "overrides": overrides,
+        "ants_warmup_shrink": ANTS_WARMUP_SHRINK,
+        "subjects": [p["id"] for p in pairs],
+    }
+    print(
+        f"{len(pairs)} pairs {meta['subjects']} at {'x'.join(map(str, args.size))}, {args.threads} threads", flush=True
+    )
     with tempfile.TemporaryDirectory(prefix="speed_compare_") as tmp:
         work = Path(tmp)
         torch.save({"meta": meta, "pairs": pairs}, work / "pairs.pt")
@@ -232,20 +283,37 @@ def main(argv: Sequence[str] | None = None) -> int:
             results[method] = run_worker(method, work / "pairs.pt", work, args)
             r = results[method]
             timing = f"{r['median_s']:.3f} s, " if "median_s" in r else ""
-            print(f"  {method}: " + (f"{timing}peak {r['peak_rss_mb'] / 1024:.2f} GB" if r["status"] == "ok"
-                                     else r["status"]), flush=True)
+            print(
+                f"  {method}: "
+                + (f"{timing}peak {r['peak_rss_mb'] / 1024:.2f} GB" if r["status"] == "ok" else r["status"]),
+                flush=True,
+            )
     rows = summarise(results, args.samples)
     table = markdown(rows)
     levers = results.get("levers", {})
     report = {
-        "settings": {"size": args.size, "native_grid": native, "threads": args.threads, "repeats": args.repeats,
-                     "ants_repeats": args.ants_repeats, "samples": args.samples, "synthetic": args.synthetic,
-                     "dataset_dir": None if args.synthetic else str(dataset_dir), "subjects": meta["subjects"],
-                     "overrides": overrides},
-        "versions": {"python": platform.python_version(), "torch": torch.__version__,
-                     "cpu": platform.processor() or platform.machine(), "platform": platform.platform(),
-                     "cpu_capability": torch.backends.cpu.get_cpu_capability()},
-        "rows": rows, "results": results, "markdown": table,
+        "settings": {
+            "size": args.size,
+            "native_grid": native,
+            "threads": args.threads,
+            "repeats": args.repeats,
+            "ants_repeats": args.ants_repeats,
+            "samples": args.samples,
+            "synthetic": args.synthetic,
+            "dataset_dir": None if args.synthetic else str(dataset_dir),
+            "subjects": meta["subjects"],
+            "overrides": overrides,
+        },
+        "versions": {
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "cpu": platform.processor() or platform.machine(),
+            "platform": platform.platform(),
+            "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        },
+        "rows": rows,
+        "results": results,
+        "markdown": table,
         "levers_markdown": levers_markdown(levers) if levers.get("status") == "ok" else None,
     }
     args.out_dir.mkdir(parents=True, exist_ok=True)

@@ -60,9 +60,15 @@ def conv_layers(net: ProbRegNet, moving: torch.Tensor, fixed: torch.Tensor) -> l
     layers: list[dict[str, Any]] = []
 
     def hook(module: nn.Conv3d, inputs: tuple[torch.Tensor, ...], output: torch.Tensor) -> None:
-        layers.append({"in": module.in_channels, "out": module.out_channels, "stride": module.stride[0],
-                       "input_grid": list(inputs[0].shape[2:]),
-                       "macs": output.numel() * module.in_channels // module.groups * math.prod(module.kernel_size)})
+        layers.append(
+            {
+                "in": module.in_channels,
+                "out": module.out_channels,
+                "stride": module.stride[0],
+                "input_grid": list(inputs[0].shape[2:]),
+                "macs": output.numel() * module.in_channels // module.groups * math.prod(module.kernel_size),
+            }
+        )
 
     handles = [m.register_forward_hook(hook) for m in net.modules() if isinstance(m, nn.Conv3d)]
     with torch.inference_mode():
@@ -88,8 +94,10 @@ def hardware_peaks(layers: list[dict[str, Any]], repeats: int) -> dict[str, Any]
             xi, wi = x.to(dtype), w.to(dtype)
             seconds = median_time(lambda: torch.nn.functional.conv3d(xi, wi, stride=big["stride"], padding=1), repeats)
             peaks[f"largest_conv_{name}_gflops"] = 2 * big["macs"] / seconds / 1e9
-    peaks["largest_conv"] = (f"{big['in']}->{big['out']} channels, 3^3, on {'x'.join(map(str, big['input_grid']))}: "
-                             f"{big['macs'] / 1e9:.1f} GMAC")
+    peaks["largest_conv"] = (
+        f"{big['in']}->{big['out']} channels, 3^3, on {'x'.join(map(str, big['input_grid']))}: "
+        f"{big['macs'] / 1e9:.1f} GMAC"
+    )
     return peaks
 
 
@@ -103,11 +111,13 @@ def stage_times(net: ProbRegNet, moving: torch.Tensor, fixed: torch.Tensor, repe
         grid = "x".join(map(str, posterior.mean.shape[2:]))
         return {
             "UNet (moving, fixed) -> posterior": median_time(lambda: net.posterior(moving, fixed), repeats),
-            f"integration ({grid}, {net.integrate.num_steps} squarings)":
-                median_time(lambda: net.integrate(posterior.mean), repeats),
+            f"integration ({grid}, {net.integrate.num_steps} squarings)": median_time(
+                lambda: net.integrate(posterior.mean), repeats
+            ),
             "upsampling of the displacement": median_time(lambda: resize_displacement(small, size), repeats),
             "warp of the moving image": median_time(
-                lambda: warp_image(moving, displacement, fast=net.fast_sampling), repeats),
+                lambda: warp_image(moving, displacement, fast=net.fast_sampling), repeats
+            ),
             "whole registration": median_time(lambda: register_pair(net, moving, fixed), repeats),
         }
 
@@ -116,9 +126,11 @@ def sample_fusion(moving: torch.Tensor, fixed: torch.Tensor, k: int, repeats: in
     """K samples through ``ProbRegNet.sample``: one batch of K fields against one integration at a time."""
     net = _net()
     with torch.inference_mode():
-        return {"fused_s": median_time(lambda: net.sample(moving, fixed, k, samples_per_batch=k), repeats),
-                "one_by_one_s": median_time(lambda: net.sample(moving, fixed, k, samples_per_batch=1), repeats),
-                "mean_only_s": median_time(lambda: register_pair(net, moving, fixed), repeats)}
+        return {
+            "fused_s": median_time(lambda: net.sample(moving, fixed, k, samples_per_batch=k), repeats),
+            "one_by_one_s": median_time(lambda: net.sample(moving, fixed, k, samples_per_batch=1), repeats),
+            "mean_only_s": median_time(lambda: register_pair(net, moving, fixed), repeats),
+        }
 
 
 def compiled_unet(moving: torch.Tensor, fixed: torch.Tensor, repeats: int) -> dict[str, Any]:
@@ -150,10 +162,14 @@ def run_levers(pair: dict, meta: dict, args: argparse.Namespace) -> dict[str, An
     net = _net()
     with torch.no_grad():
         result["levers"]["all levers, torch.no_grad instead of inference_mode"] = median_time(
-            lambda: net(moving, fixed), args.repeats)
-    result["stages"] = {"plain": stage_times(_net(**LEVER_SETTINGS["plain: float32, default layout, MONAI Warp"]),
-                                             moving, fixed, args.repeats),
-                        "default": stage_times(net, moving, fixed, args.repeats)}
+            lambda: net(moving, fixed), args.repeats
+        )
+    result["stages"] = {
+        "plain": stage_times(
+            _net(**LEVER_SETTINGS["plain: float32, default layout, MONAI Warp"]), moving, fixed, args.repeats
+        ),
+        "default": stage_times(net, moving, fixed, args.repeats),
+    }
     result["samples"] = {"k": args.samples, **sample_fusion(moving, fixed, args.samples, args.repeats)}
     layers = conv_layers(net, moving, fixed)
     result["unet_macs"] = sum(layer["macs"] for layer in layers)

@@ -85,8 +85,9 @@ class PeakWindows:
 
     def record(self, result: dict[str, Any]) -> None:
         result["peak_rss_mb"] = self.peak_mb
-        result["peak_rss_scope"] = ("timed runs only" if self.resets
-                                    else "whole process (the peak could not be reset here)")
+        result["peak_rss_scope"] = (
+            "timed runs only" if self.resets else "whole process (the peak could not be reset here)"
+        )
 
 
 def timed(fn: Callable[[], Any], repeats: int) -> tuple[list[float], Any]:
@@ -106,8 +107,9 @@ def _scores(displacement: torch.Tensor, pair: dict) -> dict[str, Any]:
     return {"mean_dice": s.mean_dice, "num_folding": s.num_folding, "std_log_jacobian": s.std_log_jacobian}
 
 
-def _network(kind: str, size: list[int], native: list[int], bundle_root: Path,
-             overrides: dict[str, Any]) -> torch.nn.Module:
+def _network(
+    kind: str, size: list[int], native: list[int], bundle_root: Path, overrides: dict[str, Any]
+) -> torch.nn.Module:
     """``paper``: an untrained ProbRegNet whose UNet runs on the input grid (the paper's setting); ``trained``: the
     configs' network (evaluate.yaml, with ``overrides``) and weights, its network grid scaled with the input."""
     from monai.bundle import ConfigParser
@@ -128,8 +130,9 @@ def _network(kind: str, size: list[int], native: list[int], bundle_root: Path,
     # Loaded with the trained grid (the settings check next to the weights passes), then the grid is scaled with the
     # padded input: the same voxel size as in training, rounded to a multiple of the network's divisor. Only this
     # benchmark does that (its input is the native grid padded to the paper's size); the UNet is convolutional.
-    network.network_size = tuple(max(divisor, round(s * t / n / divisor) * divisor)
-                                 for s, t, n in zip(size, trained_on, native))
+    network.network_size = tuple(
+        max(divisor, round(s * t / n / divisor) * divisor) for s, t, n in zip(size, trained_on, native)
+    )
     return network
 
 
@@ -149,14 +152,18 @@ def run_torch_method(method: str, pairs: list[dict], meta: dict, args: argparse.
             from monai_probreg.utils.memory import reuse_freed_memory
 
             result_reuse = reuse_freed_memory()
-        net = _network("trained" if method == "ours_trained" else "paper", meta["size"], meta["native"],
-                       Path(meta["bundle_root"]), meta["overrides"])
+        net = _network(
+            "trained" if method == "ours_trained" else "paper",
+            meta["size"],
+            meta["native"],
+            Path(meta["bundle_root"]),
+            meta["overrides"],
+        )
         if method == "ours_samples":
             call = lambda p: net.sample(p["moving"], p["fixed"], args.samples)  # noqa: E731
         else:
             call = lambda p: register_pair(net, p["moving"], p["fixed"])  # noqa: E731
-    result: dict[str, Any] = {"rss_before_mb": rss_mb(), "times_s": {}, "scores": {},
-                              "memory_reuse": result_reuse}
+    result: dict[str, Any] = {"rss_before_mb": rss_mb(), "times_s": {}, "scores": {}, "memory_reuse": result_reuse}
     window = PeakWindows()
     displacements = {}
     with torch.inference_mode():
@@ -194,8 +201,10 @@ def run_ants(pairs: list[dict], meta: dict, args: argparse.Namespace) -> dict[st
     from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
     from monai_probreg.metrics.scores import score_pair
 
-    warm = {k: F.interpolate(pairs[0][k].float(), scale_factor=1 / meta["ants_warmup_shrink"], mode="nearest")
-            for k in ("moving", "fixed", "moving_label")}
+    warm = {
+        k: F.interpolate(pairs[0][k].float(), scale_factor=1 / meta["ants_warmup_shrink"], mode="nearest")
+        for k in ("moving", "fixed", "moving_label")
+    }
     result: dict[str, Any] = {"rss_before_mb": rss_mb(), "times_s": {}, "scores": {}}
     window = PeakWindows()
     ants_register(warm["moving"], warm["fixed"], warm["moving_label"])  # loads ITK/ANTs code, not timed
@@ -210,8 +219,11 @@ def run_ants(pairs: list[dict], meta: dict, args: argparse.Namespace) -> dict[st
         if pair.get("fixed_label") is not None:
             s = score_pair(None, warped_label, pair["fixed_label"])
             stats = jacobian_stats(jacobian_determinant(displacement))
-            result["scores"][pair["id"]] = {"mean_dice": s.mean_dice, "num_folding": stats.num_folding,
-                                            "std_log_jacobian": stats.std_log_jacobian}
+            result["scores"][pair["id"]] = {
+                "mean_dice": s.mean_dice,
+                "num_folding": stats.num_folding,
+                "std_log_jacobian": stats.std_log_jacobian,
+            }
     import ants
 
     window.record(result)

@@ -78,18 +78,20 @@ from monai_probreg.utils.files import write_text
 from monai_probreg.utils.tensors import plain_tensor
 from monai_probreg.weights.loading import load_weights
 
-TRUTH_STEPS = 10          # squarings for the true fields (full resolution; the model uses 7 at half resolution)
-SMOOTHING_VOXELS = 6.0    # Gaussian sigma of the random velocity, in velocity-grid voxels (12 mm at 1 mm, /2)
+TRUTH_STEPS = 10  # squarings for the true fields (full resolution; the model uses 7 at half resolution)
+SMOOTHING_VOXELS = 6.0  # Gaussian sigma of the random velocity, in velocity-grid voxels (12 mm at 1 mm, /2)
 VOXELS_PER_CASE = 400_000  # brain voxels subsampled per case for the displacement metrics (x 3 components)
-PROBE_SHIFT_VOXELS = 3.0   # translation of the diagnostic probe (recovered fraction per axis)
-FIT_ITERATIONS = 3         # at most this many re-samplings at the fitted pair and refits (the std is not linear in it;
-                           # the two scalars trade along a ridge of near-equal coverage, and 8 refits drift on to a
-                           # smaller scale and a larger bias fraction: Spearman +0.02, label AUROC -0.004, README)
-FIT_TOLERANCE = 0.02       # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
-SEED_STRIDE = 100         # subject n's deformation r is drawn with seed + SEED_STRIDE * n + r (r < SEED_STRIDE)
+PROBE_SHIFT_VOXELS = 3.0  # translation of the diagnostic probe (recovered fraction per axis)
+FIT_ITERATIONS = 3  # at most this many re-samplings at the fitted pair and refits (the std is not linear in it;
+# the two scalars trade along a ridge of near-equal coverage, and 8 refits drift on to a
+# smaller scale and a larger bias fraction: Spearman +0.02, label AUROC -0.004, README)
+FIT_TOLERANCE = 0.02  # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
+SEED_STRIDE = 100  # subject n's deformation r is drawn with seed + SEED_STRIDE * n + r (r < SEED_STRIDE)
 
 
-def random_deformation(fixed: torch.Tensor, rms: float, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def random_deformation(
+    fixed: torch.Tensor, rms: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
     """A random smooth diffeomorphism on ``fixed``'s grid: (forward displacement exp(v), inverse exp(-v)), both
     (1, 3, *S) voxels, with the forward displacement's RMS in the brain scaled to ``rms``."""
     size = fixed.shape[2:]
@@ -141,8 +143,9 @@ def population_deformation(fixed: torch.Tensor, subject_to_atlas: torch.Tensor) 
 def sample_displacements(network, mean, log_var, size, num_samples, generator):
     """Mean and variance (1, 3, *size) of ``num_samples`` displacements drawn from N(mean, exp(log_var))."""
     with torch.inference_mode():
-        return sampled_displacement_moments(mean, log_var, lambda z: network.velocity_to_displacement(z, size),
-                                            num_samples, generator)
+        return sampled_displacement_moments(
+            mean, log_var, lambda z: network.velocity_to_displacement(z, size), num_samples, generator
+        )
 
 
 def translation_probe(network, fixed: torch.Tensor, shift: float = PROBE_SHIFT_VOXELS) -> list[float]:
@@ -189,10 +192,16 @@ def displacement_case(network, fixed, rms, num_samples, seed, population=None, r
         registration = network.velocity_to_displacement(posterior.mean, tuple(fixed.shape[2:]))
         # the raw velocity std on the image grid, in its voxels: what sampling would give without any smoothing
         velocity_std = resize_displacement((0.5 * posterior.log_var).exp(), tuple(fixed.shape[2:]))
-    return {"mean": posterior.mean, "log_var": posterior.log_var, "truth": truth[0].flatten(1)[:, voxels],
-            "voxels": voxels, "size": tuple(fixed.shape[2:]), "seed": seed,
-            "displacement_norm": registration[0].flatten(1)[:, voxels].norm(dim=0),
-            "velocity_std": velocity_std[0].flatten(1)[:, voxels]}
+    return {
+        "mean": posterior.mean,
+        "log_var": posterior.log_var,
+        "truth": truth[0].flatten(1)[:, voxels],
+        "voxels": voxels,
+        "size": tuple(fixed.shape[2:]),
+        "seed": seed,
+        "displacement_norm": registration[0].flatten(1)[:, voxels].norm(dim=0),
+        "velocity_std": velocity_std[0].flatten(1)[:, voxels],
+    }
 
 
 def case_errors(network, case, calibration: Calibration, num_samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -221,20 +230,25 @@ def displacement_metrics(std: np.ndarray, error: np.ndarray) -> dict[str, float]
     """Metrics of (3, N) std and error: per component, and of the vectors (std_c combined, error length)."""
     perfect = std * np.random.default_rng(0).standard_normal(std.shape)  # errors a calibrated Gaussian would make
     vector_std = np.sqrt((std**2).sum(0))
-    return {"coverage_68": interval_coverage(std, error, 0.68), "coverage_95": interval_coverage(std, error, 0.95),
-            "spearman_std_abs_error": spearman(std.ravel(), np.abs(error).ravel()),
-            "spearman_ceiling": spearman(std.ravel(), np.abs(perfect).ravel()),
-            "spearman_vector": spearman(vector_std, np.linalg.norm(error, axis=0)),
-            "spearman_vector_ceiling": spearman(vector_std, np.linalg.norm(perfect, axis=0)),
-            "uce_voxels": uncertainty_calibration_error(std.ravel(), error.ravel()),
-            "rms_error_voxels": float(np.sqrt(np.mean(error**2))), "rms_std_voxels": float(np.sqrt(np.mean(std**2)))}
+    return {
+        "coverage_68": interval_coverage(std, error, 0.68),
+        "coverage_95": interval_coverage(std, error, 0.95),
+        "spearman_std_abs_error": spearman(std.ravel(), np.abs(error).ravel()),
+        "spearman_ceiling": spearman(std.ravel(), np.abs(perfect).ravel()),
+        "spearman_vector": spearman(vector_std, np.linalg.norm(error, axis=0)),
+        "spearman_vector_ceiling": spearman(vector_std, np.linalg.norm(perfect, axis=0)),
+        "uce_voxels": uncertainty_calibration_error(std.ravel(), error.ravel()),
+        "rms_error_voxels": float(np.sqrt(np.mean(error**2))),
+        "rms_std_voxels": float(np.sqrt(np.mean(std**2))),
+    }
 
 
 def propagated_labels(network, velocities: torch.Tensor, atlas_label: torch.Tensor, size) -> list[torch.Tensor]:
     """The atlas labels (1, 1, *S) pulled into the moving image's grid by exp(-z) for each velocity z of
     ``velocities`` (K, 3, *V): K label maps (*S)."""
-    return [warp_labels(atlas_label, inverse[None])[0, 0]
-            for inverse in network.velocity_to_displacement(-velocities, size)]
+    return [
+        warp_labels(atlas_label, inverse[None])[0, 0] for inverse in network.velocity_to_displacement(-velocities, size)
+    ]
 
 
 def label_case(network, pair, calibration: Calibration, num_samples, seed, refinement=None) -> dict[str, Any]:
@@ -256,8 +270,15 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed, refin
     truth = pair["moving_label"][0, 0].to(torch.int16)
     region = (predicted > 0) | (truth > 0)
     wrong = (predicted != truth)[region]
-    return {"auroc": auroc(entropy[region].numpy(), wrong.numpy()), "wrong_fraction": float(wrong.float().mean()),
-            "entropy": entropy, "predicted": predicted, "truth": truth, "log_var": log_var, "mean": posterior.mean}
+    return {
+        "auroc": auroc(entropy[region].numpy(), wrong.numpy()),
+        "wrong_fraction": float(wrong.float().mean()),
+        "entropy": entropy,
+        "predicted": predicted,
+        "truth": truth,
+        "log_var": log_var,
+        "mean": posterior.mean,
+    }
 
 
 def validation_arguments(description: str) -> argparse.ArgumentParser:
@@ -289,17 +310,34 @@ def validation_model(args: argparse.Namespace):
 def main(argv=None) -> int:
     ap = validation_arguments(__doc__)
     ap.add_argument("--deformations", type=int, default=2, help="random deformations per subject")
-    ap.add_argument("--probe", choices=["population", "noise"], default="population",
-                    help="how the known deformations are drawn (see the module docstring)")
-    ap.add_argument("--reference", choices=["atlas", "subject"], default="atlas",
-                    help="the image that is deformed and registered back (see the module docstring)")
+    ap.add_argument(
+        "--probe",
+        choices=["population", "noise"],
+        default="population",
+        help="how the known deformations are drawn (see the module docstring)",
+    )
+    ap.add_argument(
+        "--reference",
+        choices=["atlas", "subject"],
+        default="atlas",
+        help="the image that is deformed and registered back (see the module docstring)",
+    )
     ap.add_argument("--folds", type=int, default=2, help="cross-fitting folds over the subjects")
-    ap.add_argument("--fit-iterations", type=int, default=FIT_ITERATIONS,
-                    help="refits at the fitted pair, at most (see FIT_ITERATIONS)")
+    ap.add_argument(
+        "--fit-iterations",
+        type=int,
+        default=FIT_ITERATIONS,
+        help="refits at the fitted pair, at most (see FIT_ITERATIONS)",
+    )
     ap.add_argument("--write-calibration", action="store_true", help="fit on all subjects, write the sidecar")
-    ap.add_argument("--refine", type=int, default=None, metavar="N",
-                    help="refinement steps of the mean that is calibrated (default: evaluate.yaml's refine_iterations,"
-                         " the bundle's default path; 0 = the network's mean)")
+    ap.add_argument(
+        "--refine",
+        type=int,
+        default=None,
+        metavar="N",
+        help="refinement steps of the mean that is calibrated (default: evaluate.yaml's refine_iterations,"
+        " the bundle's default path; 0 = the network's mean)",
+    )
     args = ap.parse_args(argv)
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir}")
@@ -314,8 +352,11 @@ def main(argv=None) -> int:
         if args.refine < 0:
             raise SystemExit(f"--refine must be >= 0 steps; got {args.refine}")
         refinement = dataclasses.replace(refinement, num_iterations=args.refine)
-    print(f"calibrating the {'refined mean' if refinement.enabled else 'network mean'} "
-          f"({refinement.num_iterations} refinement steps)", flush=True)
+    print(
+        f"calibrating the {'refined mean' if refinement.enabled else 'network mean'} "
+        f"({refinement.num_iterations} refinement steps)",
+        flush=True,
+    )
     if args.fit_iterations < 1:
         raise SystemExit(f"--fit-iterations must be >= 1; got {args.fit_iterations}")
     if len(subjects) < args.folds or args.folds < 2:
@@ -327,10 +368,14 @@ def main(argv=None) -> int:
     population = None
     if args.probe == "population":  # training subjects only: the scored subjects never shape the probe
         train_ids = [i for i in index.ids if i not in subjects]
-        population = population_velocities(network, Dataset(labelled_pairs(index, train_ids),
-                                                            transform=evaluate.get_parsed_content("preprocessing")))
-        print(f"population probe: mean and {len(population[1])} deviations of the model's velocities of "
-              f"{', '.join(train_ids)} -> atlas", flush=True)
+        population = population_velocities(
+            network, Dataset(labelled_pairs(index, train_ids), transform=evaluate.get_parsed_content("preprocessing"))
+        )
+        print(
+            f"population probe: mean and {len(population[1])} deviations of the model's velocities of "
+            f"{', '.join(train_ids)} -> atlas",
+            flush=True,
+        )
 
     cases, items, probe = {}, {}, None
     for n, item in enumerate(dataset):
@@ -343,15 +388,24 @@ def main(argv=None) -> int:
         reference = pair["fixed"] if args.reference == "atlas" else pair["moving"]
         if probe is None:  # the atlas (same for every subject): once
             probe = translation_probe(network, pair["fixed"])
-            print("translation probe: recovered fraction of a 3-voxel shift of the atlas per axis: "
-                  + ", ".join(f"{f:.2f}" for f in probe), flush=True)
-        cases[sid] = [displacement_case(network, reference, rms, args.samples, args.seed + SEED_STRIDE * n + r,
-                                         population, refinement)
-                      for r in range(args.deformations)]
+            print(
+                "translation probe: recovered fraction of a 3-voxel shift of the atlas per axis: "
+                + ", ".join(f"{f:.2f}" for f in probe),
+                flush=True,
+            )
+        cases[sid] = [
+            displacement_case(
+                network, reference, rms, args.samples, args.seed + SEED_STRIDE * n + r, population, refinement
+            )
+            for r in range(args.deformations)
+        ]
         truth_rms = [float(c["truth"].pow(2).sum(0).mean().sqrt()) for c in cases[sid]]
-        print(f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} {args.probe} deformations of the {args.reference}, "
-              f"true RMS {', '.join(f'{r:.2f}' for r in truth_rms)} voxels (the model's own for {sid} -> atlas: "
-              f"{rms:.2f})", flush=True)
+        print(
+            f"[{n + 1}/{len(pairs)}] {sid}: {args.deformations} {args.probe} deformations of the {args.reference}, "
+            f"true RMS {', '.join(f'{r:.2f}' for r in truth_rms)} voxels (the model's own for {sid} -> atlas: "
+            f"{rms:.2f})",
+            flush=True,
+        )
 
     raw_calibration = Calibration(1.0, 0.0)
     raw = {sid: [case_errors(network, c, raw_calibration, args.samples) for c in cs] for sid, cs in cases.items()}
@@ -369,22 +423,33 @@ def main(argv=None) -> int:
         first = fit_calibration(*pooled)
         current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa))
         for iteration in range(1, args.fit_iterations + 1):
-            refit = fit_calibration(*_pool([case_errors(network, c, current, args.samples) for s in sids
-                                            for c in cases[s]]))
+            refit = fit_calibration(
+                *_pool([case_errors(network, c, current, args.samples) for s in sids for c in cases[s]])
+            )
             if abs(refit.std_scale - 1) < FIT_TOLERANCE and refit.bias_fraction < FIT_TOLERANCE:
                 break  # the samples at the current pair already cover as nominal as the fit can make them
-            current = Calibration(refit.std_scale * current.std_scale,
-                                  math.hypot(refit.std_scale * current.bias_fraction,
-                                             refit.bias_fraction / math.sqrt(kappa)))
-        print(f"  fit on {', '.join(sids)}: kappa {kappa:.3f}, refit {iteration} ({refit.std_scale:.3f}, "
-              f"{refit.bias_fraction:.3f}) -> std_scale {current.std_scale:.3f}, bias_fraction "
-              f"{current.bias_fraction:.3f}", flush=True)
+            current = Calibration(
+                refit.std_scale * current.std_scale,
+                math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction / math.sqrt(kappa)),
+            )
+        print(
+            f"  fit on {', '.join(sids)}: kappa {kappa:.3f}, refit {iteration} ({refit.std_scale:.3f}, "
+            f"{refit.bias_fraction:.3f}) -> std_scale {current.std_scale:.3f}, bias_fraction "
+            f"{current.bias_fraction:.3f}",
+            flush=True,
+        )
         return current
 
     scales = {f: fit([s for s in raw if folds[s] != f]) for f in range(args.folds)}
-    print("held-out calibrations per fold (std_scale, bias_fraction): "
-          + ", ".join(f"({v.std_scale:.3f}, {v.bias_fraction:.2f})" for v in scales.values()), flush=True)
-    rows: dict[str, Any] = {"raw": {"std": [], "error": [], "auroc": []}, "calibrated": {"std": [], "error": [], "auroc": []}}
+    print(
+        "held-out calibrations per fold (std_scale, bias_fraction): "
+        + ", ".join(f"({v.std_scale:.3f}, {v.bias_fraction:.2f})" for v in scales.values()),
+        flush=True,
+    )
+    rows: dict[str, Any] = {
+        "raw": {"std": [], "error": [], "auroc": []},
+        "calibrated": {"std": [], "error": [], "auroc": []},
+    }
     per_subject, figure_case = {}, None
     truth = {sid: np.concatenate([c["truth"].numpy() for c in cs], axis=1) for sid, cs in cases.items()}
     for sid in cases:
@@ -397,65 +462,116 @@ def main(argv=None) -> int:
             rows[name]["std"].append(std)
             rows[name]["error"].append(error)
             rows[name]["auroc"].append(labels["auroc"])
-            record[name] = {**displacement_metrics(std, error), "label_entropy_auroc": labels["auroc"],
-                            "wrong_label_fraction": labels["wrong_fraction"],
-                            "recovered_fraction": recovered_fraction(error, truth[sid])}
+            record[name] = {
+                **displacement_metrics(std, error),
+                "label_entropy_auroc": labels["auroc"],
+                "wrong_label_fraction": labels["wrong_fraction"],
+                "recovered_fraction": recovered_fraction(error, truth[sid]),
+            }
             if name == "calibrated" and figure_case is None:
                 figure_case = (sid, items[sid], labels)
         per_subject[sid] = record
-        print(f"{sid} (fold {folds[sid]}, scale {calibration.std_scale:.2f}, bias fraction "
-              f"{calibration.bias_fraction:.2f}): " + "; ".join(
-            f"{n} cov68 {record[n]['coverage_68']:.3f} cov95 {record[n]['coverage_95']:.3f} "
-            f"rho {record[n]['spearman_std_abs_error']:.3f} AUROC {record[n]['label_entropy_auroc']:.3f}"
-            for n in ("raw", "calibrated")), flush=True)
+        print(
+            f"{sid} (fold {folds[sid]}, scale {calibration.std_scale:.2f}, bias fraction "
+            f"{calibration.bias_fraction:.2f}): "
+            + "; ".join(
+                f"{n} cov68 {record[n]['coverage_68']:.3f} cov95 {record[n]['coverage_95']:.3f} "
+                f"rho {record[n]['spearman_std_abs_error']:.3f} AUROC {record[n]['label_entropy_auroc']:.3f}"
+                for n in ("raw", "calibrated")
+            ),
+            flush=True,
+        )
 
     summary = {}
     for name, row in rows.items():
         std, error = np.concatenate(row["std"], axis=1), np.concatenate(row["error"], axis=1)
-        summary[name] = {**displacement_metrics(std, error), "label_entropy_auroc": float(np.mean(row["auroc"])),
-                         "recovered_fraction": recovered_fraction(error, np.concatenate(list(truth.values()), axis=1))}
-    table = ["| posterior | coverage 68% | coverage 95% | Spearman per component (ceiling) | Spearman of vectors "
-             "(ceiling) | UCE (voxels) | RMS error / RMS std (voxels) | label-entropy AUROC |",
-             "|---|---|---|---|---|---|---|---|"]
+        summary[name] = {
+            **displacement_metrics(std, error),
+            "label_entropy_auroc": float(np.mean(row["auroc"])),
+            "recovered_fraction": recovered_fraction(error, np.concatenate(list(truth.values()), axis=1)),
+        }
+    table = [
+        "| posterior | coverage 68% | coverage 95% | Spearman per component (ceiling) | Spearman of vectors "
+        "(ceiling) | UCE (voxels) | RMS error / RMS std (voxels) | label-entropy AUROC |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     # (recovered_fraction, in the JSON: how much of the true displacement the mean registration recovers)
     for name, m in summary.items():
-        table.append(f"| {name} | {m['coverage_68']:.3f} | {m['coverage_95']:.3f} | {m['spearman_std_abs_error']:.3f} "
-                     f"({m['spearman_ceiling']:.2f}) | {m['spearman_vector']:.3f} ({m['spearman_vector_ceiling']:.2f}) | "
-                     f"{m['uce_voxels']:.3f} | {m['rms_error_voxels']:.2f} / {m['rms_std_voxels']:.2f} | "
-                     f"{m['label_entropy_auroc']:.3f} |")
+        table.append(
+            f"| {name} | {m['coverage_68']:.3f} | {m['coverage_95']:.3f} | {m['spearman_std_abs_error']:.3f} "
+            f"({m['spearman_ceiling']:.2f}) | {m['spearman_vector']:.3f} ({m['spearman_vector_ceiling']:.2f}) | "
+            f"{m['uce_voxels']:.3f} | {m['rms_error_voxels']:.2f} / {m['rms_std_voxels']:.2f} | "
+            f"{m['label_entropy_auroc']:.3f} |"
+        )
     markdown = "\n".join(table)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     curve_names = {"raw": "raw posterior", "calibrated": "calibrated (fitted on the other fold)"}
-    reliability_diagram({curve_names[n]: (np.concatenate(r["std"], axis=1).ravel(),
-                                          np.concatenate(r["error"], axis=1).ravel()) for n, r in rows.items()},
-                        args.out_dir / "uncertainty_reliability.png")
+    reliability_diagram(
+        {
+            curve_names[n]: (np.concatenate(r["std"], axis=1).ravel(), np.concatenate(r["error"], axis=1).ravel())
+            for n, r in rows.items()
+        },
+        args.out_dir / "uncertainty_reliability.png",
+    )
     sid, pair, labels = figure_case
     size = tuple(pair["fixed"].shape[2:])
-    variance = sample_displacements(network, labels["mean"], labels["log_var"], size, args.samples,
-                                    torch.Generator().manual_seed(args.seed))[1]
-    figure4(pair, labels, velocity_entropy(labels["log_var"], size)[0, 0], variance[0].sum(0).sqrt(),
-            args.out_dir / "uncertainty_figure4.png", sid)
-    result = {"model_file": str(model_file), "subjects": list(cases), "folds": folds,
-              "fold_calibrations": {f: c._asdict() for f, c in scales.items()},
-              "settings": {"refinement": refinement.as_dict(), "probe": args.probe, "deformations": args.deformations, "reference": args.reference, "samples": args.samples, "truth_steps": TRUTH_STEPS,
-                           "smoothing_voxels": SMOOTHING_VOXELS, "voxels_per_case": VOXELS_PER_CASE,
-                           "threads": args.threads, "seed": args.seed, "fit_iterations": args.fit_iterations,
-                           "fit_tolerance": FIT_TOLERANCE,
-                           "uce_bins": "15 equal-count bins of predicted std",
-                           "label_region": "voxels where the propagated or the manual label is non-background"},
-              "summary": summary, "per_subject": per_subject, "translation_probe_recovered": probe, "markdown": markdown,
-              "wall_time_s": time.time() - start_time}
+    variance = sample_displacements(
+        network, labels["mean"], labels["log_var"], size, args.samples, torch.Generator().manual_seed(args.seed)
+    )[1]
+    figure4(
+        pair,
+        labels,
+        velocity_entropy(labels["log_var"], size)[0, 0],
+        variance[0].sum(0).sqrt(),
+        args.out_dir / "uncertainty_figure4.png",
+        sid,
+    )
+    result = {
+        "model_file": str(model_file),
+        "subjects": list(cases),
+        "folds": folds,
+        "fold_calibrations": {f: c._asdict() for f, c in scales.items()},
+        "settings": {
+            "refinement": refinement.as_dict(),
+            "probe": args.probe,
+            "deformations": args.deformations,
+            "reference": args.reference,
+            "samples": args.samples,
+            "truth_steps": TRUTH_STEPS,
+            "smoothing_voxels": SMOOTHING_VOXELS,
+            "voxels_per_case": VOXELS_PER_CASE,
+            "threads": args.threads,
+            "seed": args.seed,
+            "fit_iterations": args.fit_iterations,
+            "fit_tolerance": FIT_TOLERANCE,
+            "uce_bins": "15 equal-count bins of predicted std",
+            "label_region": "voxels where the propagated or the manual label is non-background",
+        },
+        "summary": summary,
+        "per_subject": per_subject,
+        "translation_probe_recovered": probe,
+        "markdown": markdown,
+        "wall_time_s": time.time() - start_time,
+    }
     if args.write_calibration:
         fitted = fit(list(raw))
-        record = save_calibration(model_file, fitted.std_scale, list(raw), args.samples,
-                                  bias_fraction=fitted.bias_fraction)
-        result["written_calibration"] = {"path": str(model_file), "std_scale": record.std_scale,
-                                         "bias_fraction": record.bias_fraction}
-        print(f"wrote the calibration of {model_file.name}: std_scale {fitted.std_scale:.3f}, bias_fraction "
-              f"{fitted.bias_fraction:.2f} (all {len(raw)} subjects)")
+        record = save_calibration(
+            model_file, fitted.std_scale, list(raw), args.samples, bias_fraction=fitted.bias_fraction
+        )
+        result["written_calibration"] = {
+            "path": str(model_file),
+            "std_scale": record.std_scale,
+            "bias_fraction": record.bias_fraction,
+        }
+        print(
+            f"wrote the calibration of {model_file.name}: std_scale {fitted.std_scale:.3f}, bias_fraction "
+            f"{fitted.bias_fraction:.2f} (all {len(raw)} subjects)"
+        )
     json_path = write_text(args.out_dir / "uncertainty_calibration.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{markdown}\n\nwrote "
-          f"{json_path}, uncertainty_reliability.png, uncertainty_figure4.png ({time.time() - start_time:.0f} s)")
+    print(
+        f"\n{markdown}\n\nwrote "
+        f"{json_path}, uncertainty_reliability.png, uncertainty_figure4.png ({time.time() - start_time:.0f} s)"
+    )
     return 0
 
 

@@ -56,35 +56,41 @@ from monai_probreg.utils.files import write_text
 from monai_probreg.utils.tensors import plain_tensor
 
 ORACLE_SCALES = (1 / 64, 1 / 16, 0.25, 1.0, 4.0)  # oracle variance levels, relative to the calibrated posterior's
-                                                # mean variance (label entropy is not scale-free: the best is kept)
-ORACLE_EPS = 1e-4                 # velocity-grid voxels^2 added to the squared error (log of an exact 0)
+# mean variance (label entropy is not scale-free: the best is kept)
+ORACLE_EPS = 1e-4  # velocity-grid voxels^2 added to the squared error (log of an exact 0)
 
 
 def scale_name(scale: float) -> str:
-    """"1/64" for 1/64, "4" for 4: the oracle levels as the JSON and the table name them."""
+    """ "1/64" for 1/64, "4" for 4: the oracle levels as the JSON and the table name them."""
     return f"1/{round(1 / scale)}" if scale < 1 else f"{scale:g}"
 
 
-def oracle_log_var(mean: torch.Tensor, true_velocity: torch.Tensor, reference_log_var: torch.Tensor,
-                   scale: float = 1.0) -> torch.Tensor:
+def oracle_log_var(
+    mean: torch.Tensor, true_velocity: torch.Tensor, reference_log_var: torch.Tensor, scale: float = 1.0
+) -> torch.Tensor:
     """log((mean - true_velocity)^2 + ORACLE_EPS), shifted so that its mean variance is ``scale`` times
     ``reference_log_var``'s: the error magnitude known exactly, at the level of a given posterior."""
     if mean.shape != true_velocity.shape or mean.shape != reference_log_var.shape:
-        raise ValueError(f"expected mean, true_velocity and reference_log_var of one shape; got {tuple(mean.shape)}, "
-                         f"{tuple(true_velocity.shape)} and {tuple(reference_log_var.shape)}")
+        raise ValueError(
+            f"expected mean, true_velocity and reference_log_var of one shape; got {tuple(mean.shape)}, "
+            f"{tuple(true_velocity.shape)} and {tuple(reference_log_var.shape)}"
+        )
     if not scale > 0:
         raise ValueError(f"scale must be > 0; got {scale}")
     squared = (mean - true_velocity).pow(2) + ORACLE_EPS
     return squared.log() + math.log(scale * float(reference_log_var.exp().mean()) / float(squared.mean()))
 
 
-def directional_samples(mean: torch.Tensor, true_velocity: torch.Tensor, num_samples: int,
-                        generator: torch.Generator) -> torch.Tensor:
+def directional_samples(
+    mean: torch.Tensor, true_velocity: torch.Tensor, num_samples: int, generator: torch.Generator
+) -> torch.Tensor:
     """(K, D, *V) velocities mean + t_k (true_velocity - mean), t_k ~ N(0, 1), for one pair's (1, D, *V) mean and
     truth: a posterior spread along the true error."""
     if mean.shape != true_velocity.shape or mean.shape[0] != 1:
-        raise ValueError(f"expected mean and true_velocity of one shape (1, D, *V); got {tuple(mean.shape)} and "
-                         f"{tuple(true_velocity.shape)}")
+        raise ValueError(
+            f"expected mean and true_velocity of one shape (1, D, *V); got {tuple(mean.shape)} and "
+            f"{tuple(true_velocity.shape)}"
+        )
     t = torch.randn(num_samples, generator=generator).view(-1, *[1] * (mean.ndim - 1))
     return mean + t * (true_velocity - mean)
 
@@ -111,10 +117,15 @@ def scores(predicted: torch.Tensor, truth: torch.Tensor, entropies: dict[str, to
     region = ((predicted > 0) | (truth > 0)).numpy()
     wrong = (predicted != truth).numpy()[region]
     if wrong.all() or not wrong.any():  # one class only (e.g. a probe that moved nothing): no ranking to score
-        return {"wrong_fraction": float(wrong.mean()), "boundary_distance": math.nan,
-                **{name: math.nan for name in entropies}}
-    result = {"wrong_fraction": float(wrong.mean()),
-              "boundary_distance": auroc(-boundary_distance(predicted)[region], wrong)}
+        return {
+            "wrong_fraction": float(wrong.mean()),
+            "boundary_distance": math.nan,
+            **{name: math.nan for name in entropies},
+        }
+    result = {
+        "wrong_fraction": float(wrong.mean()),
+        "boundary_distance": auroc(-boundary_distance(predicted)[region], wrong),
+    }
     result.update({name: auroc(e.numpy()[region], wrong) for name, e in entropies.items()})
     return result
 
@@ -134,8 +145,9 @@ def subject_rows(network, pair, calibration, population, num_samples: int, seed:
         log_var = calibrate_log_var(posterior.log_var, calibration.std_scale, posterior.mean, calibration.bias_fraction)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
     z = sample_velocity(posterior.mean, log_var, num_samples, generator=generator).flatten(0, 1)
-    real = scores(predicted, pair["moving_label"][0, 0].to(torch.int16),
-                  {"calibrated": entropy_of(network, z, atlas_label, size)})
+    real = scores(
+        predicted, pair["moving_label"][0, 0].to(torch.int16), {"calibrated": entropy_of(network, z, atlas_label, size)}
+    )
 
     true_velocity = population_velocity(population, torch.Generator().manual_seed(seed))
     with torch.inference_mode():
@@ -146,12 +158,16 @@ def subject_rows(network, pair, calibration, population, num_samples: int, seed:
         log_var = calibrate_log_var(posterior.log_var, calibration.std_scale, posterior.mean, calibration.bias_fraction)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
     mean = posterior.mean
-    entropies = {"calibrated": entropy_of(network, sample_velocity(mean, log_var, num_samples, generator=generator)
-                                          .flatten(0, 1), atlas_label, size)}
+    entropies = {
+        "calibrated": entropy_of(
+            network, sample_velocity(mean, log_var, num_samples, generator=generator).flatten(0, 1), atlas_label, size
+        )
+    }
     for s in ORACLE_SCALES:
         oracle = oracle_log_var(mean, true_velocity, log_var, s)
         entropies[f"oracle variance x{scale_name(s)}"] = entropy_of(
-            network, sample_velocity(mean, oracle, num_samples, generator=generator).flatten(0, 1), atlas_label, size)
+            network, sample_velocity(mean, oracle, num_samples, generator=generator).flatten(0, 1), atlas_label, size
+        )
     along_error = directional_samples(mean, true_velocity, num_samples, generator)
     entropies["oracle direction"] = entropy_of(network, along_error, atlas_label, size)
     probe = scores(predicted, truth, entropies)
@@ -179,24 +195,47 @@ def main(argv=None) -> int:
     per_subject = {}
     for n, item in enumerate(Dataset(labelled_pairs(index, subjects), transform=preprocessing)):
         pair = {k: plain_tensor(v)[None] if isinstance(v, torch.Tensor) else v for k, v in item.items()}
-        per_subject[pair["id"]] = rows = subject_rows(network, pair, calibration, population, args.samples,
-                                                      args.seed + SEED_STRIDE * n)
-        print(f"[{n + 1}/{len(subjects)}] {pair['id']}: " + "; ".join(
-            f"{kind} " + ", ".join(f"{k} {v:.3f}" for k, v in r.items()) for kind, r in rows.items()), flush=True)
-    summary = {kind: {k: float(np.nanmean([r[kind][k] for r in per_subject.values()])) for k in rows[kind]}
-               for kind in ("real", "probe")}
+        per_subject[pair["id"]] = rows = subject_rows(
+            network, pair, calibration, population, args.samples, args.seed + SEED_STRIDE * n
+        )
+        print(
+            f"[{n + 1}/{len(subjects)}] {pair['id']}: "
+            + "; ".join(f"{kind} " + ", ".join(f"{k} {v:.3f}" for k, v in r.items()) for kind, r in rows.items()),
+            flush=True,
+        )
+    summary = {
+        kind: {k: float(np.nanmean([r[kind][k] for r in per_subject.values()])) for k in rows[kind]}
+        for kind in ("real", "probe")
+    }
     columns = ["wrong_fraction", "boundary_distance", "calibrated", "oracle variance (best scale)", "oracle direction"]
     names = {"real": "real (scan -> atlas)", "probe": "probe (atlas deformed by the population model)"}
-    table = [("| pairs | wrongly propagated | AUROC: boundary distance alone | calibrated posterior | oracle variance "
-              "(best of scales) | oracle direction |"), "|---|---|---|---|---|---|"]
+    table = [
+        (
+            "| pairs | wrongly propagated | AUROC: boundary distance alone | calibrated posterior | oracle variance "
+            "(best of scales) | oracle direction |"
+        ),
+        "|---|---|---|---|---|---|",
+    ]
     for kind, m in summary.items():
         table.append(f"| {names[kind]} | " + " | ".join(f"{m[c]:.3f}" if c in m else "–" for c in columns) + " |")
     markdown = "\n".join(table)
-    result = {"model_file": str(model_file), "calibration": calibration._asdict(), "subjects": list(per_subject),
-              "train_subjects_for_the_probe": train_ids,
-              "settings": {"samples": args.samples, "seed": args.seed, "oracle_scales": list(ORACLE_SCALES),
-                           "threads": args.threads, "truth_steps": TRUTH_STEPS},
-              "summary": summary, "per_subject": per_subject, "markdown": markdown, "wall_time_s": time.time() - start}
+    result = {
+        "model_file": str(model_file),
+        "calibration": calibration._asdict(),
+        "subjects": list(per_subject),
+        "train_subjects_for_the_probe": train_ids,
+        "settings": {
+            "samples": args.samples,
+            "seed": args.seed,
+            "oracle_scales": list(ORACLE_SCALES),
+            "threads": args.threads,
+            "truth_steps": TRUTH_STEPS,
+        },
+        "summary": summary,
+        "per_subject": per_subject,
+        "markdown": markdown,
+        "wall_time_s": time.time() - start,
+    }
     args.out_dir.mkdir(parents=True, exist_ok=True)
     path = write_text(args.out_dir / "uncertainty_ceiling.json", json.dumps(result, indent=2) + "\n")
     print(f"\n{markdown}\n\nwrote {path} ({time.time() - start:.0f} s)")

@@ -38,7 +38,10 @@ def reliability_diagram(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], pat
     for i, (name, (std, error)) in enumerate(curves.items()):
         bins = reliability_bins(std, error, num_bins=15)
         ax.plot(bins.rms_std, bins.rms_error, "o-", color=f"C{i}", label=name)
-        low, high = min(low, bins.rms_std.min(), bins.rms_error.min()), max(high, bins.rms_std.max(), bins.rms_error.max())
+        low, high = (
+            min(low, bins.rms_std.min(), bins.rms_error.min()),
+            max(high, bins.rms_std.max(), bins.rms_error.max()),
+        )
     ax.plot([low, high], [low, high], "k--", lw=1, label="perfect calibration (y = x)")
     ax.set_xscale("log")
     ax.set_yscale("log")
@@ -51,19 +54,25 @@ def reliability_diagram(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], pat
     plt.close(fig)
 
 
-def figure4(pair: dict, labels: dict, velocity_entropy: torch.Tensor, displacement_std: torch.Tensor, path: Path,
-            subject: str) -> None:
+def figure4(
+    pair: dict, labels: dict, velocity_entropy: torch.Tensor, displacement_std: torch.Tensor, path: Path, subject: str
+) -> None:
     """One axial slice: atlas, subject, velocity entropy and displacement std over the atlas, label entropy over the
     subject with the wrongly labelled voxels outlined. All maps (*S) on the LPBA40 grid shared by atlas and subject."""
     plt = _pyplot()
     z = pair["fixed"].shape[-1] // 2
     take = lambda t: np.asarray(t[..., z].detach().cpu().float()).T  # noqa: E731  array axis 0 horizontal
     atlas, moving = take(pair["fixed"][0, 0]), take(pair["moving"][0, 0])
-    wrong = take(((labels["predicted"] != labels["truth"]) & ((labels["predicted"] > 0) | (labels["truth"] > 0))).float())
-    panels = [("atlas (fixed)", atlas, None), (f"{subject} (moving)", moving, None),
-              ("velocity entropy (nats)", atlas, take(velocity_entropy)),
-              ("displacement std (voxels)", atlas, take(displacement_std)),
-              ("atlas-label entropy over subject", moving, take(labels["entropy"]))]
+    wrong = take(
+        ((labels["predicted"] != labels["truth"]) & ((labels["predicted"] > 0) | (labels["truth"] > 0))).float()
+    )
+    panels = [
+        ("atlas (fixed)", atlas, None),
+        (f"{subject} (moving)", moving, None),
+        ("velocity entropy (nats)", atlas, take(velocity_entropy)),
+        ("displacement std (voxels)", atlas, take(displacement_std)),
+        ("atlas-label entropy over subject", moving, take(labels["entropy"])),
+    ]
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.9), layout="constrained")
     for ax, (title, background, overlay) in zip(axes, panels):
         ax.imshow(background, cmap="gray", origin="lower")
@@ -75,7 +84,8 @@ def figure4(pair: dict, labels: dict, velocity_entropy: torch.Tensor, displaceme
             ax.contour(wrong, levels=[0.5], colors="cyan", linewidths=0.4)
         ax.set_title(title, fontsize=9)
         ax.axis("off")
-    fig.suptitle(f"Calibrated uncertainty, {subject} -> atlas, axial slice {z} (cyan: wrongly propagated labels)",
-                 fontsize=10)
+    fig.suptitle(
+        f"Calibrated uncertainty, {subject} -> atlas, axial slice {z} (cyan: wrongly propagated labels)", fontsize=10
+    )
     _save(fig, path)
     plt.close(fig)

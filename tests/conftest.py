@@ -32,8 +32,9 @@ def _phantom(shape: Sequence[int], shift: Sequence[float], rng: np.random.Genera
     return np.clip(image, 0, None).astype(np.float32), labels
 
 
-def make_tiny_dataset(root: Path, num_subjects: int = 3, shape: Sequence[int] = (32, 32, 32),
-                      with_labels: bool = True, seed: int = 0) -> Path:
+def make_tiny_dataset(
+    root: Path, num_subjects: int = 3, shape: Sequence[int] = (32, 32, 32), with_labels: bool = True, seed: int = 0
+) -> Path:
     """Write atlas/, images/ and labels/ in the lpba40 layout (affine diag(-1, -1, 1): arrays stored LPS, which
     the RAS reorientation turns; 1 mm) and return ``root``."""
     rng = np.random.default_rng(seed)
@@ -91,8 +92,11 @@ def numpy_mean_dice(dataset: Path, sid: str) -> float:
     atlas = np.asarray(nib.load(dataset / "atlas" / "A01_label.nii.gz").dataobj)
     subject = np.asarray(nib.load(dataset / "labels" / f"{sid}.nii.gz").dataobj)
     labels = [v for v in np.unique(atlas) if v != 0]
-    return float(np.mean([2 * np.sum((atlas == v) & (subject == v)) / (np.sum(atlas == v) + np.sum(subject == v))
-                          for v in labels]))
+    return float(
+        np.mean(
+            [2 * np.sum((atlas == v) & (subject == v)) / (np.sum(atlas == v) + np.sum(subject == v)) for v in labels]
+        )
+    )
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +107,9 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 # ----------------------------------------------------------------------------- physical-space phantoms (CLI tests)
-FIXED_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])  # index -> LPS of the synthetic atlases: a RAS array (as LPBA40, identity RAS affine), origin 0
+FIXED_LPS = np.diag(
+    [-1.0, -1.0, 1.0, 1.0]
+)  # index -> LPS of the synthetic atlases: a RAS array (as LPBA40, identity RAS affine), origin 0
 PHANTOM_LABELS = (1, 2, 3, 4)
 
 
@@ -147,8 +153,14 @@ def rigid_matrix(angles_deg: Sequence[float], translation_mm: Sequence[float], c
     return matrix
 
 
-def moved_scan(image: np.ndarray, labels: np.ndarray, fixed_to_moving: np.ndarray, spacing: Sequence[float],
-               direction: np.ndarray, shape: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def moved_scan(
+    image: np.ndarray,
+    labels: np.ndarray,
+    fixed_to_moving: np.ndarray,
+    spacing: Sequence[float],
+    direction: np.ndarray,
+    shape: Sequence[int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The phantom as another scanner would see it: a grid of ``shape``/``spacing``/``direction`` centred on the
     moved object, with ``moving(q) = image(fixed_to_moving^-1 q)`` (linear; labels nearest).
     Returns (image, labels, index_to_lps of the new grid)."""

@@ -109,6 +109,7 @@ def test_readme_is_a_front_page():
 
 # --- the command's options ---------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def help_options() -> dict[str, set[str]]:
     """Every option string of each subcommand, from the parser ``monai-probreg`` runs (what ``--help`` prints)."""
@@ -116,8 +117,10 @@ def help_options() -> dict[str, set[str]]:
 
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    return {name: {s for a in sub.choices[name]._actions for s in a.option_strings if s.startswith("--")}
-            for name in SUBCOMMANDS}
+    return {
+        name: {s for a in sub.choices[name]._actions for s in a.option_strings if s.startswith("--")}
+        for name in SUBCOMMANDS
+    }
 
 
 def command_lines(text: str) -> list[tuple[str, str]]:
@@ -127,9 +130,9 @@ def command_lines(text: str) -> list[tuple[str, str]]:
     found = []
     for line in joined.splitlines():
         for match in COMMAND.finditer(line):
-            rest = line[match.end():]
-            rest = re.split(r"(?:^|\s)#\s", rest, maxsplit=1)[0]   # a shell comment
-            rest = re.split(r"`|&&|;|\|", rest, maxsplit=1)[0]      # the end of an inline span or of the command
+            rest = line[match.end() :]
+            rest = re.split(r"(?:^|\s)#\s", rest, maxsplit=1)[0]  # a shell comment
+            rest = re.split(r"`|&&|;|\|", rest, maxsplit=1)[0]  # the end of an inline span or of the command
             found.append((match.group(1), rest))
     return found
 
@@ -144,7 +147,7 @@ def option_table_rows(text: str) -> list[tuple[dict[str, str], str]]:
         if cells[:1] != ["option"] or not set(SUBCOMMANDS) <= set(cells):
             continue
         columns = {name: cells.index(name) for name in SUBCOMMANDS}
-        for row in lines[i + 2:]:
+        for row in lines[i + 2 :]:
             if not row.strip().startswith("|"):
                 break
             rcells = [c.strip() for c in row.strip().strip("|").split("|")]
@@ -175,7 +178,8 @@ def test_option_tables_match_the_parser(doc, help_options):
         listed = {option for cells, option in rows if cells[sub] not in ("", "–", "-")}
         assert listed == help_options[sub] - {"--help"}, (
             f"{_rel(doc)}, {sub}: in the table, not in --help: {sorted(listed - help_options[sub])}; "
-            f"in --help, not in the table: {sorted(help_options[sub] - {'--help'} - listed)}")
+            f"in --help, not in the table: {sorted(help_options[sub] - {'--help'} - listed)}"
+        )
 
 
 def test_the_cli_reference_has_the_option_table():
@@ -188,19 +192,25 @@ def test_options_named_in_prose_exist(doc, help_options):
     benchmark options elsewhere use other pages; bundle overrides have underscores and are not matched)."""
     every = set().union(*help_options.values())
     prose = FENCE.sub("", doc.read_text(encoding="utf-8"))
-    unknown = {o for span in INLINE_CODE.findall(prose) if "monai.bundle" not in span and "python " not in span
-               for o in OPTION.findall(span) if o not in every}
+    unknown = {
+        o
+        for span in INLINE_CODE.findall(prose)
+        if "monai.bundle" not in span and "python " not in span
+        for o in OPTION.findall(span)
+        if o not in every
+    }
     assert not unknown, f"{_rel(doc)} names options that no subcommand has: {sorted(unknown)}"
 
 
 # --- CI ------------------------------------------------------------------------------------------------------------
+
 
 def ci_command_as_ci_run_reads_it(text: str) -> str | None:
     """The awk rule of .ci/run in Python: after the marker line, the first line that starts with a lowercase letter."""
     lines = text.splitlines()
     for i, line in enumerate(lines):
         if CI_MARKER in line:
-            return next((l for l in lines[i + 1:] if re.match(r"[a-z]", l)), None)
+            return next((text for text in lines[i + 1 :] if re.match(r"[a-z]", text)), None)
     return None
 
 

@@ -12,10 +12,16 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "monai_probreg"
 TIERS = {  # a folder may import its own tier and the tiers below it, never above
     "utils": 0,
-    "blocks": 1, "networks": 1, "losses": 1, "metrics": 1,
-    "uncertainty": 2, "spatial": 2, "weights": 2,
+    "blocks": 1,
+    "networks": 1,
+    "losses": 1,
+    "metrics": 1,
+    "uncertainty": 2,
+    "spatial": 2,
+    "weights": 2,
     "data": 3,  # datasets, transforms, augmentation, synthetic subjects: built on spatial's geometry, never under it
-    "engines": 4, "cli": 4,
+    "engines": 4,
+    "cli": 4,
 }
 
 
@@ -70,7 +76,7 @@ def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
         state[node] = 1
         for nxt in sorted(graph.get(node, ())):
             if state.get(nxt) == 1:
-                return stack[stack.index(nxt):] + [nxt]
+                return stack[stack.index(nxt) :] + [nxt]
             if nxt not in state and (cycle := visit(nxt, stack + [nxt])):
                 return cycle
         state[node] = 2
@@ -97,8 +103,13 @@ def test_no_import_circle_between_folders():
                 graph.setdefault(own, set()).add(folder)
                 where.setdefault((own, folder), f"{module} imports {target}")
     cycle = _find_cycle(graph)
-    assert cycle is None, ("import circle between folders: " + " -> ".join(cycle) + " ("
-                           + "; ".join(where[a, b] for a, b in pairwise(cycle)) + ")")
+    assert cycle is None, (
+        "import circle between folders: "
+        + " -> ".join(cycle)
+        + " ("
+        + "; ".join(where[a, b] for a, b in pairwise(cycle))
+        + ")"
+    )
 
 
 def test_no_import_circle():

@@ -36,8 +36,9 @@ def _save_both(tmp_path):
     ras = tmp_path / "ras.nii.gz"
     nib.save(nib.Nifti1Image(volume, ras_affine), ras)
     # the same world content stored with every axis reversed: voxel i of the LPI file is voxel n-1-i of the RAS one
-    lpi_affine = ras_affine @ np.array([[-1, 0, 0, SHAPE[0] - 1], [0, -1, 0, SHAPE[1] - 1], [0, 0, -1, SHAPE[2] - 1],
-                                        [0, 0, 0, 1]], dtype=float)
+    lpi_affine = ras_affine @ np.array(
+        [[-1, 0, 0, SHAPE[0] - 1], [0, -1, 0, SHAPE[1] - 1], [0, 0, -1, SHAPE[2] - 1], [0, 0, 0, 1]], dtype=float
+    )
     lpi = tmp_path / "lpi.nii.gz"
     nib.save(nib.Nifti1Image(np.ascontiguousarray(volume[::-1, ::-1, ::-1]), lpi_affine), lpi)
     assert nib.aff2axcodes(lpi_affine) == ("L", "P", "I")

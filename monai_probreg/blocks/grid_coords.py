@@ -49,8 +49,9 @@ def index_to_grid(index: Tensor, spatial_shape: list[int]) -> Tensor:
         raise ValueError("index must end in an axis of " + str(dims) + " coordinates; got " + str(index.shape[-1]))
     # grid channel k (x, y, z) is tensor axis dims - 1 - k: the flip to grid_sample's order; slope first, then -1
     # (the matrix form's arithmetic, see the module docstring)
-    return torch.stack([index[..., dims - 1 - k] * index_scale(spatial_shape[dims - 1 - k]) - 1
-                        for k in range(dims)], dim=-1)
+    return torch.stack(
+        [index[..., dims - 1 - k] * index_scale(spatial_shape[dims - 1 - k]) - 1 for k in range(dims)], dim=-1
+    )
 
 
 def index_to_grid_matrix(spatial_shape: list[int], dtype: torch.dtype = torch.float64) -> Tensor:

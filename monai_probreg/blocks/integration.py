@@ -55,8 +55,10 @@ class ScalingAndSquaring(DVF2DDF):
     def forward(self, dvf: Tensor) -> Tensor:
         spatial_dims = dvf.ndim - 2
         if spatial_dims not in (2, 3) or dvf.shape[1] != spatial_dims:
-            raise ValueError("velocity must have shape (B, spatial_dims, *S) with spatial_dims in (2, 3); got "
-                             + shape_str(dvf.shape))
+            raise ValueError(
+                "velocity must have shape (B, spatial_dims, *S) with spatial_dims in (2, 3); got "
+                + shape_str(dvf.shape)
+            )
         # DVF2DDF.forward, written out (torch.jit.script has no super()): same operations in the same order
         ddf = dvf / (2**self.num_steps)
         for _ in range(self.num_steps):
@@ -81,15 +83,22 @@ def resize_displacement(ddf: Tensor, spatial_size: List[int]) -> Tensor:
     spatial_dims = ddf.ndim - 2
     size = [int(s) for s in spatial_size]
     if len(size) != spatial_dims or ddf.shape[1] != spatial_dims:
-        raise ValueError("expected a (B, " + str(len(size)) + ", *S) field for a " + str(len(size))
-                         + "-d target size; got " + shape_str(ddf.shape))
+        raise ValueError(
+            "expected a (B, "
+            + str(len(size))
+            + ", *S) field for a "
+            + str(len(size))
+            + "-d target size; got "
+            + shape_str(ddf.shape)
+        )
     source = list(ddf.shape[2:])
     if size == source:
         return ddf
     for n in source + size:
         if n < 2:
-            raise ValueError("both grids need at least 2 voxels per axis; got " + shape_str(source) + " -> "
-                             + shape_str(size))
+            raise ValueError(
+                "both grids need at least 2 voxels per axis; got " + shape_str(source) + " -> " + shape_str(size)
+            )
     mode = "bilinear" if spatial_dims == 2 else "trilinear"
     scale = [(size[k] - 1) / (source[k] - 1) for k in range(spatial_dims)]
     scale_t = torch.tensor(scale, dtype=ddf.dtype, device=ddf.device).view([1, spatial_dims] + [1] * spatial_dims)

@@ -22,8 +22,12 @@ def sample_velocity(
     Shapes: mean, log_var (B, D, *S) -> (num_samples, B, D, *S).
     """
     if mean.shape != log_var.shape:
-        raise ValueError("mean and log_var must have the same shape; got " + shape_str(mean.shape) + " and "
-                         + shape_str(log_var.shape))
+        raise ValueError(
+            "mean and log_var must have the same shape; got "
+            + shape_str(mean.shape)
+            + " and "
+            + shape_str(log_var.shape)
+        )
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1; got {num_samples}")
     eps = torch.randn([num_samples] + list(mean.shape), dtype=mean.dtype, device=mean.device, generator=generator)

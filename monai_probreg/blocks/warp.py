@@ -95,8 +95,9 @@ def _num_splits(image: Tensor, grid: Tensor) -> int:
     return max([n for n in range(1, max(most, 1) + 1) if rows % n == 0])
 
 
-def split_grid_sample(image: Tensor, grid: Tensor, mode: str = "bilinear", padding_mode: str = "border",
-                      num_splits: int | None = None) -> Tensor:
+def split_grid_sample(
+    image: Tensor, grid: Tensor, mode: str = "bilinear", padding_mode: str = "border", num_splits: int | None = None
+) -> Tensor:
     """``F.grid_sample(image, grid, mode, padding_mode, align_corners=True)``, a single 3-d CPU item run on all threads.
 
     ATen's CPU kernel for 5-d inputs loops over the batch in parallel and over the points serially, so batch 1 uses
@@ -107,14 +108,17 @@ def split_grid_sample(image: Tensor, grid: Tensor, mode: str = "bilinear", paddi
     """
     n = _num_splits(image, grid) if num_splits is None else int(num_splits)
     if n > 1 and (image.ndim != 5 or image.shape[0] != 1 or (grid.shape[1] * grid.shape[2]) % n):
-        raise ValueError(f"num_splits={n} needs one 3-d item whose grid rows S0 * S1 it divides; got image "
-                         f"{tuple(image.shape)}, grid {tuple(grid.shape)}")
+        raise ValueError(
+            f"num_splits={n} needs one 3-d item whose grid rows S0 * S1 it divides; got image "
+            f"{tuple(image.shape)}, grid {tuple(grid.shape)}"
+        )
     if n == 1:
         return F.grid_sample(image, grid, mode=mode, padding_mode=padding_mode, align_corners=True)
     spatial = grid.shape[1:-1]
     pieces = grid.reshape(n, 1, spatial[0] * spatial[1] // n, spatial[2], grid.shape[-1])
-    out = F.grid_sample(image.expand(n, *image.shape[1:]), pieces, mode=mode, padding_mode=padding_mode,
-                        align_corners=True)  # (n, C, 1, rows / n, S2)
+    out = F.grid_sample(
+        image.expand(n, *image.shape[1:]), pieces, mode=mode, padding_mode=padding_mode, align_corners=True
+    )  # (n, C, 1, rows / n, S2)
     return out.transpose(0, 1).reshape(1, image.shape[1], *spatial)
 
 
@@ -160,11 +164,22 @@ class CachedWarp(Warp):
             raise ValueError("image must be (B, C, *S) with 2 or 3 spatial dims; got shape " + shape_str(image.shape))
         expected = [image.shape[0], image.ndim - 2] + list(image.shape[2:])
         if list(ddf.shape) != expected:
-            raise ValueError("ddf must have shape " + shape_str(expected) + " to warp an image of shape "
-                             + shape_str(image.shape) + "; got " + shape_str(ddf.shape))
+            raise ValueError(
+                "ddf must have shape "
+                + shape_str(expected)
+                + " to warp an image of shape "
+                + shape_str(image.shape)
+                + "; got "
+                + shape_str(ddf.shape)
+            )
         if torch.jit.is_scripting():  # TorchScript (bundle ckpt_export): the one-pass grid, one grid_sample call
-            return F.grid_sample(image, sampling_grid(ddf), mode=self._interp_mode_native,
-                                 padding_mode=self._padding_mode_native, align_corners=True)
+            return F.grid_sample(
+                image,
+                sampling_grid(ddf),
+                mode=self._interp_mode_native,
+                padding_mode=self._padding_mode_native,
+                align_corners=True,
+            )
         return self._eager_forward(image, ddf)
 
     @torch.jit.unused

@@ -22,11 +22,28 @@ from monai_probreg.cli.pipeline import FixedSpace, RegistrationOptions, register
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.files import write_text
 
-__all__ = ["BATCH_COLUMNS", "BatchItem", "BatchRow", "error_text", "write_batch_summary", "register_batch",
-           "print_batch_table"]
+__all__ = [
+    "BATCH_COLUMNS",
+    "BatchItem",
+    "BatchRow",
+    "error_text",
+    "write_batch_summary",
+    "register_batch",
+    "print_batch_table",
+]
 
-BATCH_COLUMNS = ["scan", "status", "mean_dice", "mean_dice_affine_only", "num_jacobian_nonpositive", "time_s", "error",
-                 "predicted_dice", "failure_probability", "warning"]
+BATCH_COLUMNS = [
+    "scan",
+    "status",
+    "mean_dice",
+    "mean_dice_affine_only",
+    "num_jacobian_nonpositive",
+    "time_s",
+    "error",
+    "predicted_dice",
+    "failure_probability",
+    "warning",
+]
 
 
 class BatchItem(NamedTuple):
@@ -68,22 +85,44 @@ def write_batch_summary(path: str | Path, rows: Sequence[BatchRow]) -> Path:
     return write_text(path, table.getvalue())
 
 
-def _register_one(model: LoadedModel, fixed: FixedSpace, item: BatchItem, out: Path, options: RegistrationOptions,
-                  overwrite: bool, report) -> BatchRow:
+def _register_one(
+    model: LoadedModel,
+    fixed: FixedSpace,
+    item: BatchItem,
+    out: Path,
+    options: RegistrationOptions,
+    overwrite: bool,
+    report,
+) -> BatchRow:
     if not item.moving.is_file():  # one missing scan is that scan's failure, not the batch's
         raise InputError(f"--moving {str(item.moving)!r}: no such file")
-    summary = register_scan(model, fixed, item.moving, out / item.name, item.moving_label, options, overwrite,
-                            report=report)
+    summary = register_scan(
+        model, fixed, item.moving, out / item.name, item.moving_label, options, overwrite, report=report
+    )
     dice, quality = summary["dice"] or {}, summary.get("quality") or {}
-    return BatchRow(item.name, "ok", dice.get("mean"), dice.get("mean_affine_only"),
-                    summary["jacobian"]["num_nonpositive"], summary["timings_s"]["total"],
-                    predicted_dice=quality.get("predicted_dice"),
-                    failure_probability=quality.get("failure_probability"), warning=summary.get("warning") or "")
+    return BatchRow(
+        item.name,
+        "ok",
+        dice.get("mean"),
+        dice.get("mean_affine_only"),
+        summary["jacobian"]["num_nonpositive"],
+        summary["timings_s"]["total"],
+        predicted_dice=quality.get("predicted_dice"),
+        failure_probability=quality.get("failure_probability"),
+        warning=summary.get("warning") or "",
+    )
 
 
-def register_batch(model: LoadedModel, fixed: FixedSpace, items: Sequence[BatchItem], out: str | Path,
-                   options: RegistrationOptions, overwrite: bool = False, quiet: bool = False,
-                   debug: bool = False) -> list[BatchRow]:
+def register_batch(
+    model: LoadedModel,
+    fixed: FixedSpace,
+    items: Sequence[BatchItem],
+    out: str | Path,
+    options: RegistrationOptions,
+    overwrite: bool = False,
+    quiet: bool = False,
+    debug: bool = False,
+) -> list[BatchRow]:
     """Register every item; returns one row per item (failures included) and keeps out/batch_summary.csv current.
     ``debug`` prints each failure's traceback to stderr. Ctrl-C writes the summary (the rest ``not run``), re-raises."""
     from tqdm import tqdm
@@ -95,8 +134,15 @@ def register_batch(model: LoadedModel, fixed: FixedSpace, items: Sequence[BatchI
         for item in bar:
             bar.set_postfix_str(item.name)
             try:
-                row = _register_one(model, fixed, item, out, options, overwrite,
-                                    report=lambda stage, s, n=item.name: bar.set_postfix_str(f"{n}: {stage} done"))
+                row = _register_one(
+                    model,
+                    fixed,
+                    item,
+                    out,
+                    options,
+                    overwrite,
+                    report=lambda stage, s, n=item.name: bar.set_postfix_str(f"{n}: {stage} done"),
+                )
             except Exception as err:  # noqa: BLE001 - one scan's failure must not stop the batch
                 row = BatchRow(item.name, "failed", error=error_text(err))
                 if debug:
@@ -115,13 +161,19 @@ def register_batch(model: LoadedModel, fixed: FixedSpace, items: Sequence[BatchI
 
 def print_batch_table(rows: Sequence[BatchRow], file=None) -> None:
     """The summary as an aligned table on stdout (or ``file``)."""
+
     def fmt(value, spec: str) -> str:
         return "-" if value is None else format(value, spec)
 
-    print(f"{'scan':<24}{'status':<8}{'Dice':>7}{'affine':>8}{'|J|<=0':>8}{'time (s)':>10}{'pred.':>7}  "
-          "error / warning", file=file)
+    print(
+        f"{'scan':<24}{'status':<8}{'Dice':>7}{'affine':>8}{'|J|<=0':>8}{'time (s)':>10}{'pred.':>7}  error / warning",
+        file=file,
+    )
     for r in rows:
         note = r.error or (f"WARNING: {r.warning}" if r.warning else "")
-        print(f"{r.scan:<24}{r.status:<8}{fmt(r.mean_dice, '.3f'):>7}{fmt(r.mean_dice_affine_only, '.3f'):>8}"
-              f"{fmt(r.num_jacobian_nonpositive, 'd'):>8}{fmt(r.time_s, '.1f'):>10}{fmt(r.predicted_dice, '.2f'):>7}"
-              f"  {note}", file=file)
+        print(
+            f"{r.scan:<24}{r.status:<8}{fmt(r.mean_dice, '.3f'):>7}{fmt(r.mean_dice_affine_only, '.3f'):>8}"
+            f"{fmt(r.num_jacobian_nonpositive, 'd'):>8}{fmt(r.time_s, '.1f'):>10}{fmt(r.predicted_dice, '.2f'):>7}"
+            f"  {note}",
+            file=file,
+        )

@@ -36,9 +36,16 @@ DEMO_SAMPLES = 8  # posterior samples the demo draws unless --samples says other
 COVERAGE_LEVEL = 0.95  # the calibrated interval whose coverage the demo reports
 
 
-def run_demo(model: LoadedModel, fixed: FixedSpace, out_dir: str | os.PathLike, seed: int = 0,
-             settings: SyntheticSettings | None = None, options: RegistrationOptions | None = None,
-             overwrite: bool = False, report: Callable[[str, float], None] | None = None) -> dict:
+def run_demo(
+    model: LoadedModel,
+    fixed: FixedSpace,
+    out_dir: str | os.PathLike,
+    seed: int = 0,
+    settings: SyntheticSettings | None = None,
+    options: RegistrationOptions | None = None,
+    overwrite: bool = False,
+    report: Callable[[str, float], None] | None = None,
+) -> dict:
     """Make the subject of ``seed`` from ``fixed`` (the template), register it back, write the outputs into
     ``out_dir`` (all or nothing) and return the summary, whose ``"demo"`` record holds the scores."""
     settings = settings or SyntheticSettings()
@@ -55,23 +62,39 @@ def run_demo(model: LoadedModel, fixed: FixedSpace, out_dir: str | os.PathLike, 
     mask = brain_mask(template)
 
     def check(registered: Registered) -> dict:
-        recovery = displacement_recovery(subject.true_warp, registered.warp, mask, registered.points,
-                                         registered.affine, registered.displacement_variance,
-                                         registered.variance_axes, COVERAGE_LEVEL)
-        return {"demo": {
-            "seed": seed, "template": str(Path(template.path).resolve()), "settings": settings.as_dict(),
-            "rotation_deg": [round(a, 3) for a in subject.rotation_deg],
-            "shift_mm": [round(t, 3) for t in subject.shift_mm],
-            "truth_inverse_error_mm": round(subject.inverse_error_mm, 4), "brain_voxels": int(mask.sum()),
-            "synthesis_s": synthesis_s,
-            "error_mm": "|phi(p) - phi_true(p)| over the template's non-zero voxels: before registration (the "
-                        "identity), after the affine stage, after the whole registration",
-            **recovery.as_dict()}}
+        recovery = displacement_recovery(
+            subject.true_warp,
+            registered.warp,
+            mask,
+            registered.points,
+            registered.affine,
+            registered.displacement_variance,
+            registered.variance_axes,
+            COVERAGE_LEVEL,
+        )
+        return {
+            "demo": {
+                "seed": seed,
+                "template": str(Path(template.path).resolve()),
+                "settings": settings.as_dict(),
+                "rotation_deg": [round(a, 3) for a in subject.rotation_deg],
+                "shift_mm": [round(t, 3) for t in subject.shift_mm],
+                "truth_inverse_error_mm": round(subject.inverse_error_mm, 4),
+                "brain_voxels": int(mask.sum()),
+                "synthesis_s": synthesis_s,
+                "error_mm": "|phi(p) - phi_true(p)| over the template's non-zero voxels: before registration (the "
+                "identity), after the affine stage, after the whole registration",
+                **recovery.as_dict(),
+            }
+        }
 
-    extra = {"subject.nii.gz": lambda path: write_volume(path, moving),
-             "true_warp.nii.gz": lambda path: write_field(path, subject.true_warp, template.index_to_lps)}
-    return register_scan(model, fixed, moving, out_dir, None, options, overwrite, report, check=check,
-                         extra_outputs=extra)
+    extra = {
+        "subject.nii.gz": lambda path: write_volume(path, moving),
+        "true_warp.nii.gz": lambda path: write_field(path, subject.true_warp, template.index_to_lps),
+    }
+    return register_scan(
+        model, fixed, moving, out_dir, None, options, overwrite, report, check=check, extra_outputs=extra
+    )
 
 
 def _fmt(value: float | None) -> str:
@@ -83,16 +106,25 @@ def demo_report(summary: dict) -> str:
     demo = summary["demo"]
     rotation = ", ".join(f"{a:.1f}" for a in demo["rotation_deg"])
     shift = ", ".join(f"{t:.1f}" for t in demo["shift_mm"])
-    lines = [(f"demo (seed {demo['seed']}): the template turned by ({rotation}) deg, shifted by ({shift}) mm and "
-             f"deformed (velocity RMS {demo['settings']['deform_rms_mm']} mm), with a bias field and noise"),
-             "displacement error inside the brain, mm     median   95th pct"]
-    for key, text in (("before", "before registration"), ("affine_only", "after the affine stage"),
-                      ("after", "after registration")):
+    lines = [
+        (
+            f"demo (seed {demo['seed']}): the template turned by ({rotation}) deg, shifted by ({shift}) mm and "
+            f"deformed (velocity RMS {demo['settings']['deform_rms_mm']} mm), with a bias field and noise"
+        ),
+        "displacement error inside the brain, mm     median   95th pct",
+    ]
+    for key, text in (
+        ("before", "before registration"),
+        ("affine_only", "after the affine stage"),
+        ("after", "after registration"),
+    ):
         row = demo[key] or {"median_mm": None, "p95_mm": None}
         lines.append(f"  {text:<40}{_fmt(row['median_mm'])}    {_fmt(row['p95_mm'])}")
     if demo["coverage"] is None:
         lines.append("interval coverage: needs --samples >= 2")
     else:
-        lines.append(f"calibrated {demo['coverage_level']:.0%} interval: covers {demo['coverage']:.1%} of the error "
-                     f"components (the truth itself is exact to {demo['truth_inverse_error_mm']:.2f} mm)")
+        lines.append(
+            f"calibrated {demo['coverage_level']:.0%} interval: covers {demo['coverage']:.1%} of the error "
+            f"components (the truth itself is exact to {demo['truth_inverse_error_mm']:.2f} mm)"
+        )
     return "\n".join(lines)

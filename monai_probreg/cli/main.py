@@ -50,109 +50,218 @@ Exit status: 0 on success; 1 with one line "monai-probreg: error: ..." when an i
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
     io = parser.add_argument_group("inputs and outputs")
-    io.add_argument("--fixed", metavar="F",
-                    help="the atlas / fixed image (default: the MNI ICBM152 2009a T1 template that nilearn ships)")
-    io.add_argument("--fixed-label", metavar="L", help="its label map (integers, same grid): enables Dice and "
-                    "fixed_label_in_moving.nii.gz")
-    io.add_argument("--out", required=True, metavar="DIR", help="output folder (created; must be empty or absent "
-                    "unless --overwrite)")
+    io.add_argument(
+        "--fixed",
+        metavar="F",
+        help="the atlas / fixed image (default: the MNI ICBM152 2009a T1 template that nilearn ships)",
+    )
+    io.add_argument(
+        "--fixed-label",
+        metavar="L",
+        help="its label map (integers, same grid): enables Dice and fixed_label_in_moving.nii.gz",
+    )
+    io.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="output folder (created; must be empty or absent unless --overwrite)",
+    )
     io.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run in DIR")
     reg = parser.add_argument_group("registration")
-    reg.add_argument("--samples", type=int, default=0, metavar="K",
-                     help="posterior samples for the displacement std map (0 = none, default; else >= 2)")
-    reg.add_argument("--seed", type=int, default=0, help="random seed of the affine stage's metric sampling and of the "
-                     "posterior samples (default 0); the same inputs, options and seed give the same outputs")
-    reg.add_argument("--raw-uncertainty", action="store_true", help="entropy and std maps of the raw variational "
-                     "posterior (default: calibrated by the weights' <stem>.calibration.json)")
-    reg.add_argument("--no-affine", action="store_true", help="skip the affine pre-alignment (scans already "
-                     "aligned to the fixed image)")
+    reg.add_argument(
+        "--samples",
+        type=int,
+        default=0,
+        metavar="K",
+        help="posterior samples for the displacement std map (0 = none, default; else >= 2)",
+    )
+    reg.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed of the affine stage's metric sampling and of the "
+        "posterior samples (default 0); the same inputs, options and seed give the same outputs",
+    )
+    reg.add_argument(
+        "--raw-uncertainty",
+        action="store_true",
+        help="entropy and std maps of the raw variational "
+        "posterior (default: calibrated by the weights' <stem>.calibration.json)",
+    )
+    reg.add_argument(
+        "--no-affine",
+        action="store_true",
+        help="skip the affine pre-alignment (scans already aligned to the fixed image)",
+    )
     reg.add_argument("--rigid-only", action="store_true", help="pre-align with 6 parameters (no scaling/shear)")
-    reg.add_argument("--affine-backend", choices=("torch", "itk"), default="torch",
-                     help="who runs the pre-alignment: torch (default: 2-4 s, the same result every run) or ITK's "
-                          "v4 registration as antsRegistration (10-20 s, plus about 7 s to load its modules)")
-    reg.add_argument("--affine-levels", type=int, nargs="+", default=None, metavar="S",
-                     help="shrink factor of each pre-alignment level, coarse to fine, smoothed by S/2 mm (default: "
-                          "torch 4 2 1, itk 4 2)")
-    reg.add_argument("--affine-iterations", type=int, nargs="+", default=None, metavar="N",
-                     help="iterations per level, for each of the rigid and affine stages (default: torch at most 30 15 0 "
-                          "rigid and 30 15 10 affine, itk at most 100 50; with other --affine-levels: the first of these)")
-    reg.add_argument("--affine-sampling", type=float, default=None, metavar="P",
-                     help="fraction of each level's voxels sampled by the mutual information metric (default: "
-                          "torch 0.05, itk 0.2)")
-    reg.add_argument("--affine-max-samples", type=int, default=None, metavar="N",
-                     help="with the torch backend: at most N sample points per level (default 50000; 0 = no cap, "
-                          "5%% of the full-resolution level is about 245000 points for the same alignment)")
-    reg.add_argument("--nondeterministic-affine", action="store_true",
-                     help="with --affine-backend itk: multi-threaded mutual information, faster on many cores, but "
-                          "ITK then sums in thread order and two runs differ slightly (default: one work unit, the "
-                          "same result every run; the torch backend is reproducible with any number of threads)")
-    reg.add_argument("--brain-mask-margin", type=float, default=None, metavar="MM",
-                     help="after the affine, hide the moving scan outside the fixed image's non-background voxels "
-                          "dilated by MM (a skull-stripped template against a whole head); default 3")
-    reg.add_argument("--no-brain-mask", action="store_true",
-                     help="show the network the whole moving scan (both images skull-stripped, or both not)")
-    reg.add_argument("--refine", type=int, default=None, metavar="N",
-                     help="refine the posterior mean for this pair with N optimiser steps (test-time refinement: "
-                          "a few seconds on a CPU); default: the config's refine_iterations (10: on); 0 = the "
-                          "network alone")
+    reg.add_argument(
+        "--affine-backend",
+        choices=("torch", "itk"),
+        default="torch",
+        help="who runs the pre-alignment: torch (default: 2-4 s, the same result every run) or ITK's "
+        "v4 registration as antsRegistration (10-20 s, plus about 7 s to load its modules)",
+    )
+    reg.add_argument(
+        "--affine-levels",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="S",
+        help="shrink factor of each pre-alignment level, coarse to fine, smoothed by S/2 mm (default: "
+        "torch 4 2 1, itk 4 2)",
+    )
+    reg.add_argument(
+        "--affine-iterations",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="N",
+        help="iterations per level, for each of the rigid and affine stages (default: torch at most 30 15 0 "
+        "rigid and 30 15 10 affine, itk at most 100 50; with other --affine-levels: the first of these)",
+    )
+    reg.add_argument(
+        "--affine-sampling",
+        type=float,
+        default=None,
+        metavar="P",
+        help="fraction of each level's voxels sampled by the mutual information metric (default: torch 0.05, itk 0.2)",
+    )
+    reg.add_argument(
+        "--affine-max-samples",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with the torch backend: at most N sample points per level (default 50000; 0 = no cap, "
+        "5%% of the full-resolution level is about 245000 points for the same alignment)",
+    )
+    reg.add_argument(
+        "--nondeterministic-affine",
+        action="store_true",
+        help="with --affine-backend itk: multi-threaded mutual information, faster on many cores, but "
+        "ITK then sums in thread order and two runs differ slightly (default: one work unit, the "
+        "same result every run; the torch backend is reproducible with any number of threads)",
+    )
+    reg.add_argument(
+        "--brain-mask-margin",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="after the affine, hide the moving scan outside the fixed image's non-background voxels "
+        "dilated by MM (a skull-stripped template against a whole head); default 3",
+    )
+    reg.add_argument(
+        "--no-brain-mask",
+        action="store_true",
+        help="show the network the whole moving scan (both images skull-stripped, or both not)",
+    )
+    reg.add_argument(
+        "--refine",
+        type=int,
+        default=None,
+        metavar="N",
+        help="refine the posterior mean for this pair with N optimiser steps (test-time refinement: "
+        "a few seconds on a CPU); default: the config's refine_iterations (10: on); 0 = the "
+        "network alone",
+    )
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
-    reg.add_argument("--no-inverse", action="store_true", help="do not compute or write inverse_warp.nii.gz and "
-                     "fixed_label_in_moving.nii.gz (the moving grid's field: about a third of the writing time)")
-    reg.add_argument("--no-maps", action="store_true", help="do not write jacobian.nii.gz, entropy.nii.gz and "
-                     "displacement_std.nii.gz (summary.json keeps their statistics)")
+    reg.add_argument(
+        "--no-inverse",
+        action="store_true",
+        help="do not compute or write inverse_warp.nii.gz and "
+        "fixed_label_in_moving.nii.gz (the moving grid's field: about a third of the writing time)",
+    )
+    reg.add_argument(
+        "--no-maps",
+        action="store_true",
+        help="do not write jacobian.nii.gz, entropy.nii.gz and "
+        "displacement_std.nii.gz (summary.json keeps their statistics)",
+    )
     model = parser.add_argument_group("model and machine")
     model.add_argument("--bundle-root", metavar="B", help="MONAI bundle folder (default: bundle/ of the repository)")
-    model.add_argument("--model-file", metavar="P", help="weights (default: the model_file of the config, the bundle's shipped default)")
+    model.add_argument(
+        "--model-file",
+        metavar="P",
+        help="weights (default: the model_file of the config, the bundle's shipped default)",
+    )
     model.add_argument("--config", metavar="Y", help="network settings (default: B/configs/inference.yaml)")
     model.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
-    model.add_argument("--threads", type=int, default=None, metavar="N", help="CPU threads for torch and ITK "
-                       "(default: all)")
-    model.add_argument("--unet-precision", choices=["auto", "bf16", "fp32"], default=None,
-                       help="the UNet's arithmetic (default: the config's unet_precision, 'auto': bf16 on CPUs with "
-                       "native bf16, else float32; integration and warps are always float32)")
-    model.add_argument("--no-memory-reuse", action="store_true",
-                       help="give freed memory back to the system (glibc's default); by default the process keeps it "
-                       "and reuses it, which saves about a fifth of a registration's time on a CPU (monai_probreg.utils.memory)")
-    model.add_argument("--max-voxels", type=int, default=None, metavar="N",
-                       help="refuse an image of more than N voxels before reading it, instead of running out of memory "
-                       "(default: $MONAI_PROBREG_MAX_VOXELS, else 512^3 = 134217728)")
+    model.add_argument(
+        "--threads", type=int, default=None, metavar="N", help="CPU threads for torch and ITK (default: all)"
+    )
+    model.add_argument(
+        "--unet-precision",
+        choices=["auto", "bf16", "fp32"],
+        default=None,
+        help="the UNet's arithmetic (default: the config's unet_precision, 'auto': bf16 on CPUs with "
+        "native bf16, else float32; integration and warps are always float32)",
+    )
+    model.add_argument(
+        "--no-memory-reuse",
+        action="store_true",
+        help="give freed memory back to the system (glibc's default); by default the process keeps it "
+        "and reuses it, which saves about a fifth of a registration's time on a CPU (monai_probreg.utils.memory)",
+    )
+    model.add_argument(
+        "--max-voxels",
+        type=int,
+        default=None,
+        metavar="N",
+        help="refuse an image of more than N voxels before reading it, instead of running out of memory "
+        "(default: $MONAI_PROBREG_MAX_VOXELS, else 512^3 = 134217728)",
+    )
     model.add_argument("--quiet", action="store_true", help="print nothing but errors and the final summary")
     model.add_argument("--debug", action="store_true", help="show the full traceback of an unexpected error")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="monai-probreg", description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="monai-probreg", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     commands = parser.add_subparsers(dest="command", required=True, metavar="{register,register-batch,demo}")
-    one = commands.add_parser("register", help="register one scan to the fixed image",
-                              description="Register one scan to the fixed image; outputs in DIR.\n\n" + DESCRIPTION,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    one = commands.add_parser(
+        "register",
+        help="register one scan to the fixed image",
+        description="Register one scan to the fixed image; outputs in DIR.\n\n" + DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     one.add_argument("--moving", required=True, metavar="M", help="the scan to register (NIfTI, NRRD, MHA...)")
     one.add_argument("--moving-label", metavar="L", help="its label map (same grid): warped_label.nii.gz and Dice")
     _add_common(one)
-    many = commands.add_parser("register-batch", help="register many scans to one fixed image",
-                               description="Register many scans to one fixed image, the model loaded once; outputs "
-                               "in DIR/<scan name>/ plus DIR/batch_summary.csv.\n\n" + DESCRIPTION,
-                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    many.add_argument("--moving", required=True, nargs="+", metavar="M",
-                      help="scans, or one folder of scans (*.nii.gz, *.nii, *.nrrd, *.mha)")
-    many.add_argument("--moving-label-dir", metavar="D", help="folder of label maps named like their scans (a scan "
-                      "without one is registered without labels)")
+    many = commands.add_parser(
+        "register-batch",
+        help="register many scans to one fixed image",
+        description="Register many scans to one fixed image, the model loaded once; outputs "
+        "in DIR/<scan name>/ plus DIR/batch_summary.csv.\n\n" + DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    many.add_argument(
+        "--moving",
+        required=True,
+        nargs="+",
+        metavar="M",
+        help="scans, or one folder of scans (*.nii.gz, *.nii, *.nrrd, *.mha)",
+    )
+    many.add_argument(
+        "--moving-label-dir",
+        metavar="D",
+        help="folder of label maps named like their scans (a scan without one is registered without labels)",
+    )
     _add_common(many)
-    demo = commands.add_parser("demo", help="register a synthetic subject with a known answer and score it",
-                               description="Make a subject from the template (--fixed; default: the MNI152 template "
-                               "nilearn ships) with a known random rigid turn and shift, smooth deformation, bias "
-                               "field and noise (drawn from --seed), register it back with the options of register, "
-                               "and print how well the known transform was recovered: the displacement error in mm "
-                               "inside the brain before and after, and the coverage of the calibrated 95% interval. "
-                               "Outputs in DIR as register's, plus subject.nii.gz and true_warp.nii.gz; the scores in "
-                               "DIR/summary.json[\"demo\"]. --samples defaults to 8 here.\n\n" + DESCRIPTION,
-                               formatter_class=argparse.RawDescriptionHelpFormatter)
+    demo = commands.add_parser(
+        "demo",
+        help="register a synthetic subject with a known answer and score it",
+        description="Make a subject from the template (--fixed; default: the MNI152 template "
+        "nilearn ships) with a known random rigid turn and shift, smooth deformation, bias "
+        "field and noise (drawn from --seed), register it back with the options of register, "
+        "and print how well the known transform was recovered: the displacement error in mm "
+        "inside the brain before and after, and the coverage of the calibrated 95% interval. "
+        "Outputs in DIR as register's, plus subject.nii.gz and true_warp.nii.gz; the scores in "
+        'DIR/summary.json["demo"]. --samples defaults to 8 here.\n\n' + DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     _add_common(demo)
     demo.set_defaults(samples=None)  # None: monai_probreg.cli.demo.DEMO_SAMPLES (imported when the demo runs)
     return parser
-
-
 
 
 def _batch_items(args: argparse.Namespace) -> list[tuple[str, Path, Path | None]]:
@@ -168,8 +277,10 @@ def _batch_items(args: argparse.Namespace) -> list[tuple[str, Path, Path | None]
     for path in paths:
         sid = file_stem(path)
         if sid in seen:
-            raise InputError(f"--moving: {str(seen[sid])!r} and {str(path)!r} have the same name {sid!r}; their "
-                             "outputs would collide")
+            raise InputError(
+                f"--moving: {str(seen[sid])!r} and {str(path)!r} have the same name {sid!r}; their "
+                "outputs would collide"
+            )
         seen[sid] = path
         label = None
         if args.moving_label_dir:
@@ -195,29 +306,41 @@ def _options(args: argparse.Namespace):
     affine = None
     if not args.no_affine:
         if args.nondeterministic_affine and args.affine_backend != "itk":
-            raise InputError("--nondeterministic-affine applies to --affine-backend itk only (the torch backend is "
-                             "reproducible with any number of threads)")
+            raise InputError(
+                "--nondeterministic-affine applies to --affine-backend itk only (the torch backend is "
+                "reproducible with any number of threads)"
+            )
         base = AffineSettings() if args.affine_backend == "torch" else AffineSettings.itk_defaults()
-        changes: dict = {"rigid_only": args.rigid_only, "seed": args.seed,
-                         "deterministic": not args.nondeterministic_affine}
+        changes: dict = {
+            "rigid_only": args.rigid_only,
+            "seed": args.seed,
+            "deterministic": not args.nondeterministic_affine,
+        }
         levels = tuple(args.affine_levels) if args.affine_levels is not None else base.shrink_factors
         if args.affine_levels is not None:
             changes.update(shrink_factors=levels, smoothing_sigmas_mm=tuple(s / 2.0 for s in levels))
         if args.affine_iterations is not None:
             if len(args.affine_iterations) != len(levels):
-                raise InputError(f"--affine-iterations needs one value per --affine-levels level ({len(levels)}); "
-                                 f"got {len(args.affine_iterations)}")
-            changes.update(rigid_iterations=tuple(args.affine_iterations),
-                           affine_iterations=tuple(args.affine_iterations))
+                raise InputError(
+                    f"--affine-iterations needs one value per --affine-levels level ({len(levels)}); "
+                    f"got {len(args.affine_iterations)}"
+                )
+            changes.update(
+                rigid_iterations=tuple(args.affine_iterations), affine_iterations=tuple(args.affine_iterations)
+            )
         elif args.affine_levels is not None:  # the defaults' first levels, the last one repeated if more
-            changes.update(rigid_iterations=_per_level(base.rigid_iterations, len(levels)),
-                           affine_iterations=_per_level(base.affine_iterations, len(levels)))
+            changes.update(
+                rigid_iterations=_per_level(base.rigid_iterations, len(levels)),
+                affine_iterations=_per_level(base.affine_iterations, len(levels)),
+            )
         if args.affine_sampling is not None:
             changes["sampling_percentage"] = args.affine_sampling
         if args.affine_max_samples is not None:
             if args.affine_backend != "torch":
-                raise InputError("--affine-max-samples applies to --affine-backend torch only (ITK samples a "
-                                 "percentage: --affine-sampling)")
+                raise InputError(
+                    "--affine-max-samples applies to --affine-backend torch only (ITK samples a "
+                    "percentage: --affine-sampling)"
+                )
             if args.affine_max_samples < 0:
                 raise InputError(f"--affine-max-samples must be >= 1, or 0 for no cap; got {args.affine_max_samples}")
             changes["max_samples"] = args.affine_max_samples or None
@@ -225,8 +348,14 @@ def _options(args: argparse.Namespace):
             affine = AffineSettings(**{**base.as_dict(), **changes})
         except ValueError as err:
             raise InputError(f"affine settings: {err}") from None
-    return RegistrationOptions(samples=args.samples, seed=args.seed, qc=not args.no_qc, affine=affine,
-                               inverse=not args.no_inverse, maps=not args.no_maps)
+    return RegistrationOptions(
+        samples=args.samples,
+        seed=args.seed,
+        qc=not args.no_qc,
+        affine=affine,
+        inverse=not args.no_inverse,
+        maps=not args.no_maps,
+    )
 
 
 def _setup(args: argparse.Namespace):
@@ -243,6 +372,7 @@ def _setup(args: argparse.Namespace):
     if args.threads is not None:
         if args.threads < 1:
             from monai_probreg.utils.errors import InputError
+
             raise InputError(f"--threads must be >= 1; got {args.threads}")
         torch.set_num_threads(args.threads)
         # ITK reads this when its core first loads (the torch path never loads it: about 0.8 s saved); the ITK
@@ -294,8 +424,10 @@ def _summary_line(summary: dict) -> str:
         parts.append(f"mean Dice {summary['dice']['mean']:.3f} (affine only {summary['dice']['mean_affine_only']:.3f})")
     parts.append(f"|J|<=0: {summary['jacobian']['num_nonpositive']}")
     if summary.get("quality"):
-        parts.append(f"predicted Dice {summary['quality']['predicted_dice']:.2f}, "
-                     f"failure probability {summary['quality']['failure_probability']:.2f}")
+        parts.append(
+            f"predicted Dice {summary['quality']['predicted_dice']:.2f}, "
+            f"failure probability {summary['quality']['failure_probability']:.2f}"
+        )
     return "; ".join(parts)
 
 
@@ -331,8 +463,16 @@ def _register(args: argparse.Namespace) -> int:
     model, fixed = _setup(args)
     options = _with_refinement(options, model, args.refine)
     _say(args, f"model and fixed image ready in {time.perf_counter() - start:.1f} s")
-    summary = register_scan(model, fixed, args.moving, args.out, args.moving_label, options, args.overwrite,
-                            report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
+    summary = register_scan(
+        model,
+        fixed,
+        args.moving,
+        args.out,
+        args.moving_label,
+        options,
+        args.overwrite,
+        report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"),
+    )
     return _print_result(args, summary)
 
 
@@ -349,8 +489,15 @@ def _demo(args: argparse.Namespace) -> int:
     model, fixed = _setup(args)
     options = _with_refinement(options, model, args.refine)
     _say(args, f"model and template ready in {time.perf_counter() - start:.1f} s")
-    summary = run_demo(model, fixed, args.out, args.seed, options=options, overwrite=args.overwrite,
-                       report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
+    summary = run_demo(
+        model,
+        fixed,
+        args.out,
+        args.seed,
+        options=options,
+        overwrite=args.overwrite,
+        report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"),
+    )
     print(demo_report(summary))
     return _print_result(args, summary)
 
@@ -371,8 +518,10 @@ def _register_batch(args: argparse.Namespace) -> int:
     print_batch_table(rows)
     failed = sum(row.status != "ok" for row in rows)
     if failed:
-        print(f"monai-probreg: error: {failed} of {len(rows)} scans failed (see above and {out}/batch_summary.csv)",
-              file=sys.stderr)
+        print(
+            f"monai-probreg: error: {failed} of {len(rows)} scans failed (see above and {out}/batch_summary.csv)",
+            file=sys.stderr,
+        )
     return 1 if failed else 0
 
 
@@ -407,8 +556,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             command = {"register": _register, "register-batch": _register_batch, "demo": _demo}[args.command]
             return command(args)
     except KeyboardInterrupt:
-        print("monai-probreg: interrupted; the scan in progress left nothing in its output folder (a batch lists "
-              "the scans not run in batch_summary.csv)", file=sys.stderr)
+        print(
+            "monai-probreg: interrupted; the scan in progress left nothing in its output folder (a batch lists "
+            "the scans not run in batch_summary.csv)",
+            file=sys.stderr,
+        )
         return 130
     except Exception as err:  # noqa: BLE001 - one line for users; --debug for the traceback
         from monai_probreg.utils.errors import InputError, first_line
@@ -418,20 +570,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(err, InputError):
             print(f"monai-probreg: error: {err}", file=sys.stderr)
         else:
-            print(f"monai-probreg: error: unexpected {type(err).__name__}: {first_line(err)} (rerun with --debug for the "
-                  "traceback)", file=sys.stderr)
+            print(
+                f"monai-probreg: error: unexpected {type(err).__name__}: {first_line(err)} (rerun with --debug for the "
+                "traceback)",
+                file=sys.stderr,
+            )
         return 1
 
 
-def run_bundle_demo(out_dir: str, seed: int = 0, bundle_root: str | None = None, model_file: str | None = None,
-                    template: str | None = None, samples: int | None = None, overwrite: bool = False) -> dict:
+def run_bundle_demo(
+    out_dir: str,
+    seed: int = 0,
+    bundle_root: str | None = None,
+    model_file: str | None = None,
+    template: str | None = None,
+    samples: int | None = None,
+    overwrite: bool = False,
+) -> dict:
     """The bundle's ``configs/demo.yaml``: ``monai-probreg demo`` with these options (None: the command's default);
     prints what the command prints and returns the summary. Raises RuntimeError when the demo fails."""
     import json
 
     argv = ["demo", "--out", str(out_dir), "--seed", str(seed)]
-    for flag, value in (("--bundle-root", bundle_root), ("--model-file", model_file), ("--fixed", template),
-                        ("--samples", samples)):
+    for flag, value in (
+        ("--bundle-root", bundle_root),
+        ("--model-file", model_file),
+        ("--fixed", template),
+        ("--samples", samples),
+    ):
         if value is not None:
             argv += [flag, str(value)]
     status = main(argv + (["--overwrite"] if overwrite else []))

@@ -41,16 +41,23 @@ class LoadedModel:
     device: torch.device
     model_file: Path
     config_file: Path
-    std_scale: float = 1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
+    std_scale: float = (
+        1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
+    )
     bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
     refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement``
     weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
     quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
 
 
-def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
-               config_file: str | os.PathLike | None = None, device: str = "cpu", calibrate: bool = True,
-               quality: bool = True) -> LoadedModel:
+def load_model(
+    bundle_root: str | os.PathLike | None = None,
+    model_file: str | os.PathLike | None = None,
+    config_file: str | os.PathLike | None = None,
+    device: str = "cpu",
+    calibrate: bool = True,
+    quality: bool = True,
+) -> LoadedModel:
     """The trained network: settings from ``configs/inference.yaml``'s ``network_def`` (and ``divisor``), weights
     from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable.
     ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw. The quality
@@ -59,8 +66,10 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
     root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
     config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"
     if not config.is_file():
-        raise InputError(f"--config {str(config)!r}: no such file (the bundle's configs/inference.yaml; pass "
-                         "--bundle-root or --config)")
+        raise InputError(
+            f"--config {str(config)!r}: no such file (the bundle's configs/inference.yaml; pass "
+            "--bundle-root or --config)"
+        )
     parser = ConfigParser()
     parser.read_config(str(config))
     parser["bundle_root"] = str(root)
@@ -75,8 +84,9 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
         network = parser.get_parsed_content("network_def")
         divisor = int(parser.get("divisor", 16))
     except Exception as err:  # noqa: BLE001 - any config error becomes one line
-        raise InputError(f"--config {str(config)!r}: cannot build the network from 'network_def' "
-                         f"({first_line(err)})") from None
+        raise InputError(
+            f"--config {str(config)!r}: cannot build the network from 'network_def' ({first_line(err)})"
+        ) from None
     try:
         refinement = parser.get_parsed_content("refinement") if "refinement" in parser else RefinementSettings()
     except Exception as err:  # noqa: BLE001 - any config error becomes one line
@@ -86,12 +96,22 @@ def load_model(bundle_root: str | os.PathLike | None = None, model_file: str | o
     except InputError as err:  # untrusted (a pickle that could run code), truncated or corrupt: its own message
         raise type(err)(str(err).replace("model file", "--model-file", 1)) from None
     except (RuntimeError, KeyError, ValueError) as err:
-        raise InputError(f"--model-file {str(weights)!r}: does not fit the network of {str(config)!r} "
-                         f"({first_line(err)})") from None
+        raise InputError(
+            f"--model-file {str(weights)!r}: does not fit the network of {str(config)!r} ({first_line(err)})"
+        ) from None
     try:
         calibration = calibration_for(weights, calibrate)
         quality_model = load_quality_model(weights) if calibrate and quality else None
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
-    return LoadedModel(network, divisor, torch.device(device), weights, config, *calibration, refinement=refinement,
-                       weights_sha256=file_sha256(weights), quality=quality_model)
+    return LoadedModel(
+        network,
+        divisor,
+        torch.device(device),
+        weights,
+        config,
+        *calibration,
+        refinement=refinement,
+        weights_sha256=file_sha256(weights),
+        quality=quality_model,
+    )

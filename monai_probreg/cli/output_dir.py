@@ -30,40 +30,51 @@ from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import atomic_write, write_text
 
-__all__ = ["OUTPUT_FILES", "OUTPUTS_README", "check_output_dir", "staged_output_dir", "write_volume", "label_dtype",
-           "write_field", "write_transform"]
+__all__ = [
+    "OUTPUT_FILES",
+    "OUTPUTS_README",
+    "check_output_dir",
+    "staged_output_dir",
+    "write_volume",
+    "label_dtype",
+    "write_field",
+    "write_transform",
+]
 
 # name -> what it is; the order of the README and of summary.json["outputs"]
 OUTPUT_FILES = {
     "warped.nii.gz": "moving image resampled onto the fixed grid through the composed transform (linear, original "
-                     "intensities, 0 outside the moving scan)",
+    "intensities, 0 outside the moving scan)",
     "warped_label.nii.gz": "moving labels on the fixed grid (nearest neighbour) [--moving-label]",
     "warp.nii.gz": "composed displacement field fixed -> moving (affine + deformable), LPS mm, on the fixed grid; "
-                   "ITK DisplacementFieldTransform / antsApplyTransforms -t warp.nii.gz",
+    "ITK DisplacementFieldTransform / antsApplyTransforms -t warp.nii.gz",
     "inverse_warp.nii.gz": "composed inverse field moving -> fixed, LPS mm, on the moving grid; "
-                           "antsApplyTransforms -i FIXED -r MOVING -t inverse_warp.nii.gz",
+    "antsApplyTransforms -i FIXED -r MOVING -t inverse_warp.nii.gz",
     "affine.tfm": "the affine part alone (fixed -> moving, ITK AffineTransform_double_3_3 text file)",
     "fixed_label_in_moving.nii.gz": "fixed labels mapped onto the moving scan's own grid (nearest neighbour) "
-                                    "[--fixed-label]",
+    "[--fixed-label]",
     "jacobian.nii.gz": "det(I + grad u) of the deformable part on the fixed grid (<= 0: folding); the composed "
-                       "transform's Jacobian is this times summary.json affine.determinant",
+    "transform's Jacobian is this times summary.json affine.determinant",
     "entropy.nii.gz": "entropy of the velocity posterior q(z) (Dalca et al. 2018, Eq. 8), fixed grid",
     "displacement_std.nii.gz": "std of the displacement over K posterior samples, sqrt(sum of the 3 variances), mm "
-                               "[--samples K]",
+    "[--samples K]",
     "subject.nii.gz": "the synthetic subject registered (the moving image), made from the template [demo]",
     "true_warp.nii.gz": "the known field fixed -> moving the subject was made with, LPS mm, on the fixed grid, in "
-                        "warp.nii.gz's convention: the answer warp.nii.gz is scored against [demo]",
+    "warp.nii.gz's convention: the answer warp.nii.gz is scored against [demo]",
     "qc.png": "quality-control figure: three orthogonal slices of each map",
     "summary.json": "timings per stage, affine, |J| <= 0 count, Dice per label, inputs and settings",
     "README.txt": "this list",
 }
 
-OUTPUTS_README = "Outputs of monai-probreg register (VoxelMorph-diff, Dalca et al. 2018).\n" + "\n".join(
-    f"  {name:<30}{text}" for name, text in OUTPUT_FILES.items()) + """
+OUTPUTS_README = (
+    "Outputs of monai-probreg register (VoxelMorph-diff, Dalca et al. 2018).\n"
+    + "\n".join(f"  {name:<30}{text}" for name, text in OUTPUT_FILES.items())
+    + """
 Conventions: physical points are ITK's LPS millimetres. A displacement field maps a point p of its grid to
 p + d(p) in the other space (ITK DisplacementFieldTransform, ANTs warp files): warp.nii.gz pulls the moving image
 back onto the fixed grid, warped(p) = moving(p + d(p)). Files on the fixed grid carry the fixed image's header.
 """
+)
 
 
 def check_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> Path:
@@ -73,8 +84,10 @@ def check_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> Pat
     if path.exists() and not path.is_dir():
         raise InputError(f"--out {str(path)!r}: exists and is a file, not a folder")
     if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise InputError(f"--out {str(path)!r}: folder exists and is not empty; pass --overwrite to replace its "
-                         "outputs, or choose another folder")
+        raise InputError(
+            f"--out {str(path)!r}: folder exists and is not empty; pass --overwrite to replace its "
+            "outputs, or choose another folder"
+        )
     existing = path
     while not existing.exists():  # nearest existing folder: where the new ones will be created
         existing = existing.parent
@@ -150,7 +163,9 @@ def write_transform(path: str | os.PathLike, matrix: np.ndarray, center: np.ndar
     numbers = [*matrix[:3, :3].reshape(-1), *translation]
     if not np.isfinite([*numbers, *center]).all():
         raise ValueError(f"{str(path)!r}: the transform has non-finite parameters {numbers}, centre {center.tolist()}")
-    text = ("#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
-            f"Parameters: {' '.join(repr(float(v)) for v in numbers)}\n"
-            f"FixedParameters: {' '.join(repr(float(v)) for v in center)}\n")
+    text = (
+        "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+        f"Parameters: {' '.join(repr(float(v)) for v in numbers)}\n"
+        f"FixedParameters: {' '.join(repr(float(v)) for v in center)}\n"
+    )
     return write_text(path, text)

@@ -121,8 +121,12 @@ class FixedSpace:
         return grid_points(self.image.shape, self.image.index_to_lps)
 
 
-def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None = None,
-                  divisor: int = 16, brain_mask_margin_mm: float | None = DEFAULT_MARGIN_MM) -> FixedSpace:
+def prepare_fixed(
+    path: str | os.PathLike,
+    label_path: str | os.PathLike | None = None,
+    divisor: int = 16,
+    brain_mask_margin_mm: float | None = DEFAULT_MARGIN_MM,
+) -> FixedSpace:
     """``brain_mask_margin_mm``: hide the moving scan outside the fixed image's support dilated by this many mm
     (:mod:`monai_probreg.spatial.brain_mask`); None: show the network the whole moving scan."""
     image = read_image(path, "--fixed")
@@ -133,8 +137,9 @@ def prepare_fixed(path: str | os.PathLike, label_path: str | os.PathLike | None 
     grid = ModelGrid.for_volume(image, divisor)
     ids = [int(v) for v in np.unique(label.array) if v != 0] if label is not None else []
     mask = None if brain_mask_margin_mm is None else fixed_brain_mask(image.array, image.spacing, brain_mask_margin_mm)
-    return FixedSpace(image, label, grid, grid.to_model(normalise_intensity(image.array)), ids, mask,
-                      brain_mask_margin_mm)
+    return FixedSpace(
+        image, label, grid, grid.to_model(normalise_intensity(image.array)), ids, mask, brain_mask_margin_mm
+    )
 
 
 @dataclass(frozen=True)
@@ -156,8 +161,9 @@ class RegistrationOptions:
 
     def __post_init__(self) -> None:
         if self.samples == 1 or self.samples < 0:
-            raise InputError(f"--samples must be 0 (no sampling) or >= 2 (a standard deviation needs two); "
-                             f"got {self.samples}")
+            raise InputError(
+                f"--samples must be 0 (no sampling) or >= 2 (a standard deviation needs two); got {self.samples}"
+            )
 
 
 @contextmanager
@@ -170,9 +176,13 @@ def _timed(timings: dict[str, float], name: str, report: Callable[[str, float], 
 
 
 def _describe(volume: Volume) -> dict:
-    return {"path": str(Path(volume.path).resolve()), "shape": list(volume.shape),
-            "spacing_mm": np.round(volume.spacing, 4).tolist(), "orientation": volume.axcodes,
-            "value_range": [float(volume.array.min()), float(volume.array.max())]}
+    return {
+        "path": str(Path(volume.path).resolve()),
+        "shape": list(volume.shape),
+        "spacing_mm": np.round(volume.spacing, 4).tolist(),
+        "orientation": volume.axcodes,
+        "value_range": [float(volume.array.min()), float(volume.array.max())],
+    }
 
 
 def _reproducibility(model: LoadedModel, options: RegistrationOptions) -> dict:
@@ -180,9 +190,13 @@ def _reproducibility(model: LoadedModel, options: RegistrationOptions) -> dict:
     ``--seed`` to both), whether the affine metric ran in one work unit, the weights' hash and the library versions.
     The other options are in the summary's ``affine.settings``, ``model`` and ``uncertainty``."""
     affine = options.affine
-    return {"seed": options.seed, "affine_seed": affine.seed if affine else None,
-            "deterministic_affine": affine.deterministic if affine else None,
-            "weights_sha256": model.weights_sha256, "versions": library_versions()}
+    return {
+        "seed": options.seed,
+        "affine_seed": affine.seed if affine else None,
+        "deterministic_affine": affine.deterministic if affine else None,
+        "weights_sha256": model.weights_sha256,
+        "versions": library_versions(),
+    }
 
 
 def _numpy(t: torch.Tensor) -> np.ndarray:
@@ -190,11 +204,14 @@ def _numpy(t: torch.Tensor) -> np.ndarray:
 
 
 def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
-    per_label = label_dice(torch.from_numpy(warped.astype(np.int64)), torch.from_numpy(fixed.array.astype(np.int64)),
-                           ids)
+    per_label = label_dice(
+        torch.from_numpy(warped.astype(np.int64)), torch.from_numpy(fixed.array.astype(np.int64)), ids
+    )
     mean = mean_dice(per_label)
-    return {"mean": None if math.isnan(mean) else mean,  # JSON has no NaN: null
-            "per_label": {str(k): (None if math.isnan(v) else round(v, 5)) for k, v in per_label.items()}}
+    return {
+        "mean": None if math.isnan(mean) else mean,  # JSON has no NaN: null
+        "per_label": {str(k): (None if math.isnan(v) else round(v, 5)) for k, v in per_label.items()},
+    }
 
 
 @dataclass
@@ -210,8 +227,15 @@ class _ModelMaps:
     variance: np.ndarray | None = None  # (3, *S) mm^2 per model-grid axis, with the samples
 
 
-def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.ndarray, options: RegistrationOptions,
-               spacing: np.ndarray, timings: dict, report: Callable | None) -> _ModelMaps:
+def _run_model(
+    model: LoadedModel,
+    moving_input: np.ndarray,
+    fixed_input: np.ndarray,
+    options: RegistrationOptions,
+    spacing: np.ndarray,
+    timings: dict,
+    report: Callable | None,
+) -> _ModelMaps:
     shape, samples, seed = moving_input.shape, options.samples, options.seed
     moving_t = torch.from_numpy(moving_input)[None, None].to(model.device)
     fixed_t = torch.from_numpy(fixed_input)[None, None].to(model.device)
@@ -225,30 +249,58 @@ def _run_model(model: LoadedModel, moving_input: np.ndarray, fixed_input: np.nda
         if options.inverse:
             with eval_mode(model.network), torch.inference_mode():
                 inverse = _numpy(model.network.velocity_to_displacement(-output.velocity_mean, shape)[0])  # exp(-v)
-        maps = _ModelMaps(_numpy(output.displacement[0]), inverse,
-                          _numpy(jacobian_determinant(output.displacement)[0]), None, _numpy(output.warped[0, 0]))
+        maps = _ModelMaps(
+            _numpy(output.displacement[0]),
+            inverse,
+            _numpy(jacobian_determinant(output.displacement)[0]),
+            None,
+            _numpy(output.warped[0, 0]),
+        )
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
-            posterior = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape,
-                                       std_scale=model.std_scale, bias_fraction=model.bias_fraction)  # 1, 0 = raw
+            posterior = posterior_maps(
+                model.network,
+                output.velocity_mean,
+                output.velocity_log_var,
+                shape,
+                std_scale=model.std_scale,
+                bias_fraction=model.bias_fraction,
+            )  # 1, 0 = raw
             maps.entropy = _numpy(posterior.velocity_entropy)
     if samples:
         with _timed(timings, "samples", report):
-            sampled = posterior_maps(model.network, output.velocity_mean, output.velocity_log_var, shape, samples,
-                                     model.std_scale, seed=seed, bias_fraction=model.bias_fraction, spacing=spacing)
+            sampled = posterior_maps(
+                model.network,
+                output.velocity_mean,
+                output.velocity_log_var,
+                shape,
+                samples,
+                model.std_scale,
+                seed=seed,
+                bias_fraction=model.bias_fraction,
+                spacing=spacing,
+            )
             maps.entropy, maps.std = _numpy(sampled.velocity_entropy), _numpy(sampled.displacement_std)
             maps.variance = _numpy(sampled.displacement_variance)
     return maps
 
 
-def _quality(model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, maps: _ModelMaps
-             ) -> tuple[QualityFeatures, QualityEstimate] | None:
+def _quality(
+    model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, maps: _ModelMaps
+) -> tuple[QualityFeatures, QualityEstimate] | None:
     """The label-free quality estimate on the model grid (:mod:`monai_probreg.uncertainty.quality`), or None when
     the weights have no quality model."""
     if model.quality is None:
         return None
     t = torch.from_numpy
-    features = quality_features(t(moving_input), t(fixed.model_input), t(maps.warped), t(maps.displacement),
-                                t(maps.entropy), fixed.grid.spacing, jacobian=t(maps.jacobian))
+    features = quality_features(
+        t(moving_input),
+        t(fixed.model_input),
+        t(maps.warped),
+        t(maps.displacement),
+        t(maps.entropy),
+        fixed.grid.spacing,
+        jacobian=t(maps.jacobian),
+    )
     return features, model.quality.estimate(features)
 
 
@@ -257,8 +309,12 @@ def _quality_summary(model: LoadedModel, quality: tuple[QualityFeatures, Quality
         return None
     record = quality_record(*quality)  # strict JSON, the same record as the bundle's
     del record["warning"]  # summary.json has it at the top level
-    return {**record, "warning_threshold": model.quality.threshold, "definition": model.quality.definition,
-            "model": quality_path(model.model_file).name}
+    return {
+        **record,
+        "warning_threshold": model.quality.threshold,
+        "definition": model.quality.definition,
+        "model": quality_path(model.model_file).name,
+    }
 
 
 @dataclass
@@ -272,18 +328,29 @@ class _Composed:
     dice: dict | None
 
 
-def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, affine: np.ndarray,
-             model_maps: _ModelMaps, affine_index: np.ndarray, inverse: bool) -> _Composed:
+def _compose(
+    fixed: FixedSpace,
+    moving: Volume,
+    moving_label: Volume | None,
+    affine: np.ndarray,
+    model_maps: _ModelMaps,
+    affine_index: np.ndarray,
+    inverse: bool,
+) -> _Composed:
     """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice.
     ``affine_index``: the fixed grid's continuous index in the moving grid through the affine alone (the resample
     stage's). The fields are float32, the precision of their files, and the scan and labels are sampled at
     ``p + D(p)`` with that float32 ``D``: exactly where ITK's resampling through ``warp.nii.gz`` samples them."""
     grid, image = fixed.grid, fixed.image
-    warp = compose_forward(grid.to_fixed(voxel_to_mm(model_maps.displacement, grid.index_to_lps)),
-                           image.index_to_lps, affine).astype(np.float32)
+    warp = compose_forward(
+        grid.to_fixed(voxel_to_mm(model_maps.displacement, grid.index_to_lps)), image.index_to_lps, affine
+    ).astype(np.float32)
     warped_index = mapped_index(image.shape, image.index_to_lps, moving.index_to_lps, field=warp)
-    maps = {"warped": sample_linear(moving, None, index=warped_index),
-            "jacobian": grid.to_fixed(model_maps.jacobian), "entropy": grid.to_fixed(model_maps.entropy)}
+    maps = {
+        "warped": sample_linear(moving, None, index=warped_index),
+        "jacobian": grid.to_fixed(model_maps.jacobian),
+        "entropy": grid.to_fixed(model_maps.entropy),
+    }
     if model_maps.std is not None:
         maps["displacement_std"] = grid.to_fixed(model_maps.std)
     labels: dict[str, np.ndarray] = {}
@@ -292,11 +359,18 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
         labels["affine_label"] = sample_nearest(moving_label, None, index=affine_index)  # Dice and QC, not written
     inverse_warp = None
     if inverse:
-        inverse_warp = compose_inverse(Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
-                                       affine, moving.shape, moving.index_to_lps)
+        inverse_warp = compose_inverse(
+            Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
+            affine,
+            moving.shape,
+            moving.index_to_lps,
+        )
         if fixed.label is not None:  # q + D_inv(q) for every voxel q of the moving grid, in the fixed label grid
-            labels["fixed_label_in_moving"] = sample_nearest(fixed.label, None, index=mapped_index(
-                moving.shape, moving.index_to_lps, fixed.label.index_to_lps, field=inverse_warp))
+            labels["fixed_label_in_moving"] = sample_nearest(
+                fixed.label,
+                None,
+                index=mapped_index(moving.shape, moving.index_to_lps, fixed.label.index_to_lps, field=inverse_warp),
+            )
     dice = None
     if moving_label is not None and fixed.label is not None:
         # the structures both label maps have (a moving map of another protocol, e.g. LPBA40's 48 cortical labels
@@ -305,9 +379,12 @@ def _compose(fixed: FixedSpace, moving: Volume, moving_label: Volume | None, aff
         if ids:  # else no Dice (summary "dice": null): the two maps share no structure
             dice = _dice(labels["warped_label"], fixed.label, ids)
             affine_only = _dice(labels["affine_label"], fixed.label, ids)
-            dice.update(mean_affine_only=affine_only["mean"], per_label_affine_only=affine_only["per_label"],
-                        labels="the non-zero labels of both label maps",
-                        num_fixed_only_labels=len(fixed.label_ids) - len(ids))
+            dice.update(
+                mean_affine_only=affine_only["mean"],
+                per_label_affine_only=affine_only["per_label"],
+                labels="the non-zero labels of both label maps",
+                num_fixed_only_labels=len(fixed.label_ids) - len(ids),
+            )
     return _Composed(warp, inverse_warp, maps, labels, dice)
 
 
@@ -337,59 +414,108 @@ def _registered(fixed: FixedSpace, affine: AffineResult, composed: _Composed, mo
     return Registered(composed.warp, affine.matrix, fixed.points, variance, grid.index_to_lps[:3, :3] / grid.spacing)
 
 
-def _writers(stage: Path, fixed: FixedSpace, moving: Volume, affine: AffineResult, composed: _Composed,
-             options: RegistrationOptions) -> list[Callable[[], object]]:
+def _writers(
+    stage: Path,
+    fixed: FixedSpace,
+    moving: Volume,
+    affine: AffineResult,
+    composed: _Composed,
+    options: RegistrationOptions,
+) -> list[Callable[[], object]]:
     """One call per output file (run in parallel by :func:`~monai_probreg.utils.files.parallel_writes`), largest
     first so that the pool's last file is a small one."""
     writers: list[tuple[int, Callable[[], object]]] = []
     if composed.inverse_warp is not None:
-        writers.append((composed.inverse_warp.size, functools.partial(
-            write_field, stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps)))
-    writers.append((composed.warp.size, functools.partial(
-        write_field, stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps)))
+        writers.append(
+            (
+                composed.inverse_warp.size,
+                functools.partial(
+                    write_field, stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps
+                ),
+            )
+        )
+    writers.append(
+        (
+            composed.warp.size,
+            functools.partial(write_field, stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps),
+        )
+    )
     for name, array in composed.maps.items():
         if options.maps or name not in _MAP_FILES:
-            writers.append((array.size, functools.partial(
-                write_volume, stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32)))))
+            writers.append(
+                (
+                    array.size,
+                    functools.partial(
+                        write_volume, stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32))
+                    ),
+                )
+            )
     for name, grid in (("warped_label", fixed.image), ("fixed_label_in_moving", moving)):
         if name in composed.labels:
             array = composed.labels[name]
-            writers.append((array.size // 4, functools.partial(  # bytes, roughly: 1-2 per label voxel, 4 per float
-                write_volume, stage / f"{name}.nii.gz", grid.with_array(array), label_dtype(array))))
+            writers.append(
+                (
+                    array.size // 4,
+                    functools.partial(  # bytes, roughly: 1-2 per label voxel, 4 per float
+                        write_volume, stage / f"{name}.nii.gz", grid.with_array(array), label_dtype(array)
+                    ),
+                )
+            )
     writers.append((0, functools.partial(write_transform, stage / "affine.tfm", affine.matrix, affine.center)))
     return [write for _, write in sorted(writers, key=lambda item: -item[0])]
 
 
-def _qc_data(fixed: FixedSpace, moving_input: np.ndarray, model_maps: _ModelMaps, composed: _Composed,
-             title: str, warning: str | None = None) -> QCData:
+def _qc_data(
+    fixed: FixedSpace,
+    moving_input: np.ndarray,
+    model_maps: _ModelMaps,
+    composed: _Composed,
+    title: str,
+    warning: str | None = None,
+) -> QCData:
     to_model, labels = fixed.grid.to_model, composed.labels
     sampled = model_maps.std is not None
-    return QCData(fixed=fixed.model_input, moving=moving_input, warped=model_maps.warped,
-                  displacement=model_maps.displacement, jacobian=model_maps.jacobian,
-                  uncertainty=model_maps.std if sampled else model_maps.entropy,
-                  uncertainty_name="displacement std (mm)" if sampled else "velocity entropy",
-                  spacing=tuple(fixed.grid.spacing), title=title, warning=warning,
-                  fixed_label=to_model(fixed.label.array) if fixed.label is not None else None,
-                  moving_label=to_model(labels["affine_label"]) if "affine_label" in labels else None,
-                  warped_label=to_model(labels["warped_label"]) if "warped_label" in labels else None)
+    return QCData(
+        fixed=fixed.model_input,
+        moving=moving_input,
+        warped=model_maps.warped,
+        displacement=model_maps.displacement,
+        jacobian=model_maps.jacobian,
+        uncertainty=model_maps.std if sampled else model_maps.entropy,
+        uncertainty_name="displacement std (mm)" if sampled else "velocity entropy",
+        spacing=tuple(fixed.grid.spacing),
+        title=title,
+        warning=warning,
+        fixed_label=to_model(fixed.label.array) if fixed.label is not None else None,
+        moving_label=to_model(labels["affine_label"]) if "affine_label" in labels else None,
+        warped_label=to_model(labels["warped_label"]) if "warped_label" in labels else None,
+    )
 
 
-def _qc_title(moving: Volume, dice: dict | None, num_folding: int,
-              quality: tuple[QualityFeatures, QualityEstimate] | None) -> str:
-    title = Path(moving.path).name + (f"   mean Dice {dice['mean']:.3f} (affine only "
-                                      f"{dice['mean_affine_only']:.3f})" if dice else "")
+def _qc_title(
+    moving: Volume, dice: dict | None, num_folding: int, quality: tuple[QualityFeatures, QualityEstimate] | None
+) -> str:
+    title = Path(moving.path).name + (
+        f"   mean Dice {dice['mean']:.3f} (affine only {dice['mean_affine_only']:.3f})" if dice else ""
+    )
     title += f"   |J| <= 0: {num_folding} voxels"
     if quality is not None:
         title += f"   predicted Dice {quality[1].predicted_dice:.2f}"
     return title
 
 
-def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.PathLike | Volume,
-                  out_dir: str | os.PathLike, moving_label_path: str | os.PathLike | None = None,
-                  options: RegistrationOptions | None = None, overwrite: bool = False,
-                  report: Callable[[str, float], None] | None = None,
-                  check: Callable[[Registered], dict] | None = None,
-                  extra_outputs: Mapping[str, Callable[[Path], object]] | None = None) -> dict:
+def register_scan(
+    model: LoadedModel,
+    fixed: FixedSpace,
+    moving_path: str | os.PathLike | Volume,
+    out_dir: str | os.PathLike,
+    moving_label_path: str | os.PathLike | None = None,
+    options: RegistrationOptions | None = None,
+    overwrite: bool = False,
+    report: Callable[[str, float], None] | None = None,
+    check: Callable[[Registered], dict] | None = None,
+    extra_outputs: Mapping[str, Callable[[Path], object]] | None = None,
+) -> dict:
     """Register ``moving_path`` to ``fixed`` and write every output into ``out_dir`` (all or nothing).
 
     ``moving_path`` may be a :class:`~monai_probreg.spatial.volume_io.Volume` already in memory (``monai-probreg
@@ -412,14 +538,19 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
         if options.affine is None:
             affine = AffineResult(np.eye(4), np.zeros(3), np.eye(4), [])
         else:
-            affine = align(fixed.image, moving, options.affine,
-                           fixed.itk_image if options.affine.backend == "itk" else None,
-                           fixed.samples_for(options.affine))
+            affine = align(
+                fixed.image,
+                moving,
+                options.affine,
+                fixed.itk_image if options.affine.backend == "itk" else None,
+                fixed.samples_for(options.affine),
+            )
     with _timed(timings, "resample", report):
         affine_index = mapped_index(fixed.image.shape, fixed.image.index_to_lps, moving.index_to_lps, affine.matrix)
         background = float(moving.array.min())
-        moving_on_fixed = hide_outside(sample_linear(moving, None, fill=background, index=affine_index),
-                                       fixed.brain_mask, background)
+        moving_on_fixed = hide_outside(
+            sample_linear(moving, None, fill=background, index=affine_index), fixed.brain_mask, background
+        )
         moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
     model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report)
     quality = None
@@ -442,36 +573,60 @@ def register_scan(model: LoadedModel, fixed: FixedSpace, moving_path: str | os.P
                 submit(functools.partial(write, stage / name))
             if options.qc:
                 with _timed(timings, "qc", report):
-                    save_qc(stage / "qc.png", _qc_data(fixed, moving_input, model_maps, composed,
-                                                       _qc_title(moving, composed.dice, stats.num_folding, quality),
-                                                       warning))
+                    save_qc(
+                        stage / "qc.png",
+                        _qc_data(
+                            fixed,
+                            moving_input,
+                            model_maps,
+                            composed,
+                            _qc_title(moving, composed.dice, stats.num_folding, quality),
+                            warning,
+                        ),
+                    )
         timings["write"] = round(time.perf_counter() - write_start - timings.get("qc", 0.0), 3)
         if report is not None:
             report("write", timings["write"])
         timings["total"] = round(time.perf_counter() - start, 3)
         jacobian, std = composed.maps["jacobian"], model_maps.std
         summary = {
-            "moving": _describe(moving), "fixed": _describe(fixed.image),
+            "moving": _describe(moving),
+            "fixed": _describe(fixed.image),
             "moving_label": moving_label.path if moving_label is not None else None,
             "fixed_label": fixed.label.path if fixed.label is not None else None,
-            "model": {"model_file": str(model.model_file), "config": str(model.config_file),
-                      "device": str(model.device), "model_grid_shape": list(fixed.grid.shape),
-                      "divisor": model.divisor, "posterior_std_scale": model.std_scale,
-                      "posterior_bias_fraction": model.bias_fraction,
-                      "refinement": options.refinement.as_dict(),
-                      "brain_mask": None if fixed.brain_mask is None else {
-                          "margin_mm": fixed.brain_mask_margin_mm,
-                          "fraction_of_fixed_grid": round(float(fixed.brain_mask.mean()), 4)}},
+            "model": {
+                "model_file": str(model.model_file),
+                "config": str(model.config_file),
+                "device": str(model.device),
+                "model_grid_shape": list(fixed.grid.shape),
+                "divisor": model.divisor,
+                "posterior_std_scale": model.std_scale,
+                "posterior_bias_fraction": model.bias_fraction,
+                "refinement": options.refinement.as_dict(),
+                "brain_mask": None
+                if fixed.brain_mask is None
+                else {
+                    "margin_mm": fixed.brain_mask_margin_mm,
+                    "fraction_of_fixed_grid": round(float(fixed.brain_mask.mean()), 4),
+                },
+            },
             "timings_s": timings,
             "affine": {**affine.summary(), "settings": options.affine.as_dict() if options.affine else None},
-            "jacobian": {"num_nonpositive": stats.num_folding, "percent_nonpositive": stats.percent_folding,
-                         "std_log_jacobian": stats.std_log_jacobian, "min": float(jacobian.min()),
-                         "max": float(jacobian.max())},
+            "jacobian": {
+                "num_nonpositive": stats.num_folding,
+                "percent_nonpositive": stats.percent_folding,
+                "std_log_jacobian": stats.std_log_jacobian,
+                "min": float(jacobian.min()),
+                "max": float(jacobian.max()),
+            },
             "dice": composed.dice,
             "quality": _quality_summary(model, quality),
             "warning": warning,
-            "uncertainty": {"samples": options.samples, "seed": options.seed,
-                            "mean_displacement_std_mm": None if std is None else float(std.mean())},
+            "uncertainty": {
+                "samples": options.samples,
+                "seed": options.seed,
+                "mean_displacement_std_mm": None if std is None else float(std.mean()),
+            },
             "outputs": sorted(p.name for p in stage.iterdir()) + ["summary.json", "README.txt"],
             "version": monai_probreg.__version__,
             "reproducibility": _reproducibility(model, options),

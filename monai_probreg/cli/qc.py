@@ -92,13 +92,23 @@ def qc_figure(data: QCData) -> plt.Figure:
     """Build the figure (see the module docstring); the caller saves or closes it."""
     centre = _centre(data.fixed)
     spacing = np.asarray(data.spacing, dtype=np.float64)
-    columns = ["fixed", "moving (affine only)", "warped moving", "deformation (deformable part)",
-               "Jacobian determinant", data.uncertainty_name]
+    columns = [
+        "fixed",
+        "moving (affine only)",
+        "warped moving",
+        "deformation (deformable part)",
+        "Jacobian determinant",
+        data.uncertainty_name,
+    ]
     # a fixed layout (matplotlib's constrained layout cost 0.3 s of a 1 s figure): panels, then a strip for the
     # colour bars under the last two columns; the title above
-    fig, axes = plt.subplots(3, 6, figsize=(18, 9.2), squeeze=False,
-                             gridspec_kw={"left": 0.025, "right": 0.995, "top": 0.9, "bottom": 0.1,
-                                          "wspace": 0.03, "hspace": 0.1})
+    fig, axes = plt.subplots(
+        3,
+        6,
+        figsize=(18, 9.2),
+        squeeze=False,
+        gridspec_kw={"left": 0.025, "right": 0.995, "top": 0.9, "bottom": 0.1, "wspace": 0.03, "hspace": 0.1},
+    )
     images = (data.fixed, data.moving, data.warped)
     labels = (data.fixed_label, data.moving_label, data.warped_label)
     foreground = data.fixed > 0.05
@@ -110,8 +120,12 @@ def qc_figure(data: QCData) -> plt.Figure:
     mappables = {}
     for row, (axis, h, v, name, letters) in enumerate(_VIEWS):
         index = centre[axis]
-        extent = (-0.5 * spacing[h], (data.fixed.shape[h] - 0.5) * spacing[h],  # voxel i centred at i * spacing
-                  -0.5 * spacing[v], (data.fixed.shape[v] - 0.5) * spacing[v])
+        extent = (
+            -0.5 * spacing[h],
+            (data.fixed.shape[h] - 0.5) * spacing[h],  # voxel i centred at i * spacing
+            -0.5 * spacing[v],
+            (data.fixed.shape[v] - 0.5) * spacing[v],
+        )
         show = dict(origin="lower", extent=extent, interpolation="nearest")
         for col, (image, label) in enumerate(zip(images, labels)):
             ax = axes[row, col]
@@ -128,8 +142,9 @@ def qc_figure(data: QCData) -> plt.Figure:
         folding = np.ma.masked_where(jac > 0, np.ones_like(jac))
         ax.imshow(folding, cmap=ListedColormap(["black"]), **show)
         ax = axes[row, 5]
-        mappables["unc"] = ax.imshow(_plane(data.uncertainty, axis, index), cmap="magma", vmin=unc_range[0],
-                                     vmax=unc_range[1], **show)
+        mappables["unc"] = ax.imshow(
+            _plane(data.uncertainty, axis, index), cmap="magma", vmin=unc_range[0], vmax=unc_range[1], **show
+        )
         for col in range(6):
             ax = axes[row, col]
             ax.set_xticks([])
@@ -137,8 +152,17 @@ def qc_figure(data: QCData) -> plt.Figure:
             ax.set_xlim(extent[0], extent[1])
             ax.set_ylim(extent[2], extent[3])
             for x, letter, align in ((0.02, letters[0], "left"), (0.98, letters[1], "right")):
-                ax.text(x, 0.5, letter, transform=ax.transAxes, color="yellow", fontsize=10, va="center", ha=align,
-                        path_effects=[patheffects.withStroke(linewidth=2, foreground="black")])
+                ax.text(
+                    x,
+                    0.5,
+                    letter,
+                    transform=ax.transAxes,
+                    color="yellow",
+                    fontsize=10,
+                    va="center",
+                    ha=align,
+                    path_effects=[patheffects.withStroke(linewidth=2, foreground="black")],
+                )
             if row == 0:
                 ax.set_title(columns[col], fontsize=11)
         axes[row, 0].set_ylabel(f"{name} {index}", fontsize=11)
@@ -156,8 +180,9 @@ def qc_figure(data: QCData) -> plt.Figure:
     return fig
 
 
-def _draw_grid(ax: plt.Axes, displacement: np.ndarray, axis: int, h: int, v: int, index: int, spacing: np.ndarray,
-               grid_mm: float) -> None:
+def _draw_grid(
+    ax: plt.Axes, displacement: np.ndarray, axis: int, h: int, v: int, index: int, spacing: np.ndarray, grid_mm: float
+) -> None:
     """Lines of constant h and constant v, every ``grid_mm``, drawn at (x + u(x)) in the plane, in mm."""
     uh = _plane(displacement[h], axis, index)
     uv = _plane(displacement[v], axis, index)

@@ -44,8 +44,8 @@ from monai_probreg.utils.files import file_stem
 __all__ = ["RENDER_BLUR_VOXELS", "RENDER_TEXTURE", "SYNTH_ATLAS_NAME", "render_head", "to_synth_space"]
 
 SYNTH_ATLAS_NAME = "template"  # atlas/<name>_image.nii.gz: the template the subjects were moved to
-RENDER_TEXTURE = 0.03          # texture noise of the affine stage's rendering (the table's units: white matter = 1)
-RENDER_BLUR_VOXELS = 0.6       # its partial-volume blur, voxels of the label map
+RENDER_TEXTURE = 0.03  # texture noise of the affine stage's rendering (the table's units: white matter = 1)
+RENDER_BLUR_VOXELS = 0.6  # its partial-volume blur, voxels of the label map
 
 _LOG = logging.getLogger("monai_probreg.synth_space")
 
@@ -57,13 +57,19 @@ def render_head(labels: Volume, seed: int = 0) -> Volume:
     rng = np.random.default_rng(seed)
     table = {int(v): T1_LIKE.get(int(v), float(rng.uniform())) for v in values if v > 0}
     generator = torch.Generator().manual_seed(seed)
-    image = render_labels(torch.from_numpy(labels.array.astype(np.int64))[None], table, RENDER_TEXTURE,
-                          RENDER_BLUR_VOXELS, generator)[0]
+    image = render_labels(
+        torch.from_numpy(labels.array.astype(np.int64))[None], table, RENDER_TEXTURE, RENDER_BLUR_VOXELS, generator
+    )[0]
     return labels.with_array(image.numpy().astype(np.float32))
 
 
-def to_synth_space(label_maps: list[Path], out_dir: str | os.PathLike, template: str | os.PathLike | None = None,
-                   affine: AffineSettings | None = None, seed: int = 0) -> Path:
+def to_synth_space(
+    label_maps: list[Path],
+    out_dir: str | os.PathLike,
+    template: str | os.PathLike | None = None,
+    affine: AffineSettings | None = None,
+    seed: int = 0,
+) -> Path:
     """Write the dataset folder of the module docstring for ``label_maps`` (ids: their file stems); returns it."""
     if not label_maps:
         raise ValueError("expected at least one label map; got none")
@@ -77,8 +83,13 @@ def to_synth_space(label_maps: list[Path], out_dir: str | os.PathLike, template:
         sid = file_stem(path)
         labels = read_label(path, sid)
         head = render_head(labels, seed + n)
-        result = align(fixed.image, head, settings, fixed.itk_image if settings.backend == "itk" else None,
-                       fixed.samples_for(settings))
+        result = align(
+            fixed.image,
+            head,
+            settings,
+            fixed.itk_image if settings.backend == "itk" else None,
+            fixed.samples_for(settings),
+        )
         index = mapped_index(fixed.image.shape, fixed.image.index_to_lps, head.index_to_lps, result.matrix)
         image = hide_outside(sample_linear(head, None, fill=0.0, index=index).astype(np.float32), fixed.brain_mask, 0.0)
         label = hide_outside(sample_nearest(labels, None, index=index), fixed.brain_mask, 0)
@@ -94,8 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--label-maps", required=True, help="a folder of whole-head label maps (FreeSurfer labels)")
     parser.add_argument("--out-dir", required=True, help="the folder written (keep it out of the repository)")
-    parser.add_argument("--ids", nargs="+", required=True,
-                        help="file stems of the label maps to move (name them: held-out maps stay out)")
+    parser.add_argument(
+        "--ids",
+        nargs="+",
+        required=True,
+        help="file stems of the label maps to move (name them: held-out maps stay out)",
+    )
     parser.add_argument("--template", default=None, help="the fixed image (default: the MNI152 template of nilearn)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the renderings' random intensities")
     parser.add_argument("--threads", type=int, default=None, help="torch threads")

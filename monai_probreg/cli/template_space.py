@@ -68,17 +68,26 @@ def majority_vote(label_maps: list[np.ndarray]) -> np.ndarray:
     return best
 
 
-def _affine_only(registered: Registered, fixed: Volume, moving: Volume, moving_label: Volume) -> tuple[np.ndarray,
-                                                                                                       np.ndarray]:
+def _affine_only(
+    registered: Registered, fixed: Volume, moving: Volume, moving_label: Volume
+) -> tuple[np.ndarray, np.ndarray]:
     """The moving scan and its labels on the fixed grid through the affine stage alone (the command's resampling)."""
     index = mapped_index(fixed.shape, fixed.index_to_lps, moving.index_to_lps, registered.affine)
-    return (sample_linear(moving, None, fill=float(moving.array.min()), index=index).astype(np.float32),
-            sample_nearest(moving_label, None, index=index))
+    return (
+        sample_linear(moving, None, fill=float(moving.array.min()), index=index).astype(np.float32),
+        sample_nearest(moving_label, None, index=index),
+    )
 
 
-def to_template_space(dataset_dir: str | os.PathLike, out_dir: str | os.PathLike, ids: list[str] | None = None,
-                      template: str | os.PathLike | None = None, model_file: str | os.PathLike | None = None,
-                      bundle_root: str | os.PathLike | None = None, affine: AffineSettings | None = None) -> Path:
+def to_template_space(
+    dataset_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    ids: list[str] | None = None,
+    template: str | os.PathLike | None = None,
+    model_file: str | os.PathLike | None = None,
+    bundle_root: str | os.PathLike | None = None,
+    affine: AffineSettings | None = None,
+) -> Path:
     """Write the dataset folder of the module docstring for the labelled subjects ``ids`` (default all); returns it.
     ``template``: the fixed image (default the MNI152 template); ``model_file``, ``bundle_root``: the weights of the
     label fusion's registrations (default the bundle's); ``affine``: the affine stage's settings (default the
@@ -109,12 +118,15 @@ def to_template_space(dataset_dir: str | os.PathLike, out_dir: str | os.PathLike
             write_volume(out / "labels" / f"{sid}.nii.gz", fixed.image.with_array(label), label_dtype(label))
             fused_inputs.append(read_label(Path(scratch) / sid / "warped_label.nii.gz", sid).array)
             shutil.rmtree(Path(scratch) / sid)
-            _LOG.info(f"{n}/{len(chosen)} {sid}: {summary['timings_s']['total']:.1f} s, folded voxels "
-                      f"{summary['jacobian']['num_nonpositive']}")
+            _LOG.info(
+                f"{n}/{len(chosen)} {sid}: {summary['timings_s']['total']:.1f} s, folded voxels "
+                f"{summary['jacobian']['num_nonpositive']}"
+            )
     fused = majority_vote(fused_inputs)
     shutil.copyfile(template_path, out / "atlas" / f"{TEMPLATE_ATLAS_NAME}_image{_suffix(template_path)}")
-    write_volume(out / "atlas" / f"{TEMPLATE_ATLAS_NAME}_label.nii.gz", fixed.image.with_array(fused),
-                 label_dtype(fused))
+    write_volume(
+        out / "atlas" / f"{TEMPLATE_ATLAS_NAME}_label.nii.gz", fixed.image.with_array(fused), label_dtype(fused)
+    )
     return out
 
 

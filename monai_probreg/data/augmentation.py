@@ -82,13 +82,21 @@ class RandDiffeomorphicd(RandomizableTransform, MapTransform):
         num_steps: scaling-and-squaring steps.
     """
 
-    def __init__(self, keys: Sequence[str], label_keys: Sequence[str] = (), prob: float = 1.0,
-                 magnitude: float = 1.5, control_spacing: float = 8.0, num_steps: int = 7) -> None:
+    def __init__(
+        self,
+        keys: Sequence[str],
+        label_keys: Sequence[str] = (),
+        prob: float = 1.0,
+        magnitude: float = 1.5,
+        control_spacing: float = 8.0,
+        num_steps: int = 7,
+    ) -> None:
         MapTransform.__init__(self, list(keys) + list(label_keys))
         RandomizableTransform.__init__(self, prob)
         if magnitude < 0 or control_spacing < 1:
-            raise ValueError(f"magnitude must be >= 0 and control_spacing >= 1 voxel; got {magnitude!r}, "
-                             f"{control_spacing!r}")
+            raise ValueError(
+                f"magnitude must be >= 0 and control_spacing >= 1 voxel; got {magnitude!r}, {control_spacing!r}"
+            )
         self.image_keys, self.label_keys = tuple(keys), tuple(label_keys)
         self.magnitude, self.control_spacing = float(magnitude), float(control_spacing)
         self.integrate = ScalingAndSquaring(num_steps=num_steps)
@@ -123,8 +131,10 @@ class RandDiffeomorphicd(RandomizableTransform, MapTransform):
         for key in self.key_iterator(d):
             value = d[key]
             if tuple(value.shape[1:]) != spatial_size:
-                raise ValueError(f"{key} must be on the grid of {self.keys[0]}: expected spatial shape "
-                                 f"{spatial_size}, got {tuple(value.shape[1:])}")
+                raise ValueError(
+                    f"{key} must be on the grid of {self.keys[0]}: expected spatial shape "
+                    f"{spatial_size}, got {tuple(value.shape[1:])}"
+                )
             src = torch.as_tensor(value)[None]
             if key in self.label_keys:
                 out = warp_labels(src.float(), ddf).to(src.dtype)
@@ -172,12 +182,27 @@ def moving_augmentation(
         raise ValueError(f"deform_magnitude must be >= 0, got {deform_magnitude!r}")
     keys = [_MOVING_IMAGE] + ([_MOVING_LABEL] if with_labels else [])
     modes = ["bilinear"] + (["nearest"] if with_labels else [])
-    affine = RandAffined(keys=keys, prob=float(prob), rotate_range=rotate, scale_range=scale,
-                         translate_range=translate, mode=modes, padding_mode="zeros", cache_grid=False)
+    affine = RandAffined(
+        keys=keys,
+        prob=float(prob),
+        rotate_range=rotate,
+        scale_range=scale,
+        translate_range=translate,
+        mode=modes,
+        padding_mode="zeros",
+        cache_grid=False,
+    )
     chain: list = [affine]
     if deform_magnitude > 0:  # a second resampling: each step on its own stays a plain, testable transform
-        chain.append(RandDiffeomorphicd(keys=[_MOVING_IMAGE], label_keys=keys[1:], prob=float(prob),
-                                        magnitude=deform_magnitude, control_spacing=deform_spacing))
+        chain.append(
+            RandDiffeomorphicd(
+                keys=[_MOVING_IMAGE],
+                label_keys=keys[1:],
+                prob=float(prob),
+                magnitude=deform_magnitude,
+                control_spacing=deform_spacing,
+            )
+        )
     chain += [EnsureTyped(keys=[_MOVING_IMAGE], dtype=torch.float32, track_meta=True)]
     if with_labels:
         chain.append(EnsureTyped(keys=[_MOVING_LABEL], dtype=torch.int16, track_meta=True))
@@ -239,8 +264,9 @@ def intensity_augmentation(
             RandAdjustContrastd(keys=[name], prob=float(prob), gamma=(float(gamma[0]), float(gamma[1]))),
             RandGaussianSmoothd(keys=[name], prob=float(prob), sigma_x=sigma, sigma_y=sigma, sigma_z=sigma),
             RandGaussianNoised(keys=[name], prob=float(prob), mean=0.0, std=float(noise_std)),
-            ScaleIntensityRangePercentilesd(keys=[name], lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE,
-                                            b_min=0.0, b_max=1.0, clip=True),
+            ScaleIntensityRangePercentilesd(
+                keys=[name], lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0, clip=True
+            ),
             EnsureTyped(keys=[name], dtype=torch.float32, track_meta=True),
         ]
     augmentation = Compose(chain)

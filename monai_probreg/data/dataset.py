@@ -22,7 +22,16 @@ import numpy as np
 
 from monai_probreg.utils.files import file_stem
 
-__all__ = ['labelled_pairs', 'IMAGE_KEYS', 'LABEL_KEYS', 'DatasetIndex', 'index_dataset', 'split_ids', 'pair_dicts', 'atlas_label_values']
+__all__ = [
+    "labelled_pairs",
+    "IMAGE_KEYS",
+    "LABEL_KEYS",
+    "DatasetIndex",
+    "index_dataset",
+    "split_ids",
+    "pair_dicts",
+    "atlas_label_values",
+]
 
 
 IMAGE_KEYS = ("moving", "fixed")
@@ -32,8 +41,6 @@ LABEL_KEYS = ("moving_label", "fixed_label")
 
 
 _NII = (".nii.gz", ".nii")
-
-
 
 
 def _niftis(folder: Path) -> list[Path]:
@@ -62,8 +69,10 @@ def index_dataset(dataset_dir: str | Path, default_atlas: Callable[[], Path] | N
     """
     root = Path(dataset_dir)
     if not root.is_dir():
-        raise FileNotFoundError(f"dataset_dir {str(root)!r} does not exist or is not a folder "
-                                "(expected atlas/, images/ and optionally labels/ inside)")
+        raise FileNotFoundError(
+            f"dataset_dir {str(root)!r} does not exist or is not a folder "
+            "(expected atlas/, images/ and optionally labels/ inside)"
+        )
     images = {file_stem(p): p for p in _niftis(root / "images")}
     if not images:
         raise ValueError(f"no NIfTI images found in {root / 'images'}")
@@ -72,11 +81,14 @@ def index_dataset(dataset_dir: str | Path, default_atlas: Callable[[], Path] | N
         return DatasetIndex(Path(default_atlas()), None, images, labels)
     atlas = [p for p in _niftis(root / "atlas") if file_stem(p).endswith("_image")]
     if len(atlas) != 1:
-        raise ValueError(f"expected exactly one atlas image {root / 'atlas'}/*_image.nii.gz; found {len(atlas)}: "
-                         f"{[p.name for p in atlas]}")
+        raise ValueError(
+            f"expected exactly one atlas image {root / 'atlas'}/*_image.nii.gz; found {len(atlas)}: "
+            f"{[p.name for p in atlas]}"
+        )
     stem = file_stem(atlas[0])
-    atlas_label = atlas[0].parent / (stem[: -len("_image")] + "_label" + atlas[0].name[len(stem):])
+    atlas_label = atlas[0].parent / (stem[: -len("_image")] + "_label" + atlas[0].name[len(stem) :])
     return DatasetIndex(atlas[0], atlas_label if atlas_label.is_file() else None, images, labels)
+
 
 def split_ids(ids: Sequence[str], num_val: int, seed: int = 0) -> tuple[list[str], list[str]]:
     """Deterministic random split of subject ids into (train, validation)."""
@@ -123,8 +135,11 @@ def labelled_pairs(index: DatasetIndex, ids: Sequence[str] | None = None) -> lis
     when there are none."""
     pairs = pair_dicts(index, ids, require_labels=True)
     if not pairs:
-        where = ("the atlas has no *_label file" if index.atlas_label is None
-                 else "no labels/<id>.nii.gz matches an image")
-        raise ValueError(f"nothing to evaluate in {str(index.atlas_image.parent.parent)!r}: {where}; "
-                         "evaluation needs labels (use inference.yaml to register unlabelled images)")
+        where = (
+            "the atlas has no *_label file" if index.atlas_label is None else "no labels/<id>.nii.gz matches an image"
+        )
+        raise ValueError(
+            f"nothing to evaluate in {str(index.atlas_image.parent.parent)!r}: {where}; "
+            "evaluation needs labels (use inference.yaml to register unlabelled images)"
+        )
     return pairs

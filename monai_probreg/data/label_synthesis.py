@@ -34,12 +34,12 @@ __all__ = ["ASEG_LABELS", "T1_LIKE", "RandLabelContrastd", "SlotLabelsd", "rende
 
 # FreeSurfer label -> T1-weighted intensity relative to cerebral white matter (left and right alike)
 _BILATERAL = {  # (left, right): intensity
-    (2, 41): 1.00,   # cerebral white matter
-    (3, 42): 0.62,   # cerebral cortex
-    (4, 43): 0.18,   # lateral ventricle
-    (5, 44): 0.20,   # inferior lateral ventricle
-    (7, 46): 0.95,   # cerebellum white matter
-    (8, 47): 0.66,   # cerebellum cortex
+    (2, 41): 1.00,  # cerebral white matter
+    (3, 42): 0.62,  # cerebral cortex
+    (4, 43): 0.18,  # lateral ventricle
+    (5, 44): 0.20,  # inferior lateral ventricle
+    (7, 46): 0.95,  # cerebellum white matter
+    (8, 47): 0.66,  # cerebellum cortex
     (10, 49): 0.86,  # thalamus
     (11, 50): 0.72,  # caudate
     (12, 51): 0.76,  # putamen
@@ -59,16 +59,22 @@ T1_LIKE: dict[int, float] = {**{lab: v for pair, v in _BILATERAL.items() for lab
 ASEG_LABELS: tuple[int, ...] = tuple(sorted(set(T1_LIKE) - {30, 62, 72, 85}))
 
 
-def scale_to_unit(image: torch.Tensor, lower: float = LOWER_PERCENTILE, upper: float = UPPER_PERCENTILE
-                  ) -> torch.Tensor:
+def scale_to_unit(
+    image: torch.Tensor, lower: float = LOWER_PERCENTILE, upper: float = UPPER_PERCENTILE
+) -> torch.Tensor:
     """Intensities at the ``lower``/``upper`` percentiles -> 0 and 1, clipped (the preprocessing's scaling)."""
     flat = image.reshape(-1).float()
     lo, hi = torch.quantile(flat[:: max(1, flat.numel() // 2**20)], torch.tensor([lower, upper]) / 100.0)
     return ((image - lo) / (hi - lo).clamp_min(1e-6)).clamp(0.0, 1.0)
 
 
-def render_labels(labels: torch.Tensor, table: Mapping[int, float], texture_std: float = 0.0,
-                  blur_sigma: float = 0.0, generator: torch.Generator | None = None) -> torch.Tensor:
+def render_labels(
+    labels: torch.Tensor,
+    table: Mapping[int, float],
+    texture_std: float = 0.0,
+    blur_sigma: float = 0.0,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """An image of the integer map ``labels`` (C, *S): ``table[label]`` per voxel (0 for labels it lacks, the
     background among them), plus Gaussian texture noise of ``texture_std``, blurred by a Gaussian of ``blur_sigma``
     voxels (partial volume; MONAI ``GaussianSmooth``), then scaled to [0, 1] (:func:`scale_to_unit`).
@@ -106,8 +112,9 @@ class SlotLabelsd(MapTransform):
     def __init__(self, keys: Sequence[str], structures: Sequence[int], slots: Sequence[int]) -> None:
         super().__init__(keys)
         if len(structures) > len(slots) or len(set(structures)) != len(structures):
-            raise ValueError(f"expected at most {len(slots)} distinct structures for {len(slots)} slots; got "
-                             f"{list(structures)}")
+            raise ValueError(
+                f"expected at most {len(slots)} distinct structures for {len(slots)} slots; got {list(structures)}"
+            )
         if any(int(v) < 0 for v in (*structures, *slots)):
             raise ValueError(f"structures and slots must be non-negative; got {list(structures)} and {list(slots)}")
         self.structures = [int(v) for v in structures]
@@ -137,16 +144,25 @@ class RandLabelContrastd(RandomizableTransform, MapTransform):
         blur_sigma: range (low, high) of the partial-volume blur, voxels, drawn per image.
     """
 
-    def __init__(self, image_keys: Sequence[str] = IMAGE_KEYS, label_keys: Sequence[str] = LABEL_KEYS,
-                 prob: float = 1.0, random_prob: float = 0.25, jitter: float = 0.08, texture_std: float = 0.03,
-                 blur_sigma: Sequence[float] = (0.3, 0.8)) -> None:
+    def __init__(
+        self,
+        image_keys: Sequence[str] = IMAGE_KEYS,
+        label_keys: Sequence[str] = LABEL_KEYS,
+        prob: float = 1.0,
+        random_prob: float = 0.25,
+        jitter: float = 0.08,
+        texture_std: float = 0.03,
+        blur_sigma: Sequence[float] = (0.3, 0.8),
+    ) -> None:
         MapTransform.__init__(self, list(label_keys))
         RandomizableTransform.__init__(self, prob)
         if len(image_keys) != len(label_keys) or not image_keys:
             raise ValueError(f"expected one label key per image key; got {list(image_keys)} and {list(label_keys)}")
         if not 0.0 <= random_prob <= 1.0 or jitter < 0 or texture_std < 0:
-            raise ValueError(f"expected random_prob in [0, 1], jitter >= 0 and texture_std >= 0; got {random_prob!r}, "
-                             f"{jitter!r}, {texture_std!r}")
+            raise ValueError(
+                f"expected random_prob in [0, 1], jitter >= 0 and texture_std >= 0; got {random_prob!r}, "
+                f"{jitter!r}, {texture_std!r}"
+            )
         if len(blur_sigma) != 2 or not 0.0 <= float(blur_sigma[0]) <= float(blur_sigma[1]):
             raise ValueError(f"blur_sigma must be a range (low, high) with 0 <= low <= high; got {blur_sigma!r}")
         self.image_keys, self.label_keys = tuple(image_keys), tuple(label_keys)
@@ -157,8 +173,15 @@ class RandLabelContrastd(RandomizableTransform, MapTransform):
         """One intensity per non-zero label of ``labels`` (module docstring)."""
         if self.R.uniform() < self.random_prob:
             return {int(v): float(self.R.uniform()) for v in labels if v > 0}
-        return {int(v): (T1_LIKE[int(v)] * (1.0 + self.jitter * float(self.R.standard_normal()))
-                         if int(v) in T1_LIKE else float(self.R.uniform())) for v in labels if v > 0}
+        return {
+            int(v): (
+                T1_LIKE[int(v)] * (1.0 + self.jitter * float(self.R.standard_normal()))
+                if int(v) in T1_LIKE
+                else float(self.R.uniform())
+            )
+            for v in labels
+            if v > 0
+        }
 
     def __call__(self, data: dict) -> dict:  # type: ignore[override]
         d = dict(data)

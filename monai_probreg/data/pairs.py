@@ -49,8 +49,15 @@ SCAN_IMAGE, SCAN_LABEL = "image", "label"  # keys of one preprocessed scan
 _PAIR_COLUMNS = (*IMAGE_KEYS, *LABEL_KEYS)
 
 
-def _pair(moving_id: str, moving: Path, fixed_id: str, fixed: Path, moving_label: Path | None,
-          fixed_label: Path | None, require_labels: bool) -> dict | None:
+def _pair(
+    moving_id: str,
+    moving: Path,
+    fixed_id: str,
+    fixed: Path,
+    moving_label: Path | None,
+    fixed_label: Path | None,
+    require_labels: bool,
+) -> dict | None:
     if require_labels and (moving_label is None or fixed_label is None):
         return None
     item: dict = {"id": f"{moving_id}_to_{fixed_id}", "moving": str(moving), "fixed": str(fixed)}
@@ -59,8 +66,9 @@ def _pair(moving_id: str, moving: Path, fixed_id: str, fixed: Path, moving_label
     return item
 
 
-def subject_pairs(index: DatasetIndex, ids: Sequence[str] | None = None, include_atlas: bool = True,
-                  require_labels: bool = False) -> list[dict]:
+def subject_pairs(
+    index: DatasetIndex, ids: Sequence[str] | None = None, include_atlas: bool = True, require_labels: bool = False
+) -> list[dict]:
     """Every ordered pair (moving, fixed) of distinct subjects in ``ids`` (default all), then, with
     ``include_atlas``, every subject to the atlas; labels where both sides have them (``require_labels``: only
     those pairs)."""
@@ -68,11 +76,19 @@ def subject_pairs(index: DatasetIndex, ids: Sequence[str] | None = None, include
     missing = [i for i in chosen if i not in index.images]
     if missing:
         raise ValueError(f"subjects {missing} are not in the dataset (have {index.ids})")
-    pairs = [_pair(m, index.images[m], f, index.images[f], index.labels.get(m), index.labels.get(f), require_labels)
-             for m in chosen for f in chosen if m != f]
+    pairs = [
+        _pair(m, index.images[m], f, index.images[f], index.labels.get(m), index.labels.get(f), require_labels)
+        for m in chosen
+        for f in chosen
+        if m != f
+    ]
     if include_atlas:
-        pairs += [_pair(m, index.images[m], ATLAS_ID, index.atlas_image, index.labels.get(m), index.atlas_label,
-                        require_labels) for m in chosen]
+        pairs += [
+            _pair(
+                m, index.images[m], ATLAS_ID, index.atlas_image, index.labels.get(m), index.atlas_label, require_labels
+            )
+            for m in chosen
+        ]
     return [p for p in pairs if p is not None]
 
 
@@ -106,8 +122,10 @@ def read_pairs_file(path: str | os.PathLike, require_labels: bool = False) -> li
     pairs, seen = [], set()
     for row, record in enumerate(records, start=1):
         if not isinstance(record, Mapping) or not record.get("moving") or not record.get("fixed"):
-            raise InputError(f"pairs file {str(source)!r}, pair {row}: expected 'moving' and 'fixed', got "
-                             f"{dict(record) if isinstance(record, Mapping) else record!r}")
+            raise InputError(
+                f"pairs file {str(source)!r}, pair {row}: expected 'moving' and 'fixed', got "
+                f"{dict(record) if isinstance(record, Mapping) else record!r}"
+            )
         item = {k: _resolve(str(record[k]), source.parent, source, row, k) for k in _PAIR_COLUMNS if record.get(k)}
         if ("moving_label" in item) != ("fixed_label" in item):
             raise InputError(f"pairs file {str(source)!r}, pair {row}: expected both label maps or neither")
@@ -121,8 +139,9 @@ def read_pairs_file(path: str | os.PathLike, require_labels: bool = False) -> li
     return pairs
 
 
-def scan_dicts(index: DatasetIndex, ids: Sequence[str], include_atlas: bool = True,
-               require_labels: bool = False) -> list[dict]:
+def scan_dicts(
+    index: DatasetIndex, ids: Sequence[str], include_atlas: bool = True, require_labels: bool = False
+) -> list[dict]:
     """One dict per scan (``id``, ``image``, ``label`` where present): the subjects ``ids``, then the atlas."""
     scans = []
     for sid in ids:
@@ -142,8 +161,9 @@ def scan_dicts(index: DatasetIndex, ids: Sequence[str], include_atlas: bool = Tr
     return out
 
 
-def ordered_pairs(scan_ids: Sequence[str], atlas_repeats: int = 1, atlas_as_moving: bool = False,
-                  self_repeats: int = 0) -> list[tuple[int, int]]:
+def ordered_pairs(
+    scan_ids: Sequence[str], atlas_repeats: int = 1, atlas_as_moving: bool = False, self_repeats: int = 0
+) -> list[tuple[int, int]]:
     """Index pairs (moving, fixed) into ``scan_ids``: every ordered pair of distinct subjects, and every subject to
     the atlas (id :data:`ATLAS_ID`) ``atlas_repeats`` times (its weight among the pairs; 0 = none); the atlas is
     never moving unless ``atlas_as_moving``.
@@ -182,8 +202,13 @@ class PairDataset(Dataset):
             spaces are trained together (``train_template.yaml``); "" = none.
     """
 
-    def __init__(self, scans: Sequence[Mapping[str, Any]], pairs: Sequence[tuple[int, int]],
-                 transform: Callable[[dict], dict] | None = None, space: str = "") -> None:
+    def __init__(
+        self,
+        scans: Sequence[Mapping[str, Any]],
+        pairs: Sequence[tuple[int, int]],
+        transform: Callable[[dict], dict] | None = None,
+        space: str = "",
+    ) -> None:
         bad = [p for p in pairs if not (0 <= p[0] < len(scans) and 0 <= p[1] < len(scans))]
         if bad:
             raise ValueError(f"pairs must index scans 0..{len(scans) - 1}; got {bad[:3]}")
@@ -195,25 +220,31 @@ class PairDataset(Dataset):
 
     def __getitem__(self, k: int) -> dict:
         moving, fixed = (self.scans[i] for i in self.pairs[k])
-        item = {"id": f"{self.prefix}{moving['id']}_to_{fixed['id']}", IMAGE_KEYS[0]: moving[SCAN_IMAGE],
-                IMAGE_KEYS[1]: fixed[SCAN_IMAGE]}
+        item = {
+            "id": f"{self.prefix}{moving['id']}_to_{fixed['id']}",
+            IMAGE_KEYS[0]: moving[SCAN_IMAGE],
+            IMAGE_KEYS[1]: fixed[SCAN_IMAGE],
+        }
         if SCAN_LABEL in moving and SCAN_LABEL in fixed:
             item[LABEL_KEYS[0]], item[LABEL_KEYS[1]] = moving[SCAN_LABEL], fixed[SCAN_LABEL]
         return self.transform(item) if self.transform is not None else item
 
 
-def mixed_sampler(sizes: Sequence[int], fractions: Sequence[float], num_samples: int,
-                  generator: torch.Generator | None = None) -> WeightedRandomSampler:
+def mixed_sampler(
+    sizes: Sequence[int], fractions: Sequence[float], num_samples: int, generator: torch.Generator | None = None
+) -> WeightedRandomSampler:
     """Sampler over datasets concatenated in this order (``torch.utils.data.ConcatDataset`` of datasets of ``sizes``
     items) that draws each one's items with probability proportional to its ``fractions`` entry, uniformly inside
     it (with replacement): e.g. half the pairs in LPBA40's space and half in a template's, whatever their sizes."""
     if len(sizes) != len(fractions) or not sizes:
         raise ValueError(f"expected one fraction per dataset; got {len(sizes)} sizes and {len(fractions)} fractions")
     if any(n < 1 for n in sizes) or any(f < 0 for f in fractions) or sum(fractions) <= 0:
-        raise ValueError(f"expected sizes >= 1 and fractions >= 0 with a positive sum; got {list(sizes)} and "
-                         f"{list(fractions)}")
+        raise ValueError(
+            f"expected sizes >= 1 and fractions >= 0 with a positive sum; got {list(sizes)} and {list(fractions)}"
+        )
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1; got {num_samples}")
-    weights = torch.cat([torch.full((int(n),), float(f) / int(n), dtype=torch.float64)
-                         for n, f in zip(sizes, fractions)])
+    weights = torch.cat(
+        [torch.full((int(n),), float(f) / int(n), dtype=torch.float64) for n, f in zip(sizes, fractions)]
+    )
     return WeightedRandomSampler(weights, num_samples, replacement=True, generator=generator)

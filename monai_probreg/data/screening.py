@@ -31,8 +31,15 @@ from monai.data import Dataset
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
 
-__all__ = ["FAILED_KEY", "FAILED_FILE", "InputFailures", "SkipBadInputs", "SkipFailedBatches", "input_error_in",
-           "read_failures"]
+__all__ = [
+    "FAILED_KEY",
+    "FAILED_FILE",
+    "InputFailures",
+    "SkipBadInputs",
+    "SkipFailedBatches",
+    "input_error_in",
+    "read_failures",
+]
 
 FAILED_KEY = "input_error"
 FAILED_FILE = "failed.csv"

@@ -75,8 +75,9 @@ class SyntheticSettings:
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{f.name} must be a finite number >= 0; got {value!r}")
         if self.deform_spacing_mm <= 0 or self.num_steps < 1:
-            raise ValueError(f"deform_spacing_mm must be > 0 and num_steps >= 1; got {self.deform_spacing_mm} and "
-                             f"{self.num_steps}")
+            raise ValueError(
+                f"deform_spacing_mm must be > 0 and num_steps >= 1; got {self.deform_spacing_mm} and {self.num_steps}"
+            )
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -112,8 +113,15 @@ def brain_mask(template: Volume) -> np.ndarray:
 def _rigid(template: Volume, mask: np.ndarray, rotation_deg: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
     """``rho(p) = c + R (p - c) + t`` (4, 4) in LPS mm, ``c`` the intensity-weighted centre of the brain."""
     weights = np.where(mask, np.asarray(template.array, np.float64), 0.0)
-    centre_index = np.array([(weights.sum(axis=tuple(a for a in range(3) if a != k)) * np.arange(n)).sum()
-                             for k, n in enumerate(template.shape)]) / weights.sum()
+    centre_index = (
+        np.array(
+            [
+                (weights.sum(axis=tuple(a for a in range(3) if a != k)) * np.arange(n)).sum()
+                for k, n in enumerate(template.shape)
+            ]
+        )
+        / weights.sum()
+    )
     centre = template.index_to_lps[:3, :3] @ centre_index + template.index_to_lps[:3, 3]
     rotation = np.asarray(create_rotate(3, np.deg2rad(rotation_deg).tolist()), np.float64)[:3, :3]
     rigid = np.eye(4)
@@ -125,17 +133,19 @@ def _rigid(template: Volume, mask: np.ndarray, rotation_deg: np.ndarray, shift_m
 def _velocity_displacements(template: Volume, settings: SyntheticSettings, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(exp(v), exp(-v)) displacements (*S, 3), LPS mm on the template grid, of one seeded random velocity."""
     voxel = float(np.mean(template.spacing))  # the control grid and the RMS in voxels of a (near-)isotropic grid
-    draw = RandDiffeomorphicd(keys=["image"], magnitude=settings.deform_rms_mm / voxel,
-                              control_spacing=max(settings.deform_spacing_mm / voxel, 1.0),
-                              num_steps=settings.num_steps)
+    draw = RandDiffeomorphicd(
+        keys=["image"],
+        magnitude=settings.deform_rms_mm / voxel,
+        control_spacing=max(settings.deform_spacing_mm / voxel, 1.0),
+        num_steps=settings.num_steps,
+    )
     draw.set_random_state(seed=seed)
     draw.randomize(template.shape)
     forward, inverse = (draw.displacement(template.shape, inverse=flag)[0].numpy() for flag in (False, True))
     return voxel_to_mm(forward, template.index_to_lps), voxel_to_mm(inverse, template.index_to_lps)
 
 
-def synthesize_subject(template: Volume, settings: SyntheticSettings | None = None, seed: int = 0
-                       ) -> SyntheticSubject:
+def synthesize_subject(template: Volume, settings: SyntheticSettings | None = None, seed: int = 0) -> SyntheticSubject:
     """The template turned, shifted and deformed by a known ``phi``, with a bias field and noise (module docstring).
     The same template, settings and seed give the same subject."""
     settings = settings or SyntheticSettings()
@@ -162,6 +172,11 @@ def synthesize_subject(template: Volume, settings: SyntheticSettings | None = No
     bias.set_random_state(seed=seed)
     noise.set_random_state(seed=seed)
     image = np.asarray(torch.as_tensor(noise(bias(image[None])))[0], np.float32)
-    return SyntheticSubject(_reoriented(template.with_array(image), settings.axcodes), true_warp.astype(np.float32), rigid,
-                            tuple(float(a) for a in rotation), tuple(float(t) for t in shift),
-                            float(np.median(round_trip)) if round_trip.size else 0.0)
+    return SyntheticSubject(
+        _reoriented(template.with_array(image), settings.axcodes),
+        true_warp.astype(np.float32),
+        rigid,
+        tuple(float(a) for a in rotation),
+        tuple(float(t) for t in shift),
+        float(np.median(round_trip)) if round_trip.size else 0.0,
+    )

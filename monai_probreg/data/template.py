@@ -29,10 +29,13 @@ def mni152_template_path() -> Path:
     try:
         from nilearn.datasets import MNI152_FILE_PATH
     except ImportError as err:
-        raise InputError(f"no fixed image given and the default template needs nilearn ({err}); install nilearn or "
-                         "pass a fixed image") from None
+        raise InputError(
+            f"no fixed image given and the default template needs nilearn ({err}); install nilearn or "
+            "pass a fixed image"
+        ) from None
     path = Path(MNI152_FILE_PATH)
     if not path.is_file():
-        raise InputError(f"the MNI152 template of nilearn {str(path)!r} is missing; reinstall nilearn or pass a fixed "
-                         "image")
+        raise InputError(
+            f"the MNI152 template of nilearn {str(path)!r} is missing; reinstall nilearn or pass a fixed image"
+        )
     return path

@@ -40,7 +40,7 @@ from monai_probreg.spatial.checks import (
 from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.utils.errors import InputError
 
-__all__ = ['LoadCheckedd', 'NearestResizeAlignCornersd', 'registration_transforms']
+__all__ = ["LoadCheckedd", "NearestResizeAlignCornersd", "registration_transforms"]
 
 
 class LoadCheckedd(MapTransform):
@@ -131,13 +131,17 @@ def registration_transforms(
         LoadCheckedd(keys=keys, label_keys=labels),
         EnsureChannelFirstd(keys=keys),
         Orientationd(keys=keys, axcodes=axcodes, labels=(("L", "R"), ("P", "A"), ("I", "S"))),
-        ScaleIntensityRangePercentilesd(keys=images, lower=lower_percentile, upper=upper_percentile,
-                                        b_min=0.0, b_max=1.0, clip=True),
+        ScaleIntensityRangePercentilesd(
+            keys=images, lower=lower_percentile, upper=upper_percentile, b_min=0.0, b_max=1.0, clip=True
+        ),
         DivisiblePadd(keys=keys, k=divisor),
     ]
     if network_size is not None:
-        chain.append(Resized(keys=images, spatial_size=tuple(network_size), mode="trilinear",
-                             align_corners=True, anti_aliasing=False))
+        chain.append(
+            Resized(
+                keys=images, spatial_size=tuple(network_size), mode="trilinear", align_corners=True, anti_aliasing=False
+            )
+        )
         if resize_labels and labels:
             chain.append(NearestResizeAlignCornersd(keys=labels, spatial_size=network_size))
     chain.append(EnsureTyped(keys=images, dtype=torch.float32))

@@ -73,15 +73,26 @@ class AtomicCheckpointSaver:
         n_saved: interval checkpoints kept (None: all).
     """
 
-    def __init__(self, save_dir: str | os.PathLike, save_dict: Mapping[str, Any], file_prefix: str = "",
-                 save_key_metric: bool = False, key_metric_name: str | None = None, key_metric_n_saved: int = 1,
-                 key_metric_filename: str | None = None, key_metric_greater_or_equal: bool = False,
-                 epoch_level: bool = True, save_interval: int = 0, n_saved: int | None = None) -> None:
+    def __init__(
+        self,
+        save_dir: str | os.PathLike,
+        save_dict: Mapping[str, Any],
+        file_prefix: str = "",
+        save_key_metric: bool = False,
+        key_metric_name: str | None = None,
+        key_metric_n_saved: int = 1,
+        key_metric_filename: str | None = None,
+        key_metric_greater_or_equal: bool = False,
+        epoch_level: bool = True,
+        save_interval: int = 0,
+        n_saved: int | None = None,
+    ) -> None:
         if not save_dict:
             raise ValueError(f"save_dict must name at least one object to save; got {save_dict!r}")
         if key_metric_filename is not None and key_metric_n_saved != 1:
-            raise ValueError(f"a fixed key_metric_filename keeps one file: expected key_metric_n_saved=1, got "
-                             f"{key_metric_n_saved}")
+            raise ValueError(
+                f"a fixed key_metric_filename keeps one file: expected key_metric_n_saved=1, got {key_metric_n_saved}"
+            )
         if save_interval < 0:
             raise ValueError(f"save_interval must be >= 0; got {save_interval}")
         self.save_dir, self.key_metric_name = Path(save_dir), key_metric_name
@@ -90,13 +101,23 @@ class AtomicCheckpointSaver:
         self.interval_checkpoint: Checkpoint | None = None
         if save_key_metric:
             self.key_metric_checkpoint = Checkpoint(
-                dict(save_dict), AtomicDiskSaver(save_dir, key_metric_filename), filename_prefix=file_prefix,
-                score_function=self._key_metric, score_name="key_metric", n_saved=key_metric_n_saved,
-                greater_or_equal=key_metric_greater_or_equal)
+                dict(save_dict),
+                AtomicDiskSaver(save_dir, key_metric_filename),
+                filename_prefix=file_prefix,
+                score_function=self._key_metric,
+                score_name="key_metric",
+                n_saved=key_metric_n_saved,
+                greater_or_equal=key_metric_greater_or_equal,
+            )
         if save_interval > 0:
             self.interval_checkpoint = Checkpoint(
-                dict(save_dict), AtomicDiskSaver(save_dir), filename_prefix=file_prefix, score_function=self._step,
-                score_name="epoch" if epoch_level else "iteration", n_saved=n_saved)
+                dict(save_dict),
+                AtomicDiskSaver(save_dir),
+                filename_prefix=file_prefix,
+                score_function=self._step,
+                score_name="epoch" if epoch_level else "iteration",
+                n_saved=n_saved,
+            )
 
     def _key_metric(self, engine: Engine) -> float:
         name = self.key_metric_name or getattr(engine.state, "key_metric_name", None)
@@ -142,8 +163,13 @@ def latest_checkpoint(ckpt_dir: str | os.PathLike, prefix: str = "train_state") 
     return None
 
 
-def attach_resume(engine: Engine, ckpt_dir: str | os.PathLike, load_dict: dict, prefix: str = "train_state",
-                  map_location: str | torch.device | None = None) -> str | None:
+def attach_resume(
+    engine: Engine,
+    ckpt_dir: str | os.PathLike,
+    load_dict: dict,
+    prefix: str = "train_state",
+    map_location: str | torch.device | None = None,
+) -> str | None:
     """Attach MONAI's ``CheckpointLoader`` (``weights_only=True``) for the newest usable training state, if any,
     after removing the temporaries of interrupted writes (:func:`~monai_probreg.utils.files.remove_partial_files`).
 

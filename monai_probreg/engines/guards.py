@@ -9,7 +9,7 @@ import torch
 from ignite.engine import Engine, Events
 from torch import Tensor
 
-__all__ = ['NonFiniteGuard']
+__all__ = ["NonFiniteGuard"]
 
 
 class NonFiniteGuard:
@@ -25,8 +25,9 @@ class NonFiniteGuard:
         output_transform: engine output -> loss tensor (MONAI trainers: ``output["loss"]``).
     """
 
-    def __init__(self, check_weights: bool = True,
-                 output_transform: Callable[[Any], Tensor] = lambda output: output["loss"]) -> None:
+    def __init__(
+        self, check_weights: bool = True, output_transform: Callable[[Any], Tensor] = lambda output: output["loss"]
+    ) -> None:
         self.check_weights, self.output_transform = check_weights, output_transform
 
     def attach(self, engine: Engine) -> None:
@@ -34,8 +35,10 @@ class NonFiniteGuard:
 
     def __call__(self, engine: Engine) -> None:
         where = f"training stopped at epoch {engine.state.epoch}, iteration {engine.state.iteration}"
-        advice = ("no checkpoint of this epoch was written; resume from the last one with a lower learning_rate or "
-                  "check the data")
+        advice = (
+            "no checkpoint of this epoch was written; resume from the last one with a lower learning_rate or "
+            "check the data"
+        )
         loss = torch.as_tensor(self.output_transform(engine.state.output)).detach()
         if not bool(torch.isfinite(loss).all()):
             raise FloatingPointError(f"{where}: expected a finite loss, got {loss.flatten()[:4].tolist()}; {advice}")
@@ -47,5 +50,7 @@ class NonFiniteGuard:
         if not bool(finite.all()):  # one host sync
             name, p = params[int((~finite).nonzero()[0])]
             bad = int((~torch.isfinite(p)).sum())
-            raise FloatingPointError(f"{where}: expected finite weights, got {bad} NaN/Inf values in {name!r} after "
-                                     f"the optimizer step; {advice}")
+            raise FloatingPointError(
+                f"{where}: expected finite weights, got {bad} NaN/Inf values in {name!r} after "
+                f"the optimizer step; {advice}"
+            )

@@ -53,9 +53,10 @@ class RegistrationInferer(Inferer):
 
     def __call__(self, inputs: Tensor, network: Callable, *args: Any, **kwargs: Any) -> RegistrationOutput:
         if len(args) != 1 or kwargs:
-            raise ValueError(f"expected one extra argument, the fixed image; got {len(args)}, keywords {sorted(kwargs)}")
-        output, self.last_runtime_s = timed_register_pair(
-            network, inputs, args[0], self.refinement)  # type: ignore[arg-type]
+            raise ValueError(
+                f"expected one extra argument, the fixed image; got {len(args)}, keywords {sorted(kwargs)}"
+            )
+        output, self.last_runtime_s = timed_register_pair(network, inputs, args[0], self.refinement)  # type: ignore[arg-type]
         return output
 
 
@@ -102,16 +103,26 @@ class RegistrationWriter(_PerSubjectHandler):
     With ``quality``, each subject's quality estimate is written as ``<id>/quality.json`` (and a probable failure
     logged as a warning)."""
 
-    def __init__(self, output_dir: str | os.PathLike, names: Sequence[str] = OUTPUT_NAMES,
-                 network: torch.nn.Module | None = None, num_samples: int = 0, std_scale: float = 1.0,
-                 seed: int = 0, bias_fraction: float = 0.0, quality: QualityCheck | None = None) -> None:
+    def __init__(
+        self,
+        output_dir: str | os.PathLike,
+        names: Sequence[str] = OUTPUT_NAMES,
+        network: torch.nn.Module | None = None,
+        num_samples: int = 0,
+        std_scale: float = 1.0,
+        seed: int = 0,
+        bias_fraction: float = 0.0,
+        quality: QualityCheck | None = None,
+    ) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
             raise ValueError(f"unknown output names {sorted(unknown)}; choose from {list(OUTPUT_NAMES)}")
         sampled = sorted(set(names) & set(SAMPLED_NAMES))
         if sampled and (network is None or num_samples < 2):
-            raise ValueError(f"outputs {sampled} need the network and num_samples >= 2; got "
-                             f"{'no network' if network is None else f'num_samples {num_samples}'}")
+            raise ValueError(
+                f"outputs {sampled} need the network and num_samples >= 2; got "
+                f"{'no network' if network is None else f'num_samples {num_samples}'}"
+            )
         self.output_dir, self.names = Path(output_dir), tuple(names)
         self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
         self.bias_fraction = float(bias_fraction)
@@ -127,15 +138,22 @@ class RegistrationWriter(_PerSubjectHandler):
         if self.network is not None:
             sampled = set(self.names) & set(SAMPLED_NAMES)
             label = targets.get("moving_label") if "label_entropy" in self.names else None
-            maps = posterior_maps(self.network, pair.velocity_mean, pair.velocity_log_var, pair.displacement.shape[2:],
-                                  self.num_samples if sampled else 0, self.std_scale, label, self.seed,
-                                  self.bias_fraction)
+            maps = posterior_maps(
+                self.network,
+                pair.velocity_mean,
+                pair.velocity_log_var,
+                pair.displacement.shape[2:],
+                self.num_samples if sampled else 0,
+                self.std_scale,
+                label,
+                self.seed,
+                self.bias_fraction,
+            )
         write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
         record = self.quality(sid, pair, targets) if self.quality is not None else None
         if record is not None:
             write_text(self.output_dir / sid / "quality.json", json.dumps(record, indent=2) + "\n")
-        _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: {runtime:.2f} s "
-                  f"-> {self.output_dir / sid}")
+        _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: {runtime:.2f} s -> {self.output_dir / sid}")
 
 
 class RegistrationScorer(_PerSubjectHandler):
@@ -144,9 +162,14 @@ class RegistrationScorer(_PerSubjectHandler):
     ``failures`` (subjects skipped for bad input) are listed in summary.json; with ``quality``, each subject's quality
     estimate goes into scores.csv and summary.json (and a probable failure is logged as a warning)."""
 
-    def __init__(self, output_dir: str | os.PathLike, config: Mapping[str, Any] | None = None,
-                 labels: Sequence[int] | None = None, failures: InputFailures | None = None,
-                 quality: QualityCheck | None = None) -> None:
+    def __init__(
+        self,
+        output_dir: str | os.PathLike,
+        config: Mapping[str, Any] | None = None,
+        labels: Sequence[int] | None = None,
+        failures: InputFailures | None = None,
+        quality: QualityCheck | None = None,
+    ) -> None:
         self.output_dir, self.config, self.labels = Path(output_dir), dict(config or {}), labels
         self.failures, self.quality = failures, quality
         self.rows: list[tuple[str, PairScores, PairScores]] = []
@@ -164,14 +187,21 @@ class RegistrationScorer(_PerSubjectHandler):
         record = self.quality(sid, pair, targets) if self.quality is not None else None
         if record is not None:
             self.quality_records[sid] = record
-        _LOG.info(f"[{engine.state.iteration}/{_total(engine)}] {sid}: Dice {reg.mean_dice:.3f} "
-                  f"(no registration {base.mean_dice:.3f}), |J|<=0 {reg.num_folding}, {runtime:.2f} s")
+        _LOG.info(
+            f"[{engine.state.iteration}/{_total(engine)}] {sid}: Dice {reg.mean_dice:.3f} "
+            f"(no registration {base.mean_dice:.3f}), |J|<=0 {reg.num_folding}, {runtime:.2f} s"
+        )
 
     def done(self, engine: Engine) -> None:
         failed = self.failures.items if self.failures is not None else []
         if not self.rows:
             _LOG.error(f"no subject could be scored ({len(failed)} failed); no scores written")
             return
-        summary = write_scores(self.output_dir, self.rows, self.config, failed,
-                               self.quality_records if self.quality is not None and self.quality.enabled else None)
+        summary = write_scores(
+            self.output_dir,
+            self.rows,
+            self.config,
+            failed,
+            self.quality_records if self.quality is not None and self.quality.enabled else None,
+        )
         print(summary_table(summary) + f"\nper-subject scores: {self.output_dir / 'scores.csv'}", flush=True)

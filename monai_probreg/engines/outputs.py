@@ -35,7 +35,7 @@ from monai_probreg.uncertainty.posterior_maps import PosteriorMaps
 from monai_probreg.utils.files import atomic_write
 from monai_probreg.utils.tensors import plain_tensor
 
-__all__ = ['OUTPUT_NAMES', 'SAMPLED_NAMES', 'DISPLACEMENT_DESCRIPTION', 'OUTPUTS_README', 'save_nifti', 'write_outputs']
+__all__ = ["OUTPUT_NAMES", "SAMPLED_NAMES", "DISPLACEMENT_DESCRIPTION", "OUTPUTS_README", "save_nifti", "write_outputs"]
 
 
 OUTPUT_NAMES = ("warped", "displacement", "jacobian", "entropy", "warped_label", "displacement_std", "label_entropy")
@@ -67,8 +67,9 @@ that grid's affine, so it overlays the atlas in world coordinates.
 """
 
 
-def save_nifti(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray, description: str = "",
-               intent: str | None = None) -> Path:
+def save_nifti(
+    path: str | os.PathLike, data: np.ndarray, affine: np.ndarray, description: str = "", intent: str | None = None
+) -> Path:
     """Write ``data`` (array axes = the affine's voxel axes) atomically; qform and sform both = ``affine``."""
     image = nib.Nifti1Image(data, np.asarray(affine, dtype=np.float64))
     image.set_qform(image.affine, code=1)
@@ -79,9 +80,15 @@ def save_nifti(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray, de
     return atomic_write(Path(path), lambda tmp: nib.save(image, tmp))
 
 
-def write_outputs(output_dir: str | os.PathLike, subject_id: str, output: RegistrationOutput,
-                  affine: Tensor | np.ndarray, moving_label: Tensor | None = None,
-                  names: Sequence[str] = OUTPUT_NAMES, maps: PosteriorMaps | None = None) -> dict[str, Path]:
+def write_outputs(
+    output_dir: str | os.PathLike,
+    subject_id: str,
+    output: RegistrationOutput,
+    affine: Tensor | np.ndarray,
+    moving_label: Tensor | None = None,
+    names: Sequence[str] = OUTPUT_NAMES,
+    maps: PosteriorMaps | None = None,
+) -> dict[str, Path]:
     """Write one subject's results into ``output_dir/<subject_id>/`` (see the module docstring).
 
     Shapes: ``output`` of one pair (B = 1) on the fixed grid S; ``affine`` (4, 4) of that grid;
@@ -101,12 +108,20 @@ def write_outputs(output_dir: str | os.PathLike, subject_id: str, output: Regist
         "warped": (lambda: output.warped[0, 0], "moving image warped to the fixed grid, intensities in [0, 1]", None),
         "displacement": (lambda: disp[0].movedim(0, -1).unsqueeze(-2), DISPLACEMENT_DESCRIPTION, "vector"),
         "jacobian": (lambda: jacobian_determinant(disp)[0], "Jacobian determinant of x -> x + u(x)", None),
-        "entropy": (lambda: velocity_entropy(output.velocity_log_var.float(), size)[0, 0] if maps is None
-                    else maps.velocity_entropy, "velocity entropy" + (" (raw)" if maps is None else ""), None),
+        "entropy": (
+            lambda: (
+                velocity_entropy(output.velocity_log_var.float(), size)[0, 0] if maps is None else maps.velocity_entropy
+            ),
+            "velocity entropy" + (" (raw)" if maps is None else ""),
+            None,
+        ),
         "displacement_std": (lambda: maps.displacement_std, "displacement std over posterior samples, voxels", None),
         "label_entropy": (lambda: maps.label_entropy, "entropy of labels warped by posterior samples", None),
-        "warped_label": (lambda: warp_labels(plain_tensor(moving_label).to(disp.device), disp)[0, 0].to(torch.int16),
-                         "moving labels warped to the fixed grid, nearest neighbour", None),
+        "warped_label": (
+            lambda: warp_labels(plain_tensor(moving_label).to(disp.device), disp)[0, 0].to(torch.int16),
+            "moving labels warped to the fixed grid, nearest neighbour",
+            None,
+        ),
     }
     written = {}
     for name in names:

@@ -39,11 +39,19 @@ class QualityCheck:
         quality_model: a model to use instead of the sidecar (tests).
     """
 
-    def __init__(self, network: nn.Module, model_file: str | os.PathLike, std_scale: float = 1.0,
-                 bias_fraction: float = 0.0, calibrate: bool = True, quality_model: QualityModel | None = None) -> None:
+    def __init__(
+        self,
+        network: nn.Module,
+        model_file: str | os.PathLike,
+        std_scale: float = 1.0,
+        bias_fraction: float = 0.0,
+        calibrate: bool = True,
+        quality_model: QualityModel | None = None,
+    ) -> None:
         self.network, self.std_scale, self.bias_fraction = network, float(std_scale), float(bias_fraction)
-        self.model = quality_model if quality_model is not None else (
-            load_quality_model(model_file) if calibrate else None)
+        self.model = (
+            quality_model if quality_model is not None else (load_quality_model(model_file) if calibrate else None)
+        )
         if self.model is None:
             why = "raw posterior (calibrate: false)" if not calibrate else f"no {quality_path(model_file).name}"
             _LOG.info(f"no quality estimate for {model_file}: {why}")
@@ -63,11 +71,18 @@ class QualityCheck:
             matrix = np.asarray(affine[0] if affine.ndim == 3 else affine, dtype=np.float64)
             spacing = np.linalg.norm(matrix[:3, :3], axis=0).tolist()
         shape = pair.displacement.shape[2:]
-        entropy = posterior_maps(self.network, pair.velocity_mean[:1], pair.velocity_log_var[:1], shape,
-                                 std_scale=self.std_scale, bias_fraction=self.bias_fraction).velocity_entropy
+        entropy = posterior_maps(
+            self.network,
+            pair.velocity_mean[:1],
+            pair.velocity_log_var[:1],
+            shape,
+            std_scale=self.std_scale,
+            bias_fraction=self.bias_fraction,
+        ).velocity_entropy
         with torch.inference_mode():
-            features = quality_features(moving, fixed, plain_tensor(pair.warped)[0, 0],
-                                        plain_tensor(pair.displacement)[0], entropy, spacing)
+            features = quality_features(
+                moving, fixed, plain_tensor(pair.warped)[0, 0], plain_tensor(pair.displacement)[0], entropy, spacing
+            )
         estimate = self.model.estimate(features)
         if estimate.warning:  # a warning never stops the workflow
             _LOG.warning(f"{sid}: WARNING: {estimate.warning}")

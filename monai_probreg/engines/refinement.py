@@ -117,8 +117,9 @@ def _on_grid(image: Tensor, size: tuple[int, ...]) -> Tensor:
     return F.interpolate(image, size=size, mode=mode, align_corners=True)
 
 
-def _without_folds(network: ProbRegNet, start: Tensor, refined: Tensor, size: Sequence[int],
-                   backtracks: int) -> tuple[Tensor, Tensor]:
+def _without_folds(
+    network: ProbRegNet, start: Tensor, refined: Tensor, size: Sequence[int], backtracks: int
+) -> tuple[Tensor, Tensor]:
     """The fold guard: (mean, its displacement on ``size``), the first of ``start + t * (refined - start)`` for
     t = 1, 1/2, ..., 1/2**backtracks whose displacement has no |J| <= 0 voxel, else ``start`` (the network's mean)
     itself. Unguarded (t = 1) when ``backtracks == 0``."""
@@ -134,8 +135,9 @@ def _without_folds(network: ProbRegNet, start: Tensor, refined: Tensor, size: Se
     return mean, displacement
 
 
-def refine_registration(network: ProbRegNet, moving: Tensor, fixed: Tensor, output: RegistrationOutput,
-                        settings: RefinementSettings) -> RegistrationOutput:
+def refine_registration(
+    network: ProbRegNet, moving: Tensor, fixed: Tensor, output: RegistrationOutput, settings: RefinementSettings
+) -> RegistrationOutput:
     """Refine ``output.velocity_mean`` (from ``network(moving, fixed)`` in eval mode) for this pair.
 
     Shapes: moving, fixed (B, C, *S) as given to the network; returns a :class:`RegistrationOutput` on the same grids
@@ -148,15 +150,22 @@ def refine_registration(network: ProbRegNet, moving: Tensor, fixed: Tensor, outp
     if torch.is_inference_mode_enabled():
         raise RuntimeError("refine_registration needs gradients; call it outside torch.inference_mode()")
     if moving.shape != fixed.shape:
-        raise ValueError(f"moving and fixed must have the same shape; got {tuple(moving.shape)} and "
-                         f"{tuple(fixed.shape)}")
+        raise ValueError(
+            f"moving and fixed must have the same shape; got {tuple(moving.shape)} and {tuple(fixed.shape)}"
+        )
     if output.velocity_mean.shape[0] != moving.shape[0]:
-        raise ValueError(f"output is for a batch of {output.velocity_mean.shape[0]}; got images of batch "
-                         f"{moving.shape[0]}")
+        raise ValueError(
+            f"output is for a batch of {output.velocity_mean.shape[0]}; got images of batch {moving.shape[0]}"
+        )
     size = tuple(network.network_size or moving.shape[2:])
-    loss_fn = ProbRegLoss(image_loss=settings.image_loss, image_sigma=settings.image_sigma,
-                          prior_lambda=settings.prior_lambda, image_weight=settings.image_weight,
-                          lncc_kernel_size=settings.lncc_kernel_size, spatial_dims=moving.ndim - 2)
+    loss_fn = ProbRegLoss(
+        image_loss=settings.image_loss,
+        image_sigma=settings.image_sigma,
+        prior_lambda=settings.prior_lambda,
+        image_weight=settings.image_weight,
+        lncc_kernel_size=settings.lncc_kernel_size,
+        spatial_dims=moving.ndim - 2,
+    )
     # clones: tensors made under inference_mode cannot enter autograd; the images are constants here
     start = output.velocity_mean.detach().clone().float()
     log_var = output.velocity_log_var.detach().clone().float()
@@ -167,8 +176,9 @@ def refine_registration(network: ProbRegNet, moving: Tensor, fixed: Tensor, outp
         for _ in range(settings.num_iterations):
             optimiser.zero_grad(set_to_none=True)
             displacement = network.velocity_to_displacement(velocity, size)
-            warped = warp_image(moving_small, displacement, padding_mode=network.padding_mode,
-                                fast=network.fast_sampling)
+            warped = warp_image(
+                moving_small, displacement, padding_mode=network.padding_mode, fast=network.fast_sampling
+            )
             step = RegistrationOutput(warped, displacement, velocity, velocity, log_var, None, None)
             loss = loss_fn(step, moving_small, fixed_small).total
             if settings.posterior_weight > 0:  # (mu - mu_net)^2 / sigma_net^2, mean over the velocity grid

@@ -14,11 +14,12 @@ from monai_probreg.metrics.scores import PairScores, score_pair
 from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.utils.tensors import plain_tensor
 
-__all__ = ['register_pair', 'timed_register_pair', 'evaluate_pair']
+__all__ = ["register_pair", "timed_register_pair", "evaluate_pair"]
 
 
-def register_pair(network: nn.Module, moving: Tensor, fixed: Tensor,
-                  refinement: RefinementSettings | None = None) -> RegistrationOutput:
+def register_pair(
+    network: nn.Module, moving: Tensor, fixed: Tensor, refinement: RefinementSettings | None = None
+) -> RegistrationOutput:
     """Register ``moving`` onto ``fixed`` (both (B, C, *S)) in eval mode (posterior mean velocity), the network under
     ``torch.inference_mode()``, then, if ``refinement`` is enabled, its mean refined for this pair
     (:func:`~monai_probreg.engines.refinement.refine_registration`); the network's train/eval mode is restored."""
@@ -31,8 +32,9 @@ def register_pair(network: nn.Module, moving: Tensor, fixed: Tensor,
     return output
 
 
-def timed_register_pair(network: nn.Module, moving: Tensor, fixed: Tensor,
-                        refinement: RefinementSettings | None = None) -> tuple[RegistrationOutput, float]:
+def timed_register_pair(
+    network: nn.Module, moving: Tensor, fixed: Tensor, refinement: RefinementSettings | None = None
+) -> tuple[RegistrationOutput, float]:
     """:func:`register_pair` and its wall time in seconds (network + integration + warp, and the refinement if any;
     CUDA synchronised)."""
     sync = torch.cuda.synchronize if moving.is_cuda else (lambda: None)
@@ -43,10 +45,18 @@ def timed_register_pair(network: nn.Module, moving: Tensor, fixed: Tensor,
     return output, time.perf_counter() - start
 
 
-def evaluate_pair(network: nn.Module, moving: Tensor, fixed: Tensor, moving_label: Tensor, fixed_label: Tensor,
-                  labels: Sequence[int] | None = None,
-                  refinement: RefinementSettings | None = None) -> tuple[PairScores, PairScores]:
+def evaluate_pair(
+    network: nn.Module,
+    moving: Tensor,
+    fixed: Tensor,
+    moving_label: Tensor,
+    fixed_label: Tensor,
+    labels: Sequence[int] | None = None,
+    refinement: RefinementSettings | None = None,
+) -> tuple[PairScores, PairScores]:
     """Register one pair (timed) and score it; returns (registered, no registration) scores."""
     output, runtime = timed_register_pair(network, moving, fixed, refinement)
-    return (score_pair(output.displacement, moving_label, fixed_label, runtime, labels),
-            score_pair(None, moving_label, fixed_label, 0.0, labels))
+    return (
+        score_pair(output.displacement, moving_label, fixed_label, runtime, labels),
+        score_pair(None, moving_label, fixed_label, 0.0, labels),
+    )

@@ -41,7 +41,13 @@ __all__ = ["SHARDS_DIR", "MANIFEST", "process_rank", "shard_items", "shard_dir",
 SHARDS_DIR = "shards"
 MANIFEST = "shards.json"
 _SHARD_NAME = re.compile(r"^rank_(\d+)_of_(\d+)$")
-_SCORE_FILES = ("scores.csv", "summary.json", "scores.json", "README.txt", FAILED_FILE)  # shard files that are merged, not moved
+_SCORE_FILES = (
+    "scores.csv",
+    "summary.json",
+    "scores.json",
+    "README.txt",
+    FAILED_FILE,
+)  # shard files that are merged, not moved
 
 
 def process_rank() -> tuple[int, int]:
@@ -64,7 +70,7 @@ def shard_items(items: Sequence[Any], rank: int | None = None, world_size: int |
         raise ValueError(f"expected 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
     items = list(items)
     if len(items) < world_size:  # partition_dataset refuses this; its partition would be the same
-        return items[rank:rank + 1]
+        return items[rank : rank + 1]
     return partition_dataset(items, num_partitions=world_size, shuffle=False, even_divisible=False)[rank]
 
 
@@ -85,13 +91,17 @@ def _shards(output_dir: Path) -> tuple[int, dict[int, Path]]:
     if not found:
         raise FileNotFoundError(f"no shard folders {SHARDS_DIR}/rank_<r>_of_<W> in {str(output_dir)!r}")
     if len(found) > 1:
-        raise ValueError(f"shards of runs with different world sizes {sorted(found)} in {str(output_dir / SHARDS_DIR)!r}; "
-                         "remove the stale ones")
-    (world, shards), = found.items()
+        raise ValueError(
+            f"shards of runs with different world sizes {sorted(found)} in {str(output_dir / SHARDS_DIR)!r}; "
+            "remove the stale ones"
+        )
+    ((world, shards),) = found.items()
     missing = sorted(set(range(world)) - set(shards))
     if missing:
-        raise ValueError(f"expected {world} shards in {str(output_dir / SHARDS_DIR)!r}, got none from ranks {missing} "
-                         "(still running, or failed?)")
+        raise ValueError(
+            f"expected {world} shards in {str(output_dir / SHARDS_DIR)!r}, got none from ranks {missing} "
+            "(still running, or failed?)"
+        )
     return world, shards
 
 
@@ -127,9 +137,13 @@ def merge_shards(output_dir: str | os.PathLike) -> dict[str, Any]:
         write_text(out / "README.txt", OUTPUTS_README)
     summary = write_scores(out, sorted(rows, key=lambda row: row[0]), config, failed.items) if rows else None
     failed.finish(out, exit_on_failure=False)  # one failed.csv over all ranks (none if nothing failed)
-    manifest = {"world_size": world, "subjects_per_rank": subjects,
-                "num_subjects": len(rows) if rows else sum(len(v) for v in subjects.values()),
-                "scored": bool(rows), "failed": failed.as_records()}
+    manifest = {
+        "world_size": world,
+        "subjects_per_rank": subjects,
+        "num_subjects": len(rows) if rows else sum(len(v) for v in subjects.values()),
+        "scored": bool(rows),
+        "failed": failed.as_records(),
+    }
     write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     shutil.rmtree(out / SHARDS_DIR)
     return {**manifest, "summary": summary}
@@ -142,7 +156,9 @@ def finish(output_dir: str | os.PathLike, merge: bool = True) -> None:
     dist.barrier()
     if merge and dist.get_rank() == 0:
         manifest = merge_shards(output_dir)
-        print(f"merged {manifest['world_size']} shards, {manifest['num_subjects']} subjects -> {output_dir}", flush=True)
+        print(
+            f"merged {manifest['world_size']} shards, {manifest['num_subjects']} subjects -> {output_dir}", flush=True
+        )
     dist.barrier()  # nobody leaves (and reads output_dir) before the merge is complete
     dist.destroy_process_group()
 

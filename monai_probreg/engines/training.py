@@ -23,7 +23,7 @@ from monai_probreg.blocks.warp import warp_image
 from monai_probreg.losses.elbo import LossTerms, ProbRegLoss
 from monai_probreg.networks.probreg_net import RegistrationOutput
 
-__all__ = ['prepare_registration_batch', 'one_hot_labels', 'RegistrationLoss', 'LossTermsLogger']
+__all__ = ["prepare_registration_batch", "one_hot_labels", "RegistrationLoss", "LossTermsLogger"]
 
 
 _LOG = logging.getLogger("monai_probreg.train")
@@ -32,15 +32,19 @@ _LOG = logging.getLogger("monai_probreg.train")
 _KEYS = ("moving", "fixed", "moving_label", "fixed_label", "moving_input", "fixed_input")
 
 
-def prepare_registration_batch(batchdata: dict, device: str | torch.device | None = None,
-                               non_blocking: bool = False, **kwargs: Any) -> tuple:
+def prepare_registration_batch(
+    batchdata: dict, device: str | torch.device | None = None, non_blocking: bool = False, **kwargs: Any
+) -> tuple:
     """Engine ``prepare_batch``: ``(moving, targets, (fixed,), {})`` with every tensor on ``device``; ``moving`` and
     ``fixed`` are ``moving_input``/``fixed_input`` where the batch has them (intensity augmentation)."""
     for key in ("moving", "fixed"):
         if key not in batchdata:
             raise KeyError(f"batch has no {key!r} entry; got keys {sorted(batchdata)}")
-    targets = {k: batchdata[k].to(device=device, non_blocking=non_blocking, **kwargs)
-               for k in _KEYS if isinstance(batchdata.get(k), Tensor)}  # label paths not loaded stay behind
+    targets = {
+        k: batchdata[k].to(device=device, non_blocking=non_blocking, **kwargs)
+        for k in _KEYS
+        if isinstance(batchdata.get(k), Tensor)
+    }  # label paths not loaded stay behind
     moving, fixed = (targets.get(key + "_input", targets[key]) for key in ("moving", "fixed"))
     return moving, targets, (fixed,), {}
 
@@ -48,8 +52,9 @@ def prepare_registration_batch(batchdata: dict, device: str | torch.device | Non
 def one_hot_labels(labels: Tensor, label_values: Sequence[int]) -> Tensor:
     """(B, 1, *S) integer map -> (B, 1 + len(label_values), *S) float one-hot; channel 0 = everything else."""
     lut = torch.zeros(int(max(int(labels.max()), max(label_values))) + 1, dtype=torch.long, device=labels.device)
-    lut[torch.as_tensor(list(label_values), device=labels.device)] = torch.arange(1, len(label_values) + 1,
-                                                                              device=labels.device)
+    lut[torch.as_tensor(list(label_values), device=labels.device)] = torch.arange(
+        1, len(label_values) + 1, device=labels.device
+    )
     idx = lut[labels.long().clamp(min=0)[:, 0]]
     return torch.nn.functional.one_hot(idx, len(label_values) + 1).movedim(-1, 1).float()
 
@@ -65,8 +70,9 @@ class RegistrationLoss(nn.Module):
             intensity-augmented inputs (``moving_input``/``fixed_input``).
     """
 
-    def __init__(self, loss: ProbRegLoss, label_values: Sequence[int] | None = None,
-                 padding_mode: str = "border") -> None:
+    def __init__(
+        self, loss: ProbRegLoss, label_values: Sequence[int] | None = None, padding_mode: str = "border"
+    ) -> None:
         super().__init__()
         self.padding_mode = padding_mode
         self.loss = loss
@@ -83,10 +89,13 @@ class RegistrationLoss(nn.Module):
         if "moving_input" in targets or "fixed_input" in targets:
             # the network saw augmented intensities: the likelihood compares the clean images (same padding as
             # the network's own warp), so image_sigma keeps its meaning
-            pred = pred._replace(warped=warp_image(targets["moving"], pred.displacement, padding_mode=self.padding_mode))
+            pred = pred._replace(
+                warped=warp_image(targets["moving"], pred.displacement, padding_mode=self.padding_mode)
+            )
             if pred.inverse_displacement is not None:
-                pred = pred._replace(warped_fixed=warp_image(targets["fixed"], pred.inverse_displacement,
-                                                             padding_mode=self.padding_mode))
+                pred = pred._replace(
+                    warped_fixed=warp_image(targets["fixed"], pred.inverse_displacement, padding_mode=self.padding_mode)
+                )
         terms = self.loss(pred, targets["moving"], targets["fixed"], moving_oh, fixed_oh)
         self.last_terms = LossTerms(*(t.detach() for t in terms))
         if not torch.isfinite(terms.total):
@@ -106,5 +115,7 @@ class LossTermsLogger:
     def __call__(self, engine: Engine) -> None:
         t = self.loss.last_terms
         if t is not None:
-            self.logger.info(f"epoch {engine.state.epoch} iter {engine.state.iteration}: total {float(t.total):.4f} "
-                             f"image {float(t.image):.4f} kl {float(t.kl):.4f} label {float(t.label):.4f}")
+            self.logger.info(
+                f"epoch {engine.state.epoch} iter {engine.state.iteration}: total {float(t.total):.4f} "
+                f"image {float(t.image):.4f} kl {float(t.kl):.4f} label {float(t.label):.4f}"
+            )

@@ -15,7 +15,7 @@ from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import RegistrationOutput
 
-__all__ = ['RegistrationMetrics']
+__all__ = ["RegistrationMetrics"]
 
 
 class RegistrationMetrics(Metric):
@@ -29,8 +29,12 @@ class RegistrationMetrics(Metric):
     among the epochs that do not fold.
     """
 
-    def __init__(self, label_values: Sequence[int] | None = None, max_folding: float | None = None,
-                 output_transform=lambda out: (out["pred"], out["label"])) -> None:
+    def __init__(
+        self,
+        label_values: Sequence[int] | None = None,
+        max_folding: float | None = None,
+        output_transform=lambda out: (out["pred"], out["label"]),
+    ) -> None:
         if max_folding is not None and not (isinstance(max_folding, (int, float)) and max_folding > 0):
             raise ValueError(f"max_folding must be a positive number of voxels per pair or None; got {max_folding!r}")
         self.label_values = list(label_values) if label_values is not None else None

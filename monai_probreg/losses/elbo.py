@@ -89,8 +89,9 @@ class ProbRegLoss(nn.Module):
             if moving_one_hot is None or fixed_one_hot is None:
                 raise ValueError("label_weight > 0 needs moving_one_hot and fixed_one_hot (B, L, *S)")
             if moving_one_hot.shape != fixed_one_hot.shape:
-                raise ValueError(f"one-hot label maps must match; got {tuple(moving_one_hot.shape)} "
-                                 f"and {tuple(fixed_one_hot.shape)}")
+                raise ValueError(
+                    f"one-hot label maps must match; got {tuple(moving_one_hot.shape)} and {tuple(fixed_one_hot.shape)}"
+                )
             label = self.dice_loss(warp_one_hot(moving_one_hot, output.displacement), fixed_one_hot)
         total = self.image_weight * image + kl + self.label_weight * label
         return LossTerms(total=total, image=image, kl=kl, label=label)

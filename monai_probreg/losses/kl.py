@@ -36,8 +36,9 @@ __all__ = ["neighbour_degree", "laplacian_kl", "LaplacianKLLoss"]
 _REDUCTIONS = ("mean", "sum")
 
 
-def neighbour_degree(spatial_shape: Sequence[int], dtype: torch.dtype = torch.float32,
-                     device: torch.device | str | None = None) -> Tensor:
+def neighbour_degree(
+    spatial_shape: Sequence[int], dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> Tensor:
     """Per-voxel neighbour count D_j of the axis-aligned grid graph, shape ``spatial_shape``."""
     ndims = len(spatial_shape)
     degree = torch.zeros(tuple(spatial_shape), dtype=dtype, device=device)
@@ -54,7 +55,9 @@ def neighbour_degree(spatial_shape: Sequence[int], dtype: torch.dtype = torch.fl
 def laplacian_kl(mean: Tensor, log_var: Tensor, prior_lambda: float, reduction: str = "mean") -> Tensor:
     """KL[q || p] (up to a constant) for ``mean``, ``log_var`` of shape (B, D, *V); returns a scalar."""
     if mean.shape != log_var.shape:
-        raise ValueError(f"mean and log_var must have the same shape; got {tuple(mean.shape)} and {tuple(log_var.shape)}")
+        raise ValueError(
+            f"mean and log_var must have the same shape; got {tuple(mean.shape)} and {tuple(log_var.shape)}"
+        )
     if mean.ndim < 3:
         raise ValueError(f"expected (B, D, *V) fields; got shape {tuple(mean.shape)}")
     if prior_lambda <= 0:

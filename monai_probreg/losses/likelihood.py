@@ -15,7 +15,9 @@ __all__ = ["IMAGE_LOSSES", "GaussianImageLoss", "gaussian_image_loss", "make_ima
 def gaussian_image_loss(warped: Tensor, fixed: Tensor, image_sigma: float, reduction: str = "mean") -> Tensor:
     """Negative Gaussian log-likelihood (no constant); ``warped`` and ``fixed`` (B, C, *S)."""
     if warped.shape != fixed.shape:
-        raise ValueError(f"warped and fixed must have the same shape; got {tuple(warped.shape)} and {tuple(fixed.shape)}")
+        raise ValueError(
+            f"warped and fixed must have the same shape; got {tuple(warped.shape)} and {tuple(fixed.shape)}"
+        )
     if image_sigma <= 0:
         raise ValueError(f"image_sigma must be > 0; got {image_sigma}")
     sq = (fixed - warped).pow(2)
@@ -50,12 +52,14 @@ class GaussianImageLoss(nn.Module):
 IMAGE_LOSSES = ("gaussian", "lncc")  # the names make_image_loss accepts
 
 
-def make_image_loss(name: str, spatial_dims: int = 3, image_sigma: float = 0.04, lncc_kernel_size: int = 9,
-                    reduction: str = "mean") -> nn.Module:
+def make_image_loss(
+    name: str, spatial_dims: int = 3, image_sigma: float = 0.04, lncc_kernel_size: int = 9, reduction: str = "mean"
+) -> nn.Module:
     """Build the likelihood term by name: ``"gaussian"`` (the paper's) or ``"lncc"`` (MONAI's local NCC, in [-1, 0])."""
     if name == "gaussian":
         return GaussianImageLoss(image_sigma=image_sigma, reduction=reduction)
     if name == "lncc":
-        return LocalNormalizedCrossCorrelationLoss(spatial_dims=spatial_dims, kernel_size=lncc_kernel_size,
-                                                   reduction=reduction)
+        return LocalNormalizedCrossCorrelationLoss(
+            spatial_dims=spatial_dims, kernel_size=lncc_kernel_size, reduction=reduction
+        )
     raise ValueError(f"image loss must be 'gaussian' or 'lncc'; got {name!r}")

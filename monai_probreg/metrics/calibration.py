@@ -123,8 +123,9 @@ def auroc(score: ArrayLike, outcome: ArrayLike) -> float:
     """P(score of a positive > score of a negative) + 1/2 P(equal); ``outcome`` is boolean (or 0/1), both classes
     must occur."""
     if tuple(score.shape) != tuple(outcome.shape):
-        raise ValueError(f"score and outcome must have the same shape; got {tuple(score.shape)} and "
-                         f"{tuple(outcome.shape)}")
+        raise ValueError(
+            f"score and outcome must have the same shape; got {tuple(score.shape)} and {tuple(outcome.shape)}"
+        )
     s = _flat("score", score)
     o = _flat("outcome", outcome)
     if not np.isin(o, (0.0, 1.0)).all():

@@ -20,13 +20,16 @@ def jacobian_determinant(ddf: Tensor) -> Tensor:
     """det(I + grad u) per voxel. ``ddf`` (B, D, *S) in voxels, D in (2, 3), each axis >= 2 voxels -> (B, *S)."""
     spatial_dims = ddf.ndim - 2
     if spatial_dims not in (2, 3) or ddf.shape[1] != spatial_dims:
-        raise ValueError(f"ddf must have shape (B, spatial_dims, *S) with spatial_dims in (2, 3); got {tuple(ddf.shape)}")
+        raise ValueError(
+            f"ddf must have shape (B, spatial_dims, *S) with spatial_dims in (2, 3); got {tuple(ddf.shape)}"
+        )
     if min(ddf.shape[2:]) < 2:
         raise ValueError(f"every spatial axis needs >= 2 voxels for finite differences; got {tuple(ddf.shape[2:])}")
     grads = torch.gradient(ddf, dim=tuple(range(2, ddf.ndim)))  # grads[a][:, k] = d u_k / d x_a
     # J[k][a] = delta_ka + d u_k / d x_a as views of the gradients (+ 1 on the diagonal), not a stacked (B, D, D, *S)
-    jac = [[grads[a][:, k] + 1.0 if k == a else grads[a][:, k] for a in range(spatial_dims)]
-           for k in range(spatial_dims)]
+    jac = [
+        [grads[a][:, k] + 1.0 if k == a else grads[a][:, k] for a in range(spatial_dims)] for k in range(spatial_dims)
+    ]
     return _determinant(jac)
 
 
@@ -36,9 +39,11 @@ def _determinant(jac: list[list[Tensor]]) -> Tensor:
     to rounding (tested against numpy)."""
     if len(jac) == 2:
         return jac[0][0] * jac[1][1] - jac[0][1] * jac[1][0]
-    return (jac[0][0] * (jac[1][1] * jac[2][2] - jac[1][2] * jac[2][1])
-            - jac[0][1] * (jac[1][0] * jac[2][2] - jac[1][2] * jac[2][0])
-            + jac[0][2] * (jac[1][0] * jac[2][1] - jac[1][1] * jac[2][0]))
+    return (
+        jac[0][0] * (jac[1][1] * jac[2][2] - jac[1][2] * jac[2][1])
+        - jac[0][1] * (jac[1][0] * jac[2][2] - jac[1][2] * jac[2][0])
+        + jac[0][2] * (jac[1][0] * jac[2][1] - jac[1][1] * jac[2][0])
+    )
 
 
 class JacobianStats(NamedTuple):

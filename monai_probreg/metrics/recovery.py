@@ -46,8 +46,10 @@ class DisplacementRecovery(NamedTuple):
     level: float
 
     def as_dict(self) -> dict:
-        out = {name: (None if value is None else value._asdict()) for name, value in
-               (("before", self.before), ("affine_only", self.affine), ("after", self.after))}
+        out = {
+            name: (None if value is None else value._asdict())
+            for name, value in (("before", self.before), ("affine_only", self.affine), ("after", self.after))
+        }
         return {**out, "coverage": self.coverage, "coverage_level": self.level}
 
 
@@ -55,9 +57,16 @@ def _summary(error: np.ndarray) -> ErrorSummary:
     return ErrorSummary(round(float(np.median(error)), 4), round(float(np.percentile(error, ERROR_PERCENTILE)), 4))
 
 
-def displacement_recovery(true_warp: np.ndarray, warp: np.ndarray, mask: np.ndarray, points: np.ndarray | None = None,
-                          affine: np.ndarray | None = None, variance: np.ndarray | None = None,
-                          variance_axes: np.ndarray | None = None, level: float = 0.95) -> DisplacementRecovery:
+def displacement_recovery(
+    true_warp: np.ndarray,
+    warp: np.ndarray,
+    mask: np.ndarray,
+    points: np.ndarray | None = None,
+    affine: np.ndarray | None = None,
+    variance: np.ndarray | None = None,
+    variance_axes: np.ndarray | None = None,
+    level: float = 0.95,
+) -> DisplacementRecovery:
     """Errors of ``warp`` against ``true_warp`` (both (*S, 3) LPS mm) inside ``mask`` (*S) (module docstring).
 
     ``points`` (*S, 3): the fixed grid's LPS points and ``affine`` (4, 4): the affine stage, for the affine-only
@@ -66,8 +75,9 @@ def displacement_recovery(true_warp: np.ndarray, warp: np.ndarray, mask: np.ndar
     """
     true_warp, warp, mask = np.asarray(true_warp), np.asarray(warp), np.asarray(mask, bool)
     if true_warp.shape != warp.shape or true_warp.shape[-1] != 3 or true_warp.shape[:-1] != mask.shape:
-        raise ValueError(f"expected two (*S, 3) fields and a (*S) mask; got {true_warp.shape}, {warp.shape} and "
-                         f"{mask.shape}")
+        raise ValueError(
+            f"expected two (*S, 3) fields and a (*S) mask; got {true_warp.shape}, {warp.shape} and {mask.shape}"
+        )
     if not mask.any():
         raise ValueError("the mask selects no voxel")
     if not 0 < level < 1:
@@ -84,11 +94,18 @@ def displacement_recovery(true_warp: np.ndarray, warp: np.ndarray, mask: np.ndar
     coverage = None
     if variance is not None:
         if variance_axes is None or np.shape(variance) != true_warp.shape:
-            raise ValueError(f"expected a (*S, 3) variance {true_warp.shape} and its (3, 3) axes; got "
-                             f"{np.shape(variance)} and {None if variance_axes is None else np.shape(variance_axes)}")
+            raise ValueError(
+                f"expected a (*S, 3) variance {true_warp.shape} and its (3, 3) axes; got "
+                f"{np.shape(variance)} and {None if variance_axes is None else np.shape(variance_axes)}"
+            )
         linear = np.eye(3) if affine is None else affine[:3, :3]
         components = np.linalg.solve(linear, error.T).T @ np.asarray(variance_axes, np.float64)
         sigma = np.sqrt(np.maximum(np.asarray(variance)[mask].astype(np.float64), 0.0))
         coverage = round(float(np.mean(np.abs(components) <= gaussian_interval_z(level) * sigma)), 4)
-    return DisplacementRecovery(_summary(np.linalg.norm(truth, axis=1)), affine_summary,
-                                _summary(np.linalg.norm(error, axis=1)), coverage, level)
+    return DisplacementRecovery(
+        _summary(np.linalg.norm(truth, axis=1)),
+        affine_summary,
+        _summary(np.linalg.norm(error, axis=1)),
+        coverage,
+        level,
+    )

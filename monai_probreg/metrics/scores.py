@@ -13,7 +13,7 @@ from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import JacobianStats, jacobian_determinant, jacobian_stats
 from monai_probreg.utils.tensors import plain_tensor
 
-__all__ = ['PairScores', 'score_pair']
+__all__ = ["PairScores", "score_pair"]
 
 
 class PairScores(NamedTuple):
@@ -28,8 +28,13 @@ class PairScores(NamedTuple):
     runtime_s: float
 
 
-def score_pair(displacement: Tensor | None, moving_label: Tensor, fixed_label: Tensor, runtime_s: float = 0.0,
-               labels: Sequence[int] | None = None) -> PairScores:
+def score_pair(
+    displacement: Tensor | None,
+    moving_label: Tensor,
+    fixed_label: Tensor,
+    runtime_s: float = 0.0,
+    labels: Sequence[int] | None = None,
+) -> PairScores:
     """Score a displacement (1, 3, *S) (None = no registration, the identity) with labels (1, 1, *S) on the
     same grid: Dice of the nearest-neighbour warped moving labels against the fixed labels for ``labels``
     (default: the non-zero labels of ``fixed_label``) and folding statistics of the displacement."""
@@ -41,4 +46,6 @@ def score_pair(displacement: Tensor | None, moving_label: Tensor, fixed_label: T
         warped = warp_labels(moving_label.to(displacement.device), displacement)
         stats = jacobian_stats(jacobian_determinant(displacement))
     dice = label_dice(warped.cpu(), fixed_label.cpu(), labels)
-    return PairScores(dice, mean_dice(dice), stats.num_folding, stats.percent_folding, stats.std_log_jacobian, runtime_s)
+    return PairScores(
+        dice, mean_dice(dice), stats.num_folding, stats.percent_folding, stats.std_log_jacobian, runtime_s
+    )

@@ -63,8 +63,9 @@ def unet_autocast_dtype(precision: str, device: torch.device | str) -> torch.dty
     return torch.bfloat16 if torch.device(device).type == "cpu" and native_bf16_supported() else None
 
 
-def accelerated_posterior(unet: nn.Module, moving: Tensor, fixed: Tensor, precision: str = "auto",
-                          channels_last: bool = True) -> VelocityPosterior:
+def accelerated_posterior(
+    unet: nn.Module, moving: Tensor, fixed: Tensor, precision: str = "auto", channels_last: bool = True
+) -> VelocityPosterior:
     """``unet(moving, fixed)`` with the inference levers; returns contiguous float32 mean and log_var.
 
     Meant for calls without gradient recording (the caller, :class:`~monai_probreg.ProbRegNet`, checks);
@@ -76,8 +77,7 @@ def accelerated_posterior(unet: nn.Module, moving: Tensor, fixed: Tensor, precis
     if channels_last and moving.ndim == 5:
         layout = torch.channels_last_3d
         call_args = (moving.contiguous(memory_format=layout), fixed.contiguous(memory_format=layout))
-        params = {name: p.contiguous(memory_format=layout) if p.ndim == 5 else p
-                  for name, p in unet.named_parameters()}
+        params = {name: p.contiguous(memory_format=layout) if p.ndim == 5 else p for name, p in unet.named_parameters()}
     with torch.autocast(device_type=moving.device.type, dtype=dtype or torch.float32, enabled=dtype is not None):
         if params is None:
             posterior = unet(*call_args)

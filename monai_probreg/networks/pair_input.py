@@ -38,8 +38,12 @@ class PairInputNet(ProbRegNet):
 
     def forward(self, image: Tensor) -> Tensor:  # type: ignore[override]
         if image.ndim != self.spatial_dims + 2 or image.shape[1] < 2 or image.shape[1] % 2 != 0:
-            raise ValueError("image must be (B, 2 C, *S) with moving and fixed on the channel axis and "
-                             + str(self.spatial_dims) + " spatial dims; got shape " + shape_str(image.shape))
+            raise ValueError(
+                "image must be (B, 2 C, *S) with moving and fixed on the channel axis and "
+                + str(self.spatial_dims)
+                + " spatial dims; got shape "
+                + shape_str(image.shape)
+            )
         channels = image.shape[1] // 2
         moving, fixed = image[:, :channels], image[:, channels:]
         posterior = self.posterior(moving, fixed)

@@ -152,8 +152,12 @@ class ProbRegNet(nn.Module):
     def posterior(self, moving: Tensor, fixed: Tensor) -> VelocityPosterior:
         """q(z | moving, fixed) on the velocity grid, resizing the inputs to ``network_size`` first if set."""
         if moving.shape != fixed.shape:
-            raise ValueError("moving and fixed must have the same shape; got " + shape_str(moving.shape) + " and "
-                             + shape_str(fixed.shape))
+            raise ValueError(
+                "moving and fixed must have the same shape; got "
+                + shape_str(moving.shape)
+                + " and "
+                + shape_str(fixed.shape)
+            )
         grid = self._network_grid
         if self._resize_inputs and list(moving.shape[2:]) != grid:
             mode = "trilinear" if self.spatial_dims == 3 else "bilinear"
@@ -197,7 +201,11 @@ class ProbRegNet(nn.Module):
 
     @torch.no_grad()
     def sample(
-        self, moving: Tensor, fixed: Tensor, num_samples: int, generator: torch.Generator | None = None,
+        self,
+        moving: Tensor,
+        fixed: Tensor,
+        num_samples: int,
+        generator: torch.Generator | None = None,
         samples_per_batch: int | None = None,
     ) -> PosteriorSamples:
         """Draw ``num_samples`` velocities from q(z | moving, fixed) and integrate them.
@@ -207,8 +215,9 @@ class ProbRegNet(nn.Module):
         CPU, where ``benchmarks/speed_compare.py`` measures the fused batch slower (docs/speed.md). Independent of
         train/eval mode. Shapes: moving, fixed (B, C, *S) -> displacements (K, B, D, *S).
         """
-        if samples_per_batch is not None and (isinstance(samples_per_batch, bool) or not isinstance(samples_per_batch, int)
-                                              or samples_per_batch < 1):
+        if samples_per_batch is not None and (
+            isinstance(samples_per_batch, bool) or not isinstance(samples_per_batch, int) or samples_per_batch < 1
+        ):
             raise ValueError(f"samples_per_batch must be a positive integer or None; got {samples_per_batch!r}")
         posterior = self.posterior(moving, fixed)
         z = sample_velocity(posterior.mean, posterior.log_var, num_samples, generator=generator)
@@ -217,6 +226,7 @@ class ProbRegNet(nn.Module):
             samples_per_batch = k if moving.device.type == "cuda" else 1
         flat = z.flatten(0, 1)
         step = samples_per_batch * b
-        disp = torch.cat([self.velocity_to_displacement(flat[i:i + step], moving.shape[2:])
-                          for i in range(0, k * b, step)])
+        disp = torch.cat(
+            [self.velocity_to_displacement(flat[i : i + step], moving.shape[2:]) for i in range(0, k * b, step)]
+        )
         return PosteriorSamples(disp.unflatten(0, (k, b)), posterior.mean, posterior.log_var)

@@ -47,14 +47,16 @@ class VelocityPosterior(NamedTuple):
     log_var: Tensor  # log sigma^2, not log sigma
 
 
-def bound_log_var(raw: Tensor, low: float = LOG_VAR_MIN, high: float = LOG_VAR_MAX,
-                  margin: float = LOG_VAR_MARGIN) -> Tensor:
+def bound_log_var(
+    raw: Tensor, low: float = LOG_VAR_MIN, high: float = LOG_VAR_MAX, margin: float = LOG_VAR_MARGIN
+) -> Tensor:
     """Soft clamp of ``raw`` into (low, high): the identity on [low + margin, high - margin]; beyond, a tanh of width
     ``margin`` that continues it with value and slope 1 at the joint and tends to the bound (+-inf map onto it).
     The gradient is 1 inside and sech^2 > 0 outside: never a hard clamp's exact 0 for finite values nearby."""
     if not (margin > 0 and low + 2 * margin <= high):
-        raise ValueError(f"expected margin > 0 and low + 2 * margin <= high, got low={low}, high={high}, "
-                         f"margin={margin}")
+        raise ValueError(
+            f"expected margin > 0 and low + 2 * margin <= high, got low={low}, high={high}, margin={margin}"
+        )
     top, bottom = high - margin, low + margin
     upper = top + margin * torch.tanh((raw - top) / margin)
     lower = bottom + margin * torch.tanh((raw - bottom) / margin)
@@ -123,8 +125,12 @@ class VelocityUNet(nn.Module):
             skip = skip_channels[depth - 1 - i]  # encoder output one level above the current one
             self.up_convs.append(conv(cin + skip, dec_channels[1 + i]))
             cin = dec_channels[1 + i]
-        self.extra_convs = nn.Sequential(*[conv(c_in, c_out) for c_in, c_out in
-                                           zip([cin, *dec_channels[1 + num_up:-1]], dec_channels[1 + num_up:])])
+        self.extra_convs = nn.Sequential(
+            *[
+                conv(c_in, c_out)
+                for c_in, c_out in zip([cin, *dec_channels[1 + num_up : -1]], dec_channels[1 + num_up :])
+            ]
+        )
         if len(dec_channels) > 1 + num_up:
             cin = dec_channels[-1]
         conv_type = nn.Conv3d if spatial_dims == 3 else nn.Conv2d
@@ -140,15 +146,27 @@ class VelocityUNet(nn.Module):
         # written for torch.jit.script as well as eager (bundle ckpt_export): no comprehension with an ``if``, no
         # ``tuple(shape)``; the messages are the same either way (:func:`_shape_str`)
         if moving.shape != fixed.shape:
-            raise ValueError("moving and fixed must have the same shape; got " + shape_str(moving.shape) + " and "
-                             + shape_str(fixed.shape))
+            raise ValueError(
+                "moving and fixed must have the same shape; got "
+                + shape_str(moving.shape)
+                + " and "
+                + shape_str(fixed.shape)
+            )
         if moving.ndim != self.spatial_dims + 2:
-            raise ValueError("expected (B, C, *S) inputs with " + str(self.spatial_dims) + " spatial dims; got shape "
-                             + shape_str(moving.shape))
+            raise ValueError(
+                "expected (B, C, *S) inputs with "
+                + str(self.spatial_dims)
+                + " spatial dims; got shape "
+                + shape_str(moving.shape)
+            )
         for s in moving.shape[2:]:
             if s % self.divisor:
-                raise ValueError("spatial size must be a multiple of " + str(self.divisor) + " (2**depth); got "
-                                 + shape_str(moving.shape[2:]))
+                raise ValueError(
+                    "spatial size must be a multiple of "
+                    + str(self.divisor)
+                    + " (2**depth); got "
+                    + shape_str(moving.shape[2:])
+                )
         x = torch.cat([moving, fixed], dim=1)
         skips = [x]
         for layer in self.encoder:
@@ -161,4 +179,3 @@ class VelocityUNet(nn.Module):
             x = layer(torch.cat([x, skip], dim=1))
         x = self.extra_convs(x)
         return VelocityPosterior(mean=self.mean_head(x), log_var=bound_log_var(self.log_var_head(x)))
-

@@ -47,8 +47,16 @@ from monai_probreg.spatial.affine_torch import FixedSamples, register_affine_tor
 from monai_probreg.spatial.physical import affine_from_itk
 from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 
-__all__ = ["BACKENDS", "AffineResult", "AffineSettings", "StageReport", "align", "load_itk_modules",
-           "register_affine", "rotation_angle_deg"]  # the settings and results re-exported from affine_settings
+__all__ = [
+    "BACKENDS",
+    "AffineResult",
+    "AffineSettings",
+    "StageReport",
+    "align",
+    "load_itk_modules",
+    "register_affine",
+    "rotation_angle_deg",
+]  # the settings and results re-exported from affine_settings
 
 
 def _image_type():
@@ -60,15 +68,27 @@ def _image_type():
 def load_itk_modules() -> None:
     """Load ITK's lazily imported registration modules now (several seconds on first use), so that a timed
     registration measures the registration and a batch pays the cost once."""
-    for name in ("ImageRegistrationMethodv4", "MattesMutualInformationImageToImageMetricv4",
-                 "ConjugateGradientLineSearchOptimizerv4Template", "RegistrationParameterScalesFromPhysicalShift",
-                 "VersorRigid3DTransform", "AffineTransform", "CenteredTransformInitializer",
-                 "MultiResolutionIterationEvent"):
+    for name in (
+        "ImageRegistrationMethodv4",
+        "MattesMutualInformationImageToImageMetricv4",
+        "ConjugateGradientLineSearchOptimizerv4Template",
+        "RegistrationParameterScalesFromPhysicalShift",
+        "VersorRigid3DTransform",
+        "AffineTransform",
+        "CenteredTransformInitializer",
+        "MultiResolutionIterationEvent",
+    ):
         getattr(itk, name)
 
 
-def _run_stage(name: str, fixed: itk.Image, moving: itk.Image, transform: itk.Transform,
-               iterations: tuple[int, ...], settings: AffineSettings) -> StageReport:
+def _run_stage(
+    name: str,
+    fixed: itk.Image,
+    moving: itk.Image,
+    transform: itk.Transform,
+    iterations: tuple[int, ...],
+    settings: AffineSettings,
+) -> StageReport:
     """Optimise ``transform`` in place with one multi-resolution ImageRegistrationMethodv4 run."""
     metric = itk.MattesMutualInformationImageToImageMetricv4[_image_type(), _image_type()].New()
     metric.SetNumberOfHistogramBins(settings.histogram_bins)
@@ -122,16 +142,22 @@ def _run_stage(name: str, fixed: itk.Image, moving: itk.Image, transform: itk.Tr
     return report
 
 
-def align(fixed: Volume, moving: Volume, settings: AffineSettings | None = None,
-          fixed_itk: itk.Image | None = None, samples: FixedSamples | None = None) -> AffineResult:
+def align(
+    fixed: Volume,
+    moving: Volume,
+    settings: AffineSettings | None = None,
+    fixed_itk: itk.Image | None = None,
+    samples: FixedSamples | None = None,
+) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` with the backend of ``settings`` (module
     docstring). Prepared once for a batch, or None: ``fixed_itk``, ``fixed`` converted for ITK (ITK backend);
     ``samples``, :func:`~monai_probreg.spatial.affine_torch.fixed_samples` of ``fixed`` and ``settings`` (torch)."""
     settings = settings or AffineSettings()
     if settings.backend == "torch":
         return register_affine_torch(fixed, moving, settings, samples)
-    return register_affine(fixed_itk if fixed_itk is not None else volume_to_itk(fixed), volume_to_itk(moving),
-                           settings)
+    return register_affine(
+        fixed_itk if fixed_itk is not None else volume_to_itk(fixed), volume_to_itk(moving), settings
+    )
 
 
 def register_affine(fixed: itk.Image, moving: itk.Image, settings: AffineSettings | None = None) -> AffineResult:
@@ -143,7 +169,8 @@ def register_affine(fixed: itk.Image, moving: itk.Image, settings: AffineSetting
     settings = settings or AffineSettings.itk_defaults()
     rigid = itk.VersorRigid3DTransform[itk.D].New()
     initializer = itk.CenteredTransformInitializer[type(rigid), _image_type(), _image_type()].New(
-        Transform=rigid, FixedImage=fixed, MovingImage=moving)
+        Transform=rigid, FixedImage=fixed, MovingImage=moving
+    )
     if settings.initializer == "moments":
         initializer.MomentsOn()
     else:
@@ -159,5 +186,6 @@ def register_affine(fixed: itk.Image, moving: itk.Image, settings: AffineSetting
         affine.SetTranslation(rigid.GetTranslation())
         stages.append(_run_stage("affine", fixed, moving, affine, settings.affine_iterations, settings))
         result = affine
-    return AffineResult(affine_from_itk(result), np.asarray(result.GetCenter(), dtype=np.float64), initial, stages,
-                        result)
+    return AffineResult(
+        affine_from_itk(result), np.asarray(result.GetCenter(), dtype=np.float64), initial, stages, result
+    )

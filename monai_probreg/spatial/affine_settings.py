@@ -53,16 +53,26 @@ class AffineSettings:
     @classmethod
     def itk_defaults(cls, **changes) -> AffineSettings:
         """The ITK backend's defaults (class docstring), with ``changes``."""
-        return cls(**{"shrink_factors": (4, 2), "smoothing_sigmas_mm": (2.0, 1.0), "rigid_iterations": (100, 50),
-                      "affine_iterations": (100, 50), "sampling_percentage": 0.20, "max_samples": None,
-                      "backend": "itk", **changes})
+        return cls(
+            **{
+                "shrink_factors": (4, 2),
+                "smoothing_sigmas_mm": (2.0, 1.0),
+                "rigid_iterations": (100, 50),
+                "affine_iterations": (100, 50),
+                "sampling_percentage": 0.20,
+                "max_samples": None,
+                "backend": "itk",
+                **changes,
+            }
+        )
 
     def __post_init__(self) -> None:
         levels = len(self.shrink_factors)
         for name in ("smoothing_sigmas_mm", "rigid_iterations", "affine_iterations"):
             if len(getattr(self, name)) != levels:
-                raise ValueError(f"{name} needs one value per level ({levels}, as shrink_factors); "
-                                 f"got {getattr(self, name)}")
+                raise ValueError(
+                    f"{name} needs one value per level ({levels}, as shrink_factors); got {getattr(self, name)}"
+                )
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}; got {self.backend!r}")
         if min(self.rigid_iterations + self.affine_iterations, default=0) < 0:

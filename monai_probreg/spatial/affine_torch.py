@@ -92,8 +92,12 @@ def mutual_information(moving: torch.Tensor, fixed_bins: torch.Tensor, bins: int
     weight = _cubic_bspline(position[:, None] - covered.to(position.dtype))  # (N, 4), differentiable
     index = fixed_bins[:, None] * bins + covered
     with torch.no_grad():
-        joint = torch.bincount(index.reshape(-1), weights=weight.detach().reshape(-1).double(),
-                               minlength=bins * bins).view(bins, bins) / moving.numel()
+        joint = (
+            torch.bincount(index.reshape(-1), weights=weight.detach().reshape(-1).double(), minlength=bins * bins).view(
+                bins, bins
+            )
+            / moving.numel()
+        )
         tiny = torch.finfo(torch.float64).tiny
         log_joint = torch.log(joint + tiny)
         log_moving = torch.log(joint.sum(dim=0, keepdim=True) + tiny)
@@ -105,8 +109,9 @@ def mutual_information(moving: torch.Tensor, fixed_bins: torch.Tensor, bins: int
 
 
 def _scaled(volume: Volume) -> torch.Tensor:
-    scale = ScaleIntensityRangePercentiles(lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0,
-                                           clip=True)
+    scale = ScaleIntensityRangePercentiles(
+        lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0, clip=True
+    )
     # plain tensors from here on: MONAI's MetaTensor would track every operation of the optimisation (several times
     # slower)
     return convert_to_tensor(scale(torch.from_numpy(np.asarray(volume.array, np.float32))[None]), track_meta=False)[0]
@@ -125,15 +130,21 @@ def _centre(scaled: torch.Tensor, index_to_lps: np.ndarray, moments: bool) -> np
     weights = scaled.double().numpy()
     total = weights.sum()
     if moments and total > 0:
-        index = np.array([(weights.sum(axis=tuple(a for a in range(3) if a != axis))
-                           * np.arange(weights.shape[axis])).sum() / total for axis in range(3)])
+        index = np.array(
+            [
+                (weights.sum(axis=tuple(a for a in range(3) if a != axis)) * np.arange(weights.shape[axis])).sum()
+                / total
+                for axis in range(3)
+            ]
+        )
     else:
         index = (np.asarray(weights.shape, np.float64) - 1) / 2
     return index_to_lps[:3, :3] @ index + index_to_lps[:3, 3]
 
 
-def _pooled(image: torch.Tensor, index_to_lps: np.ndarray, factors: tuple[int, ...],
-            sigma_mm: float) -> tuple[torch.Tensor, np.ndarray]:
+def _pooled(
+    image: torch.Tensor, index_to_lps: np.ndarray, factors: tuple[int, ...], sigma_mm: float
+) -> tuple[torch.Tensor, np.ndarray]:
     """``image`` averaged over blocks of ``factors`` voxels, then smoothed by ``sigma_mm``; with the pooled grid's
     (4, 4) index -> LPS (a block's centre: old index ``f * i + (f - 1) / 2``)."""
     pooled = F.avg_pool3d(image[None, None], kernel_size=factors, stride=factors)[0, 0] if max(factors) > 1 else image
@@ -183,8 +194,16 @@ class _Level:
     image averaged over blocks of about the level's voxel size (ITK's registration shrinks both images too) and
     smoothed by ``sigma_mm``."""
 
-    def __init__(self, points: torch.Tensor, fixed_bins: torch.Tensor, level_mm: float, moving: Volume,
-                 moving_image: torch.Tensor, sigma_mm: float, bins: int) -> None:
+    def __init__(
+        self,
+        points: torch.Tensor,
+        fixed_bins: torch.Tensor,
+        level_mm: float,
+        moving: Volume,
+        moving_image: torch.Tensor,
+        sigma_mm: float,
+        bins: int,
+    ) -> None:
         factors = tuple(max(1, int(level_mm // s)) for s in moving.spacing)
         moving_level, moving_grid = _pooled(moving_image, moving.index_to_lps, factors, sigma_mm)
         self.points, self.fixed_bins = points, fixed_bins
@@ -203,8 +222,12 @@ class _Level:
         return -mutual_information(sampled.view(-1), self.fixed_bins, self.bins)
 
 
-def _optimise(levels: list[_Level], iterations: tuple[int, ...], parameters: torch.Tensor,
-              to_matrix: Callable[[torch.Tensor], torch.Tensor]) -> tuple[float, list[int]]:
+def _optimise(
+    levels: list[_Level],
+    iterations: tuple[int, ...],
+    parameters: torch.Tensor,
+    to_matrix: Callable[[torch.Tensor], torch.Tensor],
+) -> tuple[float, list[int]]:
     """L-BFGS with a strong-Wolfe line search on ``parameters`` (mm), level by level (at most ``iterations[l]``
     iterations; the sample points are fixed within a level, so the metric is a deterministic function there).
     Returns the last metric value and the iterations run per level."""
@@ -213,9 +236,15 @@ def _optimise(levels: list[_Level], iterations: tuple[int, ...], parameters: tor
         if count == 0:
             done.append(0)
             continue
-        optimizer = torch.optim.LBFGS([parameters], lr=1.0, max_iter=int(count), history_size=LBFGS_HISTORY,
-                                      line_search_fn="strong_wolfe", tolerance_grad=GRADIENT_TOLERANCE,
-                                      tolerance_change=CHANGE_TOLERANCE)
+        optimizer = torch.optim.LBFGS(
+            [parameters],
+            lr=1.0,
+            max_iter=int(count),
+            history_size=LBFGS_HISTORY,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=GRADIENT_TOLERANCE,
+            tolerance_change=CHANGE_TOLERANCE,
+        )
 
         def closure(optimizer: torch.optim.LBFGS = optimizer, level: _Level = level) -> torch.Tensor:
             optimizer.zero_grad(set_to_none=True)
@@ -228,8 +257,9 @@ def _optimise(levels: list[_Level], iterations: tuple[int, ...], parameters: tor
     return value, done
 
 
-def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSettings,
-                          samples: FixedSamples | None = None) -> AffineResult:
+def register_affine_torch(
+    fixed: Volume, moving: Volume, settings: AffineSettings, samples: FixedSamples | None = None
+) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` (module docstring). Returns the fixed -> moving
     transform; the ITK transform in the result is an ``AffineTransform`` centred on the fixed image's centre.
     ``samples``: :func:`fixed_samples` of ``fixed`` and ``settings`` when the caller has them (a batch), else made."""
@@ -238,9 +268,12 @@ def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSetting
     moving_image = _scaled(moving)
     moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, settings.initializer == "moments"))
     radius = float(np.mean(np.asarray(fixed.shape) * fixed.spacing)) / 2  # mm: 1 unit of rotation = 1 mm there
-    levels = [_Level(points, bins, level_mm, moving, moving_image, float(sigma), settings.histogram_bins)
-              for points, bins, level_mm, sigma in zip(samples.points, samples.bins, samples.level_mm,
-                                                        settings.smoothing_sigmas_mm)]
+    levels = [
+        _Level(points, bins, level_mm, moving, moving_image, float(sigma), settings.histogram_bins)
+        for points, bins, level_mm, sigma in zip(
+            samples.points, samples.bins, samples.level_mm, settings.smoothing_sigmas_mm
+        )
+    ]
 
     def matrix_of(linear: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
         # A(p) = L (p - c_fixed) + c_moving + t
@@ -266,12 +299,19 @@ def register_affine_torch(fixed: Volume, moving: Volume, settings: AffineSetting
         result = affine_matrix(affine).detach()
     matrix = result.numpy()
     if not np.isfinite(matrix).all():
-        raise RuntimeError(f"the torch affine registration diverged (non-finite matrix); settings {settings}. "
-                           "Try --affine-backend itk, or report the scan")
+        raise RuntimeError(
+            f"the torch affine registration diverged (non-finite matrix); settings {settings}. "
+            "Try --affine-backend itk, or report the scan"
+        )
     return AffineResult(matrix, fixed_centre.numpy(), initial, stages)
 
 
-def _stage(name: str, levels: list[_Level], iterations: tuple[int, ...], parameters: torch.Tensor,
-           to_matrix: Callable[[torch.Tensor], torch.Tensor]) -> StageReport:
+def _stage(
+    name: str,
+    levels: list[_Level],
+    iterations: tuple[int, ...],
+    parameters: torch.Tensor,
+    to_matrix: Callable[[torch.Tensor], torch.Tensor],
+) -> StageReport:
     value, done = _optimise(levels, iterations, parameters, to_matrix)
     return StageReport(name, done, value, f"torch backend: L-BFGS, at most {list(iterations)} iterations per level")

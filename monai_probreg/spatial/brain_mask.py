@@ -27,8 +27,9 @@ __all__ = ["DEFAULT_MARGIN_MM", "fixed_brain_mask", "hide_outside"]
 DEFAULT_MARGIN_MM = 3.0  # room for the affine's residual error and for the brain's edge voxels
 
 
-def fixed_brain_mask(array: np.ndarray, spacing: Sequence[float], margin_mm: float = DEFAULT_MARGIN_MM
-                     ) -> np.ndarray | None:
+def fixed_brain_mask(
+    array: np.ndarray, spacing: Sequence[float], margin_mm: float = DEFAULT_MARGIN_MM
+) -> np.ndarray | None:
     """Boolean mask (same shape as the 3-d ``array``) of the voxels above the minimum, dilated by ``margin_mm``; None
     when that is the whole grid (no background: nothing to hide)."""
     if array.ndim != 3 or len(spacing) != 3:

@@ -31,7 +31,20 @@ from isal.igzip_lib import IsalError
 
 from monai_probreg.utils.errors import InputError, first_line
 
-__all__ = ['MAX_VOXELS_ENV', 'DEFAULT_MAX_VOXELS', 'max_voxels', 'is_nifti', 'check_size', 'corrupt_file_error', 'check_nifti_header', 'load_nifti', 'check_finite', 'check_nifti_voxels', 'check_image_values', 'check_label_values']
+__all__ = [
+    "MAX_VOXELS_ENV",
+    "DEFAULT_MAX_VOXELS",
+    "max_voxels",
+    "is_nifti",
+    "check_size",
+    "corrupt_file_error",
+    "check_nifti_header",
+    "load_nifti",
+    "check_finite",
+    "check_nifti_voxels",
+    "check_image_values",
+    "check_label_values",
+]
 
 
 MAX_VOXELS_ENV = "MONAI_PROBREG_MAX_VOXELS"
@@ -73,14 +86,18 @@ def check_size(sizes: Sequence[int], path: str | os.PathLike, role: str, limit: 
         hint = "; pass a single 3-D volume (e.g. extract one with fslroi)" if len(sizes) > 3 else ""
         raise InputError(f"{where}: expected a 3-D volume, got a {len(sizes)}-D one of size {tuple(sizes)}{hint}")
     if min(sizes) < 2:
-        raise InputError(f"{where}: expected at least 2 voxels along every axis of a 3-D volume, got size "
-                         f"{tuple(sizes)} (an axis of {min(sizes)} voxel{'s' if min(sizes) != 1 else ''})")
+        raise InputError(
+            f"{where}: expected at least 2 voxels along every axis of a 3-D volume, got size "
+            f"{tuple(sizes)} (an axis of {min(sizes)} voxel{'s' if min(sizes) != 1 else ''})"
+        )
     limit = max_voxels() if limit is None else limit
     count = int(np.prod(sizes, dtype=np.int64))
     if count > limit:
-        raise InputError(f"{where}: expected at most {limit:,} voxels, got {count:,} (size {tuple(sizes)}); downsample "
-                         f"the scan (e.g. to 1 mm) or raise the limit ({MAX_VOXELS_ENV} or --max-voxels) if this "
-                         "machine has the memory")
+        raise InputError(
+            f"{where}: expected at most {limit:,} voxels, got {count:,} (size {tuple(sizes)}); downsample "
+            f"the scan (e.g. to 1 mm) or raise the limit ({MAX_VOXELS_ENV} or --max-voxels) if this "
+            "machine has the memory"
+        )
     return tuple(sizes)
 
 
@@ -89,8 +106,10 @@ def corrupt_file_error(path: str | os.PathLike, role: str, err: BaseException) -
     where = f"{role} {str(path)!r}"
     if Path(path).is_file() and Path(path).stat().st_size == 0:
         return InputError(f"{where}: expected an image file, got an empty file (0 bytes)")
-    return InputError(f"{where}: expected a complete image file, got a truncated or corrupt one ({first_line(err)}); "
-                      "was a download or copy interrupted?")
+    return InputError(
+        f"{where}: expected a complete image file, got a truncated or corrupt one ({first_line(err)}); "
+        "was a download or copy interrupted?"
+    )
 
 
 def _stream_length(path: Path) -> int:
@@ -123,7 +142,9 @@ def check_nifti_header(path: str | os.PathLike, role: str, limit: int | None = N
     return _check_loaded_header(image, stored, path, role)
 
 
-def load_nifti(path: str | os.PathLike, role: str, limit: int | None = None) -> tuple[nib.Nifti1Image, np.ndarray] | None:
+def load_nifti(
+    path: str | os.PathLike, role: str, limit: int | None = None
+) -> tuple[nib.Nifti1Image, np.ndarray] | None:
     """:func:`check_nifti_header` and :func:`check_nifti_voxels` in one pass over the bytes: the size checked from the
     header alone (nothing more is decompressed for a refused size), then the whole file decompressed once by ISA-L's
     igzip (which checks the CRC) and held in memory, the same header checks, and the voxels as stored (scaled).
@@ -133,7 +154,7 @@ def load_nifti(path: str | os.PathLike, role: str, limit: int | None = None) -> 
     gz = path.name.lower().endswith(".gz")
     errors = _READ_ERRORS + (IsalError, nib.filebasedimages.ImageFileError, nib.spatialimages.HeaderDataError)
     try:
-        with (igzip.open(path, "rb") if gz else open(path, "rb")) as stream:
+        with igzip.open(path, "rb") if gz else open(path, "rb") as stream:
             head = stream.read(_NIFTI1_HEADER_BYTES)
         header = nib.Nifti1Header.from_fileobj(io.BytesIO(head), check=False)
     except errors as err:
@@ -159,18 +180,26 @@ def _check_loaded_header(image: nib.Nifti1Image, stored: int, path: Path, role: 
     affine = np.asarray(image.affine, dtype=np.float64)
     spacing = np.linalg.norm(affine[:3, :3], axis=0)
     if not np.all(np.isfinite(affine)) or spacing.min() <= 1e-6 or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
-        raise InputError(f"{where}: expected a header with a finite, invertible voxel-to-world affine, got spacing "
-                         f"{np.round(spacing, 6).tolist()} mm and affine {np.round(affine[:3], 4).tolist()}")
+        raise InputError(
+            f"{where}: expected a header with a finite, invertible voxel-to-world affine, got spacing "
+            f"{np.round(spacing, 6).tolist()} mm and affine {np.round(affine[:3], 4).tolist()}"
+        )
     offset = getattr(image.dataobj, "offset", None)  # where the voxels start (the loaded header's is reset to 0)
-    needed = int(offset if offset is not None else image.header.get_data_offset()) + \
-        int(np.prod(image.header.get_data_shape(), dtype=np.int64)) * dtype.itemsize
+    needed = (
+        int(offset if offset is not None else image.header.get_data_offset())
+        + int(np.prod(image.header.get_data_shape(), dtype=np.int64)) * dtype.itemsize
+    )
     if stored < needed:
-        raise InputError(f"{where}: expected {needed:,} bytes for the header's size {tuple(image.shape)} ({dtype}), "
-                         f"got {stored:,}: the file is truncated; was a download or copy interrupted?")
+        raise InputError(
+            f"{where}: expected {needed:,} bytes for the header's size {tuple(image.shape)} ({dtype}), "
+            f"got {stored:,}: the file is truncated; was a download or copy interrupted?"
+        )
     if stored > needed:
-        raise InputError(f"{where}: expected the header's dimensions to match the data, got a header size "
-                         f"{tuple(image.shape)} ({dtype}) that accounts for {needed:,} bytes and {stored - needed:,} "
-                         "more in the file; was the header edited or the file appended to?")
+        raise InputError(
+            f"{where}: expected the header's dimensions to match the data, got a header size "
+            f"{tuple(image.shape)} ({dtype}) that accounts for {needed:,} bytes and {stored - needed:,} "
+            "more in the file; was the header edited or the file appended to?"
+        )
     return image
 
 
@@ -178,8 +207,10 @@ def check_finite(values: np.ndarray, path: str | os.PathLike, role: str) -> None
     nan, inf = int(np.isnan(values).sum()), int(np.isinf(values).sum())
     if nan or inf:
         why = " (values beyond float32's +-3.4e38 read as Inf)" if inf else ""
-        raise InputError(f"{role} {str(path)!r}: expected finite voxels, got {nan} NaN and {inf} Inf voxels{why}; "
-                         "replace them (e.g. with 0) first")
+        raise InputError(
+            f"{role} {str(path)!r}: expected finite voxels, got {nan} NaN and {inf} Inf voxels{why}; "
+            "replace them (e.g. with 0) first"
+        )
 
 
 def check_nifti_voxels(image: nib.Nifti1Image, path: str | os.PathLike, role: str) -> np.ndarray:
@@ -189,16 +220,20 @@ def check_nifti_voxels(image: nib.Nifti1Image, path: str | os.PathLike, role: st
     try:
         values = np.asanyarray(image.dataobj)
     except MemoryError:
-        raise InputError(f"{role} {str(path)!r}: expected an image that fits in memory, got size {tuple(image.shape)} "
-                         f"({image.get_data_dtype()}) that does not; downsample it or lower {MAX_VOXELS_ENV}") from None
+        raise InputError(
+            f"{role} {str(path)!r}: expected an image that fits in memory, got size {tuple(image.shape)} "
+            f"({image.get_data_dtype()}) that does not; downsample it or lower {MAX_VOXELS_ENV}"
+        ) from None
     except _READ_ERRORS as err:
         raise corrupt_file_error(path, role, err) from None
     if values.dtype.kind == "f":
         check_finite(values, path, role)
         peak = float(np.abs(values).max())
         if peak > _FLOAT32_MAX:
-            raise InputError(f"{role} {str(path)!r}: expected intensities within float32's range (|v| <= 3.4e38), got "
-                             f"values up to {peak:.3g}; rescale the image")
+            raise InputError(
+                f"{role} {str(path)!r}: expected intensities within float32's range (|v| <= 3.4e38), got "
+                f"values up to {peak:.3g}; rescale the image"
+            )
     return values
 
 
@@ -207,8 +242,10 @@ def check_image_values(values: np.ndarray, path: str | os.PathLike, role: str) -
     check_finite(values, path, role)
     low, high = float(values.min()), float(values.max())
     if low == high:
-        raise InputError(f"{role} {str(path)!r}: expected an image with contrast, got a constant one (every voxel = "
-                         f"{low:g}); nothing to register")
+        raise InputError(
+            f"{role} {str(path)!r}: expected an image with contrast, got a constant one (every voxel = "
+            f"{low:g}); nothing to register"
+        )
 
 
 def check_label_values(values: np.ndarray, path: str | os.PathLike, role: str) -> None:
@@ -217,9 +254,12 @@ def check_label_values(values: np.ndarray, path: str | os.PathLike, role: str) -
     fractional = values != np.round(values)
     if fractional.any():
         example = float(values[fractional].flat[0])
-        raise InputError(f"{role} {str(path)!r}: not a label map: expected integer labels, got {int(fractional.sum())} "
-                         f"voxels holding non-integer values (e.g. {example:g})")
+        raise InputError(
+            f"{role} {str(path)!r}: not a label map: expected integer labels, got {int(fractional.sum())} "
+            f"voxels holding non-integer values (e.g. {example:g})"
+        )
     low, high = float(values.min()), float(values.max())
     if low < 0 or high > np.iinfo(np.int32).max:
-        raise InputError(f"{role} {str(path)!r}: expected label values that are integers in [0, 2^31), got "
-                         f"[{low:g}, {high:g}]")
+        raise InputError(
+            f"{role} {str(path)!r}: expected label values that are integers in [0, 2^31), got [{low:g}, {high:g}]"
+        )

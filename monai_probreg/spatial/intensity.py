@@ -23,6 +23,7 @@ LOWER_PERCENTILE, UPPER_PERCENTILE = 0.5, 99.5  # intensities here map to 0 and 
 def normalise_intensity(array: np.ndarray) -> np.ndarray:
     """Percentiles LOWER/UPPER_PERCENTILE -> 0 / 1, clipped (MONAI's ScaleIntensityRangePercentiles, as in training).
     Any array shape; float32 out."""
-    scale = ScaleIntensityRangePercentiles(lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0,
-                                           clip=True)
+    scale = ScaleIntensityRangePercentiles(
+        lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0, clip=True
+    )
     return np.asarray(torch.as_tensor(scale(torch.from_numpy(np.asarray(array, np.float32))[None]))[0])

@@ -36,8 +36,9 @@ class ModelGrid:
         axcodes: orientation of the model grid, in nibabel's convention (the bundle's is ``"RAS"``).
     """
 
-    def __init__(self, fixed_shape: Sequence[int], fixed_index_to_lps: np.ndarray, divisor: int = 16,
-                 axcodes: str = "RAS") -> None:
+    def __init__(
+        self, fixed_shape: Sequence[int], fixed_index_to_lps: np.ndarray, divisor: int = 16, axcodes: str = "RAS"
+    ) -> None:
         if divisor < 1:
             raise ValueError(f"divisor must be >= 1; got {divisor}")
         self.fixed_shape = tuple(int(n) for n in fixed_shape)

@@ -34,17 +34,32 @@ import torch.nn.functional as F
 from monai_probreg.blocks.grid_coords import index_to_grid_matrix
 from monai_probreg.spatial.volume_io import Volume
 
-__all__ = ["affine_from_itk", "affine_to_itk", "apply_affine", "compose_forward", "compose_inverse",
-           "displacement_transform", "field_from_itk", "field_to_itk", "grid_points", "index_map", "mapped_index",
-           "mm_to_voxel", "resample_with_itk", "voxel_to_mm"]
+__all__ = [
+    "affine_from_itk",
+    "affine_to_itk",
+    "apply_affine",
+    "compose_forward",
+    "compose_inverse",
+    "displacement_transform",
+    "field_from_itk",
+    "field_to_itk",
+    "grid_points",
+    "index_map",
+    "mapped_index",
+    "mm_to_voxel",
+    "resample_with_itk",
+    "voxel_to_mm",
+]
 
 
 def index_map(shape: tuple[int, ...], matrix: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
     """``matrix[:3] @ (i, j, k, 1)`` (+ ``offset[i, j, k]``) for every voxel index of a grid of ``shape``: (I, J, K, 3)
     float64. Broadcast from three ``arange``s in torch (multi-threaded; no index array, no (N, 3) matmul)."""
     m = torch.from_numpy(np.asarray(matrix, dtype=np.float64)[:3].copy())
-    axes = [torch.arange(n, dtype=torch.float64).view([-1 if a == axis else 1 for a in range(3)])
-            for axis, n in enumerate(shape)]
+    axes = [
+        torch.arange(n, dtype=torch.float64).view([-1 if a == axis else 1 for a in range(3)])
+        for axis, n in enumerate(shape)
+    ]
     out = torch.empty((*shape, 3), dtype=torch.float64)
     for c in range(3):
         torch.add(m[c, 0] * axes[0] + m[c, 3], m[c, 1] * axes[1] + m[c, 2] * axes[2], out=out[..., c])
@@ -58,8 +73,13 @@ def grid_points(shape: tuple[int, ...], index_to_lps: np.ndarray) -> np.ndarray:
     return index_map(shape, index_to_lps)
 
 
-def mapped_index(shape: tuple[int, ...], index_to_lps: np.ndarray, target_index_to_lps: np.ndarray,
-                 affine: np.ndarray | None = None, field: np.ndarray | None = None) -> np.ndarray:
+def mapped_index(
+    shape: tuple[int, ...],
+    index_to_lps: np.ndarray,
+    target_index_to_lps: np.ndarray,
+    affine: np.ndarray | None = None,
+    field: np.ndarray | None = None,
+) -> np.ndarray:
     """Where every voxel ``p`` of a grid lands in another: the continuous index, in the grid ``target_index_to_lps``,
     of ``A(p) + field(p)`` (I, J, K, 3) float64, ``A`` = ``affine`` (4, 4, default the identity), ``field`` (I, J, K, 3)
     LPS mm on the first grid (e.g. ``warp.nii.gz``'s ``D``, whose ``p + D(p)`` is the moving point of ``p``).
@@ -68,8 +88,11 @@ def mapped_index(shape: tuple[int, ...], index_to_lps: np.ndarray, target_index_
     (``G``, ``T``: the two grids' index -> LPS matrices). ``field`` is used at the precision it is given: pass the
     float32 field that is written, and the result is the index ITK's resampling through that file computes."""
     target_inverse = np.linalg.inv(np.asarray(target_index_to_lps, dtype=np.float64))
-    matrix = target_inverse @ (np.eye(4) if affine is None else np.asarray(affine, np.float64)) @ np.asarray(
-        index_to_lps, np.float64)
+    matrix = (
+        target_inverse
+        @ (np.eye(4) if affine is None else np.asarray(affine, np.float64))
+        @ np.asarray(index_to_lps, np.float64)
+    )
     offset = None
     if field is not None:
         flat = torch.from_numpy(np.asarray(field)).to(torch.float64).reshape(-1, 3)
@@ -111,8 +134,13 @@ def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, a
     return index_map(deformable_mm.shape[:3], affine @ grid - grid, moved.view(*deformable_mm.shape[:3], 3).numpy())
 
 
-def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[int, ...],
-                    moving_index_to_lps: np.ndarray, rows_per_chunk: int | None = None) -> np.ndarray:
+def compose_inverse(
+    inverse_mm: Volume,
+    affine: np.ndarray,
+    moving_shape: tuple[int, ...],
+    moving_index_to_lps: np.ndarray,
+    rows_per_chunk: int | None = None,
+) -> np.ndarray:
     """Composed inverse on the moving grid, ``D_inv(q) = a + d_inv(a) - q`` with ``a = A^-1(q)`` (*S_moving, 3) mm,
     float32 (the precision of the field file it becomes).
 
@@ -141,7 +169,7 @@ def compose_inverse(inverse_mm: Volume, affine: np.ndarray, moving_shape: tuple[
         first_row[0, 3] = start  # slab index (r, j, k) -> moving index (start + r, j, k)
         grid = torch.from_numpy(index_map(slab, normalise @ first_row)).float()
         values = F.grid_sample(source, grid[None], mode="bilinear", padding_mode="border", align_corners=True)[0]
-        out[start:start + slab[0]] = values.permute(1, 2, 3, 0) + torch.from_numpy(index_map(slab, shift @ first_row))
+        out[start : start + slab[0]] = values.permute(1, 2, 3, 0) + torch.from_numpy(index_map(slab, shift @ first_row))
     return out.numpy()
 
 
@@ -203,15 +231,21 @@ def displacement_transform(field: itk.Image) -> itk.DisplacementFieldTransform:
     return transform
 
 
-def resample_with_itk(moving: itk.Image, reference: itk.Image, transform: itk.Transform,
-                      nearest: bool = False) -> itk.Image:
+def resample_with_itk(
+    moving: itk.Image, reference: itk.Image, transform: itk.Transform, nearest: bool = False
+) -> itk.Image:
     """ITK's own resampling of ``moving`` onto ``reference``'s grid through ``transform`` (fixed -> moving),
     linear or nearest neighbour, 0 outside: what ``antsApplyTransforms -i moving -r reference -t ...`` does.
     The independent check of our outputs (tests, ``benchmarks/register_real_scan.py``)."""
     image_type = type(moving)
-    interpolator = (itk.NearestNeighborInterpolateImageFunction if nearest else itk.LinearInterpolateImageFunction)
+    interpolator = itk.NearestNeighborInterpolateImageFunction if nearest else itk.LinearInterpolateImageFunction
     resampler = itk.ResampleImageFilter[image_type, image_type].New(
-        Input=moving, Transform=transform, Interpolator=interpolator[image_type, itk.D].New(),
-        UseReferenceImage=True, ReferenceImage=reference, DefaultPixelValue=0)
+        Input=moving,
+        Transform=transform,
+        Interpolator=interpolator[image_type, itk.D].New(),
+        UseReferenceImage=True,
+        ReferenceImage=reference,
+        DefaultPixelValue=0,
+    )
     resampler.Update()
     return resampler.GetOutput()

@@ -46,14 +46,15 @@ def _query_shape(points: np.ndarray | None, index: np.ndarray | None) -> tuple[i
     return tuple(np.shape(points if points is not None else index))
 
 
-def _index_chunks(points: np.ndarray | None, volume: Volume, index: np.ndarray | None, chunk: int
-                  ) -> Iterator[tuple[int, torch.Tensor]]:
+def _index_chunks(
+    points: np.ndarray | None, volume: Volume, index: np.ndarray | None, chunk: int
+) -> Iterator[tuple[int, torch.Tensor]]:
     """(start, continuous indices (n, 3) float64) of ``points`` in ``volume``'s grid, ``chunk`` points at a time:
     ``index`` when the caller has it (the callers check both with :func:`_query_shape`), else
     :func:`continuous_index` per chunk."""
     source = (index if index is not None else np.asarray(points, dtype=np.float64)).reshape(-1, 3)
     for start in range(0, source.shape[0], chunk):
-        part = np.asarray(source[start:start + chunk], dtype=np.float64)
+        part = np.asarray(source[start : start + chunk], dtype=np.float64)
         yield start, torch.from_numpy(part if index is not None else continuous_index(part, volume.index_to_lps))
 
 
@@ -63,8 +64,14 @@ def _inside(index: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     return ((index >= -0.5) & (index < upper)).all(dim=-1)
 
 
-def sample_linear(volume: Volume, points: np.ndarray | None, fill: float = 0.0, outside: str = "fill",
-                  chunk: int = _CHUNK, index: np.ndarray | None = None) -> np.ndarray:
+def sample_linear(
+    volume: Volume,
+    points: np.ndarray | None,
+    fill: float = 0.0,
+    outside: str = "fill",
+    chunk: int = _CHUNK,
+    index: np.ndarray | None = None,
+) -> np.ndarray:
     """Trilinear samples of ``volume.array`` (I, J, K[, C]) at ``points`` (..., 3) -> (...[, C]) float64.
 
     ``outside``: ``"fill"`` (ITK: ``fill`` outside the half-voxel-extended grid) or ``"border"`` (clamp).
@@ -83,14 +90,15 @@ def sample_linear(volume: Volume, points: np.ndarray | None, fill: float = 0.0, 
     for start, index_part in _index_chunks(points, volume, index, chunk):
         grid = index_to_grid(index_part, sizes).view(1, -1, 1, 1, 3)  # blocks.grid_coords: normalised, xyz order
         values = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
-        out[start:start + len(index_part)] = values[0, :, :, 0, 0].T
+        out[start : start + len(index_part)] = values[0, :, :, 0, 0].T
         if outside == "fill":
-            out[start:start + len(index_part)][~_inside(index_part, data.shape[:3])] = fill
+            out[start : start + len(index_part)][~_inside(index_part, data.shape[:3])] = fill
     return out.numpy().reshape(*query_shape[:-1], *channels)
 
 
-def sample_nearest(volume: Volume, points: np.ndarray | None, fill: int = 0, index: np.ndarray | None = None,
-                   chunk: int = _CHUNK) -> np.ndarray:
+def sample_nearest(
+    volume: Volume, points: np.ndarray | None, fill: int = 0, index: np.ndarray | None = None, chunk: int = _CHUNK
+) -> np.ndarray:
     """Nearest-neighbour samples (ITK rounding, half up) at ``points`` (..., 3); ``fill`` outside; input dtype.
     ``index``, ``chunk``: as :func:`sample_linear`'s."""
     _, size_j, size_k = volume.shape
@@ -103,5 +111,5 @@ def sample_nearest(volume: Volume, points: np.ndarray | None, fill: int = 0, ind
         nearest[~inside] = 0  # any voxel: overwritten by ``fill`` below
         values = flat[(nearest[:, 0] * size_j + nearest[:, 1]) * size_k + nearest[:, 2]]
         values[~inside] = fill
-        out[start:start + len(values)] = values
+        out[start : start + len(values)] = values
     return out.numpy().reshape(query_shape[:-1])

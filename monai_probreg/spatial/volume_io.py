@@ -45,8 +45,16 @@ from monai_probreg.spatial.checks import (
 from monai_probreg.spatial.nifti_read import itk_geometry
 from monai_probreg.utils.errors import InputError
 
-__all__ = ["Volume", "LPS_TO_RAS", "read_image", "read_label", "check_same_grid", "volume_to_itk",
-           "volume_from_itk", "geometry_of"]
+__all__ = [
+    "Volume",
+    "LPS_TO_RAS",
+    "read_image",
+    "read_label",
+    "check_same_grid",
+    "volume_to_itk",
+    "volume_from_itk",
+    "geometry_of",
+]
 
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])  # its own inverse: RAS affine = LPS_TO_RAS @ index_to_lps
 
@@ -143,8 +151,9 @@ def _header(path: Path, role: str) -> tuple[list[int], int]:
     if image_io is None:
         if is_nifti(path):  # ITK cannot even identify a damaged .nii.gz; nibabel says what is wrong
             check_nifti_voxels(check_nifti_header(path, role), path, role)
-        raise InputError(f"{role} {str(path)!r}: not an image format ITK can read (use NIfTI .nii/.nii.gz, "
-                         ".nrrd, .mha, ...)")
+        raise InputError(
+            f"{role} {str(path)!r}: not an image format ITK can read (use NIfTI .nii/.nii.gz, .nrrd, .mha, ...)"
+        )
     try:
         image_io.SetFileName(str(path))
         image_io.ReadImageInformation()
@@ -192,8 +201,9 @@ def _read(path: str | os.PathLike, role: str, dtype: type) -> Volume:
     sizes, components = _header(path, role)
     nifti = check_nifti_header(path, role) if is_nifti(path) else None  # before any voxel is read
     if components != 1:
-        raise InputError(f"{role} {str(path)!r}: has {components} values per voxel (vector or RGB image); "
-                         "need a scalar 3-D volume")
+        raise InputError(
+            f"{role} {str(path)!r}: has {components} values per voxel (vector or RGB image); need a scalar 3-D volume"
+        )
     check_size(sizes, path, role)
     try:
         reader = itk.ImageFileReader[itk.Image[pixel, 3]].New(FileName=str(path))
@@ -229,9 +239,12 @@ def read_label(path: str | os.PathLike, role: str = "label map") -> Volume:
 def check_same_grid(label: Volume, image: Volume, label_role: str = "label map", image_role: str = "image") -> None:
     """InputError unless ``label`` lies on ``image``'s grid (same shape, spacing, direction and origin, to
     1e-4 relative and 1e-3 mm: header rounding, not a resampling)."""
+
     def fail(what: str) -> None:
-        raise InputError(f"{label_role} {label.path!r} is not on the grid of {image_role} {image.path!r}: {what}; "
-                         "resample the labels onto their image first (nearest neighbour)")
+        raise InputError(
+            f"{label_role} {label.path!r} is not on the grid of {image_role} {image.path!r}: {what}; "
+            "resample the labels onto their image first (nearest neighbour)"
+        )
 
     if label.shape != image.shape:
         fail(f"size {label.shape} vs {image.shape}")

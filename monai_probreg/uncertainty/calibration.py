@@ -83,8 +83,10 @@ class CalibrationRecord:
     fitted_on: list[str] = field(default_factory=list)
     num_samples: int = 0
     levels: list[float] = field(default_factory=lambda: list(FIT_LEVELS))
-    method: str = ("coverage matching: (std_scale, bias_fraction) of sigma^2 = std_scale^2 sigma^2 + (bias_fraction "
-                   "|mean velocity|)^2 minimise sum over levels of (coverage - level)^2 of the sampled displacements")
+    method: str = (
+        "coverage matching: (std_scale, bias_fraction) of sigma^2 = std_scale^2 sigma^2 + (bias_fraction "
+        "|mean velocity|)^2 minimise sum over levels of (coverage - level)^2 of the sampled displacements"
+    )
     bias_fraction: float = 0.0
 
 
@@ -98,8 +100,9 @@ def _check_bias_fraction(bias_fraction: float) -> None:
         raise ValueError(f"bias_fraction must be a finite number >= 0; got {bias_fraction}")
 
 
-def calibrate_log_var(log_var: Tensor, std_scale: float, mean: Tensor | None = None, bias_fraction: float = 0.0
-                      ) -> Tensor:
+def calibrate_log_var(
+    log_var: Tensor, std_scale: float, mean: Tensor | None = None, bias_fraction: float = 0.0
+) -> Tensor:
     """log sigma^2 of the calibrated posterior: ``log(std_scale^2 exp(log_var) + (bias_fraction |mean|)^2)``, i.e.
     ``log_var + 2 log(std_scale)`` without the bias term. ``log_var`` any shape; with ``bias_fraction`` > 0,
     ``mean`` (B, D, *V) the posterior mean velocity, same shape as ``log_var``."""
@@ -108,8 +111,10 @@ def calibrate_log_var(log_var: Tensor, std_scale: float, mean: Tensor | None = N
     if bias_fraction == 0:
         return log_var + 2.0 * math.log(std_scale)
     if mean is None or mean.shape != log_var.shape:
-        raise ValueError(f"bias_fraction > 0 needs the posterior mean of the log_var's shape {tuple(log_var.shape)}; "
-                         f"got {None if mean is None else tuple(mean.shape)}")
+        raise ValueError(
+            f"bias_fraction > 0 needs the posterior mean of the log_var's shape {tuple(log_var.shape)}; "
+            f"got {None if mean is None else tuple(mean.shape)}"
+        )
     return torch.log(std_scale**2 * log_var.exp() + bias_variance(mean, bias_fraction))
 
 
@@ -126,8 +131,7 @@ def _array(x: Tensor | np.ndarray) -> np.ndarray:
     return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, np.float64)
 
 
-def _fit_scale(s: np.ndarray, e: np.ndarray, b: np.ndarray, z: np.ndarray, levels: np.ndarray
-               ) -> tuple[float, float]:
+def _fit_scale(s: np.ndarray, e: np.ndarray, b: np.ndarray, z: np.ndarray, levels: np.ndarray) -> tuple[float, float]:
     """(scale, cost) for one bias variance ``b``: ``|e| <= z_p sqrt(scale^2 s^2 + b)`` <=> ``r_p <= scale^2`` with
     ``r_p = (e^2 / z_p^2 - b) / s^2``, so each level's coverage is a sorted search and each level alone has an exact
     solution; the scale is searched between those."""
@@ -141,9 +145,13 @@ def _fit_scale(s: np.ndarray, e: np.ndarray, b: np.ndarray, z: np.ndarray, level
     return float(candidates[best]), float(cost[best])
 
 
-def fit_calibration(std: Tensor | np.ndarray, error: Tensor | np.ndarray, displacement_norm: Tensor | np.ndarray,
-                    levels: Sequence[float] = FIT_LEVELS, bias_fractions: Sequence[float] = BIAS_FRACTIONS
-                    ) -> Calibration:
+def fit_calibration(
+    std: Tensor | np.ndarray,
+    error: Tensor | np.ndarray,
+    displacement_norm: Tensor | np.ndarray,
+    levels: Sequence[float] = FIT_LEVELS,
+    bias_fractions: Sequence[float] = BIAS_FRACTIONS,
+) -> Calibration:
     """(scale s, bias fraction a) for which the intervals ``|error| <= z_p sqrt(s^2 std^2 + a^2 n^2)`` cover closest
     to p over ``levels`` (least squares in coverage; a searched over ``bias_fractions``, s for each a).
 
@@ -151,10 +159,13 @@ def fit_calibration(std: Tensor | np.ndarray, error: Tensor | np.ndarray, displa
     entry per voxel and component. ``s`` multiplies the std the samples were drawn with."""
     s, e, n = _array(std).reshape(-1), _array(error).reshape(-1), _array(displacement_norm).reshape(-1)
     if not (s.shape == e.shape == n.shape) or s.size == 0:
-        raise ValueError(f"std, error and displacement_norm must have the same non-empty shape; got "
-                         f"{_array(std).shape}, {_array(error).shape} and {_array(displacement_norm).shape}")
-    if not (np.isfinite(s).all() and np.isfinite(e).all() and (s > 0).all() and np.isfinite(n).all()
-            and (n >= 0).all()):
+        raise ValueError(
+            f"std, error and displacement_norm must have the same non-empty shape; got "
+            f"{_array(std).shape}, {_array(error).shape} and {_array(displacement_norm).shape}"
+        )
+    if not (
+        np.isfinite(s).all() and np.isfinite(e).all() and (s > 0).all() and np.isfinite(n).all() and (n >= 0).all()
+    ):
         raise ValueError("std must be positive and finite, error finite, displacement_norm finite and >= 0")
     if not levels or not bias_fractions:
         raise ValueError(f"levels and bias_fractions must not be empty; got {list(levels)} and {list(bias_fractions)}")
@@ -181,14 +192,26 @@ def calibration_path(weights_file: str | os.PathLike) -> Path:
     return path.with_name(path.stem + ".calibration.json")
 
 
-def save_calibration(weights_file: str | os.PathLike, std_scale: float, fitted_on: Sequence[str] = (),
-                     num_samples: int = 0, levels: Sequence[float] = FIT_LEVELS,
-                     bias_fraction: float = 0.0) -> CalibrationRecord:
+def save_calibration(
+    weights_file: str | os.PathLike,
+    std_scale: float,
+    fitted_on: Sequence[str] = (),
+    num_samples: int = 0,
+    levels: Sequence[float] = FIT_LEVELS,
+    bias_fraction: float = 0.0,
+) -> CalibrationRecord:
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it."""
     _check_scale(std_scale)
     _check_bias_fraction(bias_fraction)
-    record = CalibrationRecord(float(std_scale), Path(weights_file).name, file_sha256(weights_file), list(fitted_on),
-                               int(num_samples), [float(p) for p in levels], bias_fraction=float(bias_fraction))
+    record = CalibrationRecord(
+        float(std_scale),
+        Path(weights_file).name,
+        file_sha256(weights_file),
+        list(fitted_on),
+        int(num_samples),
+        [float(p) for p in levels],
+        bias_fraction=float(bias_fraction),
+    )
     target = calibration_path(weights_file)
     write_text(target, json.dumps(asdict(record), indent=2))
     return record
@@ -206,9 +229,11 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
         raise ValueError(f"{path}: not a calibration record ({err})") from err
     actual = file_sha256(weights_file)
     if record.weights_sha256 != actual:
-        raise ValueError(f"{path} was fitted for weights with SHA-256 {record.weights_sha256[:12]}..., but "
-                         f"{weights_file} has {actual[:12]}...; refit it (benchmarks/uncertainty_calibration.py) "
-                         "or use std_scale 1 (raw)")
+        raise ValueError(
+            f"{path} was fitted for weights with SHA-256 {record.weights_sha256[:12]}..., but "
+            f"{weights_file} has {actual[:12]}...; refit it (benchmarks/uncertainty_calibration.py) "
+            "or use std_scale 1 (raw)"
+        )
     try:
         _check_scale(record.std_scale)
         _check_bias_fraction(record.bias_fraction)
@@ -225,8 +250,11 @@ def calibration_for(weights_file: str | os.PathLike, calibrate: bool = True) -> 
     try:
         record = load_calibration(weights_file)
     except FileNotFoundError:
-        warnings.warn(f"{weights_file} has no calibration ({calibration_path(weights_file).name}); "
-                      "uncertainty maps are the raw, uncalibrated posterior", stacklevel=2)
+        warnings.warn(
+            f"{weights_file} has no calibration ({calibration_path(weights_file).name}); "
+            "uncertainty maps are the raw, uncalibrated posterior",
+            stacklevel=2,
+        )
         return Calibration(1.0, 0.0)
     return Calibration(record.std_scale, record.bias_fraction)
 

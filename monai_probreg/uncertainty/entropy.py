@@ -23,8 +23,13 @@ from torch import Tensor
 
 from monai_probreg.blocks.sampling import sample_velocity
 
-__all__ = ["velocity_entropy", "DisplacementUncertainty", "displacement_uncertainty",
-           "sampled_displacement_moments", "label_entropy"]
+__all__ = [
+    "velocity_entropy",
+    "DisplacementUncertainty",
+    "displacement_uncertainty",
+    "sampled_displacement_moments",
+    "label_entropy",
+]
 
 _LOG_2PI_E = math.log(2.0 * math.pi * math.e)
 

@@ -62,8 +62,10 @@ def posterior_maps(
     the covariance is rotation-invariant, so per-axis voxel variances times spacing^2 give it exactly), or None for
     voxels."""
     if velocity_mean.shape[0] != 1 or velocity_mean.shape != velocity_log_var.shape:
-        raise ValueError(f"expected one pair's posterior, mean and log_var (1, D, *V); got "
-                         f"{tuple(velocity_mean.shape)} and {tuple(velocity_log_var.shape)}")
+        raise ValueError(
+            f"expected one pair's posterior, mean and log_var (1, D, *V); got "
+            f"{tuple(velocity_mean.shape)} and {tuple(velocity_log_var.shape)}"
+        )
     if num_samples == 1 or num_samples < 0:
         raise ValueError(f"num_samples must be 0 (no sampling) or >= 2 (a spread needs two); got {num_samples}")
     size = tuple(int(s) for s in spatial_size)
@@ -80,8 +82,9 @@ def posterior_maps(
             labels.extend(warp_labels(moving_label.to(disp.device), d[None])[0, 0] for d in disp)
         return disp
 
-    _, variance = sampled_displacement_moments(velocity_mean.float(), log_var, to_displacement, num_samples,
-                                               generator, SAMPLE_CHUNK)
+    _, variance = sampled_displacement_moments(
+        velocity_mean.float(), log_var, to_displacement, num_samples, generator, SAMPLE_CHUNK
+    )
     if spacing is not None:
         if len(spacing) != variance.shape[1]:
             raise ValueError(f"expected one spacing per axis ({variance.shape[1]}); got {tuple(spacing)}")

@@ -57,12 +57,12 @@ __all__ = [
     "save_quality_model",
 ]
 
-FAILURE_MARGIN = 0.05       # Dice below no registration + this counts as a failure (the issue's definition)
-RIDGE = 1e-2                # L2 penalty of both fits, on standardised features (numerical safety, not tuning)
-NEWTON_STEPS = 50           # logistic fit: Newton iterations (converges in < 15 on the failure set)
-DEFAULT_THRESHOLD = 0.5     # failure probability from which a registration is flagged
-LNCC_DROP_MARGIN = 0.002    # local-NCC drop beyond which the deformable step "made the images less alike" (module
-                            # docstring; benchmarks/lncc_margin.py: above bf16's effect, below the failure set's drops)
+FAILURE_MARGIN = 0.05  # Dice below no registration + this counts as a failure (the issue's definition)
+RIDGE = 1e-2  # L2 penalty of both fits, on standardised features (numerical safety, not tuning)
+NEWTON_STEPS = 50  # logistic fit: Newton iterations (converges in < 15 on the failure set)
+DEFAULT_THRESHOLD = 0.5  # failure probability from which a registration is flagged
+LNCC_DROP_MARGIN = 0.002  # local-NCC drop beyond which the deformable step "made the images less alike" (module
+# docstring; benchmarks/lncc_margin.py: above bf16's effect, below the failure set's drops)
 
 
 def failed(dice: float, dice_before: float, dice_identity: float, margin: float = FAILURE_MARGIN) -> bool:
@@ -81,10 +81,16 @@ class QualityEstimate(NamedTuple):
 def quality_record(features: QualityFeatures, estimate: QualityEstimate) -> dict:
     """The estimate and its features as strict JSON (NaN -> null): what ``summary.json``, ``quality.json`` and
     ``scores.json`` store, on the command line and in the bundle alike."""
+
     def finite(v: float) -> float | None:
         return None if math.isnan(v) else float(v)
-    return {"predicted_dice": finite(estimate.predicted_dice), "failure_probability": estimate.failure_probability,
-            "warning": estimate.warning, "features": {k: finite(v) for k, v in features._asdict().items()}}
+
+    return {
+        "predicted_dice": finite(estimate.predicted_dice),
+        "failure_probability": estimate.failure_probability,
+        "warning": estimate.warning,
+        "features": {k: finite(v) for k, v in features._asdict().items()},
+    }
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
@@ -96,7 +102,7 @@ class QualityModel:
     """Standardisation and the two linear models; :meth:`estimate` applies them to :class:`QualityFeatures`."""
 
     feature_names: list[str]
-    low: list[float]   # per feature: the training range, features are clipped to it
+    low: list[float]  # per feature: the training range, features are clipped to it
     high: list[float]
     mean: list[float]
     scale: list[float]
@@ -110,8 +116,7 @@ class QualityModel:
     weights_file: str = ""
     weights_sha256: str = ""
     fitted_on: list[str] = field(default_factory=list)
-    definition: str = (f"failed = Dice < Dice before the deformable step, or Dice < no registration + "
-                       f"{FAILURE_MARGIN}")
+    definition: str = f"failed = Dice < Dice before the deformable step, or Dice < no registration + {FAILURE_MARGIN}"
 
     def __post_init__(self) -> None:
         n = len(self.feature_names)
@@ -146,29 +151,44 @@ class QualityModel:
     def estimate(self, features: QualityFeatures) -> QualityEstimate:
         """The estimate of one registration, with a one-line warning when it probably failed."""
         if not all(math.isfinite(v) for v in features):
-            return QualityEstimate(math.nan, 1.0, "the registration's quality features are not finite "
-                                   "(an empty or constant image?): do not trust this registration")
+            return QualityEstimate(
+                math.nan,
+                1.0,
+                "the registration's quality features are not finite "
+                "(an empty or constant image?): do not trust this registration",
+            )
         dice, probability = (float(a[0]) for a in self.predict([features]))
         warning = None
         if probability >= self.threshold:
-            warning = (f"this registration probably failed (estimated probability {probability:.2f}, predicted Dice "
-                       f"{dice:.2f}): check the QC figure, the input's orientation header, field of view and contrast")
+            warning = (
+                f"this registration probably failed (estimated probability {probability:.2f}, predicted Dice "
+                f"{dice:.2f}): check the QC figure, the input's orientation header, field of view and contrast"
+            )
         elif features.lncc_after < features.lncc_before - self.lncc_drop_margin:
-            warning = (f"the deformable step made the images less alike (local NCC {features.lncc_before:.3f} -> "
-                       f"{features.lncc_after:.3f}): it probably did worse than the affine alone (affine.tfm); check "
-                       "the QC figure")
+            warning = (
+                f"the deformable step made the images less alike (local NCC {features.lncc_before:.3f} -> "
+                f"{features.lncc_after:.3f}): it probably did worse than the affine alone (affine.tfm); check "
+                "the QC figure"
+            )
         return QualityEstimate(dice, probability, warning)
 
 
-def fit_quality_model(features: Sequence[QualityFeatures], dice: Sequence[float], failures: Sequence[bool],
-                      threshold: float = DEFAULT_THRESHOLD, fitted_on: Sequence[str] = ()) -> QualityModel:
+def fit_quality_model(
+    features: Sequence[QualityFeatures],
+    dice: Sequence[float],
+    failures: Sequence[bool],
+    threshold: float = DEFAULT_THRESHOLD,
+    fitted_on: Sequence[str] = (),
+) -> QualityModel:
     """Fit both models on registrations with known outcome (training subjects only)."""
     x = np.asarray([list(f) for f in features], dtype=np.float64)
     y = np.asarray(dice, dtype=np.float64)
     t = np.asarray(failures, dtype=np.float64)
     if x.ndim != 2 or len(x) < 2 or len(y) != len(x) or len(t) != len(x):
-        raise ValueError(f"need >= 2 registrations with one Dice and one failure flag each; got {len(x)} feature "
-                         f"rows, {len(y)} Dice values, {len(t)} flags")
+        raise ValueError(
+            f"need >= 2 registrations with one Dice and one failure flag each; got {len(x)} feature "
+            f"rows, {len(y)} Dice values, {len(t)} flags"
+        )
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise ValueError("features and Dice must be finite")
     mean, scale = x.mean(0), x.std(0)
@@ -186,10 +206,20 @@ def fit_quality_model(features: Sequence[QualityFeatures], dice: Sequence[float]
         fail_w -= step
         if np.abs(step).max() < 1e-8:
             break
-    return QualityModel(list(QualityFeatures._fields), x.min(0).tolist(), x.max(0).tolist(), mean.tolist(),
-                        scale.tolist(), dice_w[:-1].tolist(),
-                        float(dice_w[-1]), fail_w[:-1].tolist(), float(fail_w[-1]), float(threshold),
-                        dice_range=[float(y.min()), float(y.max())], fitted_on=list(fitted_on))
+    return QualityModel(
+        list(QualityFeatures._fields),
+        x.min(0).tolist(),
+        x.max(0).tolist(),
+        mean.tolist(),
+        scale.tolist(),
+        dice_w[:-1].tolist(),
+        float(dice_w[-1]),
+        fail_w[:-1].tolist(),
+        float(fail_w[-1]),
+        float(threshold),
+        dice_range=[float(y.min()), float(y.max())],
+        fitted_on=list(fitted_on),
+    )
 
 
 def quality_path(weights_file: str | os.PathLike) -> Path:
@@ -217,7 +247,8 @@ def load_quality_model(weights_file: str | os.PathLike) -> QualityModel | None:
         raise ValueError(f"{path}: not a quality model ({err})") from None
     actual = file_sha256(weights_file)
     if model.weights_sha256 != actual:
-        raise ValueError(f"{path} was fitted for weights with SHA-256 {model.weights_sha256[:12]}..., but "
-                         f"{weights_file} has {actual[:12]}...; refit it (benchmarks/failure_detection.py --fit)")
+        raise ValueError(
+            f"{path} was fitted for weights with SHA-256 {model.weights_sha256[:12]}..., but "
+            f"{weights_file} has {actual[:12]}...; refit it (benchmarks/failure_detection.py --fit)"
+        )
     return model
-

@@ -34,8 +34,8 @@ from monai_probreg.metrics.jacobian import jacobian_determinant
 __all__ = ["FOREGROUND_LEVEL", "LNCC_KERNEL", "QualityFeatures", "quality_features"]
 
 FOREGROUND_LEVEL = 0.05  # fixed-input intensity (of [0, 1]) above which a voxel is foreground (brain or head)
-LNCC_KERNEL = 5          # local NCC window, voxels of the half-resolution grid (about VoxelMorph's 9 at full)
-_MIN_FOREGROUND = 64     # fewer foreground voxels than this: no meaningful statistic (an almost empty fixed image)
+LNCC_KERNEL = 5  # local NCC window, voxels of the half-resolution grid (about VoxelMorph's 9 at full)
+_MIN_FOREGROUND = 64  # fewer foreground voxels than this: no meaningful statistic (an almost empty fixed image)
 
 
 class QualityFeatures(NamedTuple):
@@ -60,13 +60,22 @@ def _ncc(a: Tensor, b: Tensor) -> float:
 def _check(name: str, value: Tensor, shape: tuple[int, ...], channels: int | None = None) -> None:
     expected = shape if channels is None else (channels, *shape)
     if tuple(value.shape) != expected:
-        raise ValueError(f"{name} must have shape {expected} (the fixed grid{', one channel per axis' if channels else ''}"
-                         f"); got {tuple(value.shape)}")
+        raise ValueError(
+            f"{name} must have shape {expected} (the fixed grid{', one channel per axis' if channels else ''}"
+            f"); got {tuple(value.shape)}"
+        )
 
 
 @torch.inference_mode()
-def quality_features(moving: Tensor, fixed: Tensor, warped: Tensor, displacement: Tensor, entropy: Tensor,
-                     spacing: Sequence[float] | None = None, jacobian: Tensor | None = None) -> QualityFeatures:
+def quality_features(
+    moving: Tensor,
+    fixed: Tensor,
+    warped: Tensor,
+    displacement: Tensor,
+    entropy: Tensor,
+    spacing: Sequence[float] | None = None,
+    jacobian: Tensor | None = None,
+) -> QualityFeatures:
     """The features of one registration.
 
     Args:
@@ -95,8 +104,10 @@ def quality_features(moving: Tensor, fixed: Tensor, warped: Tensor, displacement
     displacement, entropy = torch.as_tensor(displacement).float(), torch.as_tensor(entropy).float()
     mask = fixed > FOREGROUND_LEVEL
     if int(mask.sum()) < _MIN_FOREGROUND:
-        raise ValueError(f"the fixed image has {int(mask.sum())} voxels above {FOREGROUND_LEVEL} of its [0, 1] range; "
-                         f"quality features need at least {_MIN_FOREGROUND}")
+        raise ValueError(
+            f"the fixed image has {int(mask.sum())} voxels above {FOREGROUND_LEVEL} of its [0, 1] range; "
+            f"quality features need at least {_MIN_FOREGROUND}"
+        )
     lncc = LocalNormalizedCrossCorrelationLoss(spatial_dims=dims, kernel_size=LNCC_KERNEL, reduction="none")
     pool = torch.nn.functional.avg_pool3d if dims == 3 else torch.nn.functional.avg_pool2d
     half = [pool(x[None, None], 2, ceil_mode=True) for x in (moving, warped, fixed)]

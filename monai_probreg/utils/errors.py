@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-__all__ = ['InputError', 'UntrustedFileError', 'first_line']
+__all__ = ["InputError", "UntrustedFileError", "first_line"]
 
 
 class InputError(ValueError):

@@ -18,8 +18,15 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["PARTIAL_FILE", "IMAGE_SUFFIXES", "atomic_write", "write_text", "parallel_writes", "remove_partial_files",
-           "file_stem"]
+__all__ = [
+    "PARTIAL_FILE",
+    "IMAGE_SUFFIXES",
+    "atomic_write",
+    "write_text",
+    "parallel_writes",
+    "remove_partial_files",
+    "file_stem",
+]
 
 _TOKEN_HEX = 12  # random hex digits in a temporary name
 PARTIAL_FILE = re.compile(rf"\..+\.[0-9a-f]{{{_TOKEN_HEX}}}\.tmp(\.[^.]+)*")

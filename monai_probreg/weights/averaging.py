@@ -41,12 +41,16 @@ def read_model_state(path: str | os.PathLike) -> dict[str, Tensor]:
     if isinstance(state, Mapping) and isinstance(state.get("model"), Mapping):
         state = state["model"]
     if not (isinstance(state, Mapping) and state and all(isinstance(v, Tensor) for v in state.values())):
-        raise InputError(f"weights file {str(path)!r}: expected a state dict of tensors or a training state with a "
-                         f"'model' entry, got {type(state).__name__}")
+        raise InputError(
+            f"weights file {str(path)!r}: expected a state dict of tensors or a training state with a "
+            f"'model' entry, got {type(state).__name__}"
+        )
     return dict(state)
 
 
-def average_state_dicts(states: Sequence[Mapping[str, Tensor]], names: Sequence[str] | None = None) -> dict[str, Tensor]:
+def average_state_dicts(
+    states: Sequence[Mapping[str, Tensor]], names: Sequence[str] | None = None
+) -> dict[str, Tensor]:
     """The element-wise mean of ``states`` (>= 2 state dicts with the same keys and shapes); ``names`` label them
     in errors (default: their positions)."""
     names = list(names) if names is not None else [f"state {i}" for i in range(len(states))]
@@ -58,12 +62,16 @@ def average_state_dicts(states: Sequence[Mapping[str, Tensor]], names: Sequence[
     for state, name in zip(states[1:], names[1:]):
         if set(state) != set(first):
             extra, missing = sorted(set(state) - set(first)), sorted(set(first) - set(state))
-            raise InputError(f"{name} does not hold the same network as {reference}: "
-                             f"keys only in {name}: {extra[:3]}, keys missing from it: {missing[:3]}")
+            raise InputError(
+                f"{name} does not hold the same network as {reference}: "
+                f"keys only in {name}: {extra[:3]}, keys missing from it: {missing[:3]}"
+            )
         for key, tensor in state.items():
             if tensor.shape != first[key].shape:
-                raise InputError(f"{name}: {key} has shape {tuple(tensor.shape)}, expected {tuple(first[key].shape)} "
-                                 f"as in {reference}")
+                raise InputError(
+                    f"{name}: {key} has shape {tuple(tensor.shape)}, expected {tuple(first[key].shape)} "
+                    f"as in {reference}"
+                )
     averaged = {}
     for key, tensor in first.items():
         if tensor.is_floating_point():
@@ -72,8 +80,10 @@ def average_state_dicts(states: Sequence[Mapping[str, Tensor]], names: Sequence[
         else:
             different = [name for state, name in zip(states, names) if not torch.equal(state[key], tensor)]
             if different:
-                raise InputError(f"{key} is not a floating tensor and differs between {reference} and {different[0]}: "
-                                 "integer buffers cannot be averaged")
+                raise InputError(
+                    f"{key} is not a floating tensor and differs between {reference} and {different[0]}: "
+                    "integer buffers cannot be averaged"
+                )
             averaged[key] = tensor.clone()
     return averaged
 
@@ -89,8 +99,9 @@ def _recorded_settings(paths: Sequence[Path], extra: Path | None) -> Path | None
     return found[0] if found else None
 
 
-def average_weight_files(inputs: Sequence[str | os.PathLike], out: str | os.PathLike,
-                         network_settings: str | os.PathLike | None = None) -> Path:
+def average_weight_files(
+    inputs: Sequence[str | os.PathLike], out: str | os.PathLike, network_settings: str | os.PathLike | None = None
+) -> Path:
     """Average the weights in ``inputs`` into the plain state dict ``out`` (written atomically), with the inputs'
     (or ``network_settings``') network-settings JSON beside it. Returns ``out``."""
     paths = [Path(p) for p in inputs]
@@ -107,12 +118,19 @@ def average_weight_files(inputs: Sequence[str | os.PathLike], out: str | os.Path
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m monai_probreg.weights.averaging", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python -m monai_probreg.weights.averaging",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("inputs", nargs="+", type=Path, help="weights or training-state files of one run (>= 2)")
     ap.add_argument("--out", type=Path, required=True, help="the averaged plain state dict")
-    ap.add_argument("--network-settings", type=Path, default=None,
-                    help="a <name>.network.json to write beside --out (default: the inputs' own, if any)")
+    ap.add_argument(
+        "--network-settings",
+        type=Path,
+        default=None,
+        help="a <name>.network.json to write beside --out (default: the inputs' own, if any)",
+    )
     args = ap.parse_args(argv)
     try:
         out = average_weight_files(args.inputs, args.out, args.network_settings)

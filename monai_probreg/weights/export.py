@@ -73,8 +73,16 @@ from monai_probreg.networks.probreg_net import ProbRegNet
 from monai_probreg.utils.files import atomic_write
 from monai_probreg.weights.loading import load_weights
 
-__all__ = ["EXPORT_OUTPUTS", "METADATA_FILE", "VERIFY_RTOL", "VERIFY_ATOL", "MeanRegistration", "export_torchscript",
-           "read_export_metadata", "main"]
+__all__ = [
+    "EXPORT_OUTPUTS",
+    "METADATA_FILE",
+    "VERIFY_RTOL",
+    "VERIFY_ATOL",
+    "MeanRegistration",
+    "export_torchscript",
+    "read_export_metadata",
+    "main",
+]
 
 EXPORT_OUTPUTS = ("warped", "displacement", "velocity_mean", "velocity_log_var")
 METADATA_FILE = "metadata.json"
@@ -91,13 +99,15 @@ def _check_input(x: Tensor, name: str, shape: list[int], device_type: str) -> Te
     """Runtime guard compiled with ``torch.jit.script``, so it survives tracing (a Python ``assert`` or ``if``
     would be evaluated once at trace time and dropped)."""
     if x.shape != shape:
-        raise ValueError(name + " must have shape " + str(shape) + " (fixed when the model was traced); got "
-                         + str(x.shape))
+        raise ValueError(
+            name + " must have shape " + str(shape) + " (fixed when the model was traced); got " + str(x.shape)
+        )
     if x.dtype != torch.float32:
         raise TypeError(name + " must be float32")
     if x.device.type != device_type:
-        raise ValueError(name + " must be on " + device_type + " (the device the model was traced on); got "
-                         + x.device.type)
+        raise ValueError(
+            name + " must be on " + device_type + " (the device the model was traced on); got " + x.device.type
+        )
     return x
 
 
@@ -108,8 +118,9 @@ def _quiet_jit() -> Iterator[None]:
     shape comparison or a size turned into an int (module docstring)."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.\w+` is (deprecated|not supported)",
-                                category=DeprecationWarning)
+        warnings.filterwarnings(
+            "ignore", message=r"`torch\.jit\.\w+` is (deprecated|not supported)", category=DeprecationWarning
+        )
         yield
 
 
@@ -160,8 +171,13 @@ def _random_pair(shape: Sequence[int], device: torch.device, seed: int) -> tuple
     return pair[0].to(device), pair[1].to(device)
 
 
-def _metadata(network: ProbRegNet, input_shape: list[int], outputs: Sequence[Tensor], device: torch.device,
-              max_abs_diff: dict[str, float]) -> dict[str, Any]:
+def _metadata(
+    network: ProbRegNet,
+    input_shape: list[int],
+    outputs: Sequence[Tensor],
+    device: torch.device,
+    max_abs_diff: dict[str, float],
+) -> dict[str, Any]:
     d = network.spatial_dims
     return {
         "format": "TorchScript (torch.jit.trace) of monai_probreg.weights.export.MeanRegistration, eval mode",
@@ -174,11 +190,11 @@ def _metadata(network: ProbRegNet, input_shape: list[int], outputs: Sequence[Ten
         "outputs": {name: list(t.shape) for name, t in zip(EXPORT_OUTPUTS, outputs)},
         "units": "voxels",
         "displacement": "in voxels of the input grid; channel k is the component along tensor axis 2 + k "
-                        f"(array axis k of the {d}-d image, no xyz flip)",
+        f"(array axis k of the {d}-d image, no xyz flip)",
         "velocity": "posterior mean and log-variance (log sigma^2) on the velocity grid, in velocity-grid voxels; "
-                    "channel k along tensor axis 2 + k",
+        "channel k along tensor axis 2 + k",
         "convention": "pull back: warped[x] = moving[x + displacement[x]], linear interpolation, voxel centres at "
-                      "integer indices (align_corners=True); the moving image is resampled into the fixed grid",
+        "integer indices (align_corners=True); the moving image is resampled into the fixed grid",
         "velocity_used": "posterior mean (eval mode, deterministic)",
         "network": {
             "spatial_dims": d,
@@ -224,15 +240,19 @@ def export_torchscript(network: ProbRegNet, input_size: Sequence[int], path: str
             traced = torch.jit.trace(wrapper, trace_pair, check_trace=False)
         _clear_grid_caches(net)
         actual = traced(*check_pair)
-    max_abs_diff = {name: float((a - e).abs().max()) if a.shape == e.shape else float("inf")
-                    for name, a, e in zip(EXPORT_OUTPUTS, actual, expected)}
+    max_abs_diff = {
+        name: float((a - e).abs().max()) if a.shape == e.shape else float("inf")
+        for name, a, e in zip(EXPORT_OUTPUTS, actual, expected)
+    }
     try:
         for name, a, e in zip(EXPORT_OUTPUTS, actual, expected):
             torch.testing.assert_close(a, e, rtol=VERIFY_RTOL, atol=VERIFY_ATOL, msg=lambda m, n=name: f"{n}: {m}")
     except AssertionError as err:
-        raise RuntimeError(f"the traced model does not reproduce the eager one on a random input of shape "
-                           f"{input_shape} (rtol {VERIFY_RTOL}, atol {VERIFY_ATOL}); not written to {str(path)!r}. "
-                           f"{err}") from err
+        raise RuntimeError(
+            f"the traced model does not reproduce the eager one on a random input of shape "
+            f"{input_shape} (rtol {VERIFY_RTOL}, atol {VERIFY_ATOL}); not written to {str(path)!r}. "
+            f"{err}"
+        ) from err
     meta = json.dumps(_metadata(net, input_shape, expected, device, max_abs_diff), indent=2)
 
     def write(tmp: str) -> None:
@@ -248,7 +268,9 @@ def read_export_metadata(path: str | os.PathLike) -> dict[str, Any]:
     with zipfile.ZipFile(path) as archive:
         names = [n for n in archive.namelist() if n.endswith(f"/extra/{METADATA_FILE}")]
         if not names:
-            raise ValueError(f"{str(path)!r} has no extra/{METADATA_FILE}; not written by monai_probreg.weights.export?")
+            raise ValueError(
+                f"{str(path)!r} has no extra/{METADATA_FILE}; not written by monai_probreg.weights.export?"
+            )
         return json.loads(archive.read(names[0]))
 
 
@@ -256,11 +278,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command line: build the network from a bundle config's ``network_def``, load weights, export."""
     parser = argparse.ArgumentParser(prog="python -m monai_probreg.weights.export", description=main.__doc__)
     parser.add_argument("--model-file", required=True, help="ProbRegNet state_dict (bundle models/model.pt)")
-    parser.add_argument("--config", required=True,
-                        help="bundle config with a network_def matching the weights (configs/inference.yaml)")
+    parser.add_argument(
+        "--config", required=True, help="bundle config with a network_def matching the weights (configs/inference.yaml)"
+    )
     parser.add_argument("--out", required=True, help="TorchScript file to write (bundle models/model.ts)")
-    parser.add_argument("--input-size", required=True, type=int, nargs="+", metavar="N",
-                        help="spatial size the model will accept, e.g. 160 192 160 (input shape (1, 1, *N))")
+    parser.add_argument(
+        "--input-size",
+        required=True,
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="spatial size the model will accept, e.g. 160 192 160 (input shape (1, 1, *N))",
+    )
     parser.add_argument("--device", default="cpu", help="device to trace on, and the only one the file runs on")
     args = parser.parse_args(argv)
 
@@ -271,9 +300,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     network = load_weights(config.get_parsed_content("network_def"), args.model_file, args.device)
     path = export_torchscript(network, args.input_size, args.out)
     meta = read_export_metadata(path)
-    print(f"wrote {path}: input {meta['input_shape']} float32 on {meta['device']}, outputs "
-          + ", ".join(f"{k} {v}" for k, v in meta["outputs"].items())
-          + f"; max |traced - eager| {max(meta['verification']['max_abs_diff'].values()):.2e}")
+    print(
+        f"wrote {path}: input {meta['input_shape']} float32 on {meta['device']}, outputs "
+        + ", ".join(f"{k} {v}" for k, v in meta["outputs"].items())
+        + f"; max |traced - eager| {max(meta['verification']['max_abs_diff'].values()):.2e}"
+    )
     return 0
 
 

@@ -21,7 +21,7 @@ from torch import nn
 from monai_probreg.utils.errors import InputError, UntrustedFileError, first_line
 from monai_probreg.weights.settings import check_network_settings
 
-__all__ = ['safe_torch_load', 'load_weights']
+__all__ = ["safe_torch_load", "load_weights"]
 
 
 def _unpickling_reason(err: BaseException) -> str:
@@ -30,8 +30,9 @@ def _unpickling_reason(err: BaseException) -> str:
     return (useful or lines or [type(err).__name__])[0][:200]
 
 
-def safe_torch_load(path: str | os.PathLike, role: str = "weights file",
-                    map_location: str | torch.device | None = "cpu") -> Any:
+def safe_torch_load(
+    path: str | os.PathLike, role: str = "weights file", map_location: str | torch.device | None = "cpu"
+) -> Any:
     """``torch.load(path, weights_only=True)`` with one-line errors: :class:`UntrustedFileError` for a pickle that
     needs more than tensors and plain containers (nothing in it is run), InputError for a truncated/corrupt file."""
     where = f"{role} {str(path)!r}"
@@ -41,10 +42,12 @@ def safe_torch_load(path: str | os.PathLike, role: str = "weights file",
         raise UntrustedFileError(
             f"{where}: refused: expected a plain state dict (tensors, numbers, strings, containers), got a pickle "
             f"that asks for more ({_unpickling_reason(err)}); nothing in it was run. Load weights only from sources "
-            "you trust, re-saved as a plain state_dict") from None
+            "you trust, re-saved as a plain state_dict"
+        ) from None
     except (RuntimeError, EOFError, OSError, ValueError, zlib.error) as err:
-        raise InputError(f"{where}: expected a complete torch weights file, got a truncated or corrupt one "
-                         f"({first_line(err)})") from None
+        raise InputError(
+            f"{where}: expected a complete torch weights file, got a truncated or corrupt one ({first_line(err)})"
+        ) from None
 
 
 def load_weights(network: nn.Module, model_file: str | os.PathLike, device: str | torch.device = "cpu") -> nn.Module:
@@ -55,8 +58,9 @@ def load_weights(network: nn.Module, model_file: str | os.PathLike, device: str 
     settings differ from those recorded next to the file (:mod:`monai_probreg.weights.settings`)."""
     path = Path(model_file)
     if not path.is_file():
-        raise FileNotFoundError(f"model file {str(path)!r} does not exist (train.yaml writes models/model.pt; "
-                                "or pass --model_file PATH)")
+        raise FileNotFoundError(
+            f"model file {str(path)!r} does not exist (train.yaml writes models/model.pt; or pass --model_file PATH)"
+        )
     check_network_settings(path, network)  # network_size etc. leave no trace in the tensors: their JSON sidecar
     network.load_state_dict(safe_torch_load(path, "model file", map_location=device))
     return network.to(device).eval()

@@ -38,8 +38,9 @@ __all__ = ["MEAN_HEAD", "mirror_state_dict", "mirror_weight_file", "main"]
 MEAN_HEAD = "unet.mean_head"  # the conv whose output channels are velocity components (ProbRegNet's state-dict name)
 
 
-def mirror_state_dict(state: Mapping[str, Tensor], axes: Sequence[int], spatial_dims: int = 3,
-                      mean_head: str = MEAN_HEAD) -> dict[str, Tensor]:
+def mirror_state_dict(
+    state: Mapping[str, Tensor], axes: Sequence[int], spatial_dims: int = 3, mean_head: str = MEAN_HEAD
+) -> dict[str, Tensor]:
     """The state dict of the network that sees inputs mirrored along array ``axes`` (0-based spatial axes).
 
     Every convolution kernel (a tensor of ``spatial_dims + 2`` dims) is flipped along those axes; the output channels
@@ -63,8 +64,9 @@ def mirror_state_dict(state: Mapping[str, Tensor], axes: Sequence[int], spatial_
     return out
 
 
-def mirror_weight_file(source: str | os.PathLike, target: str | os.PathLike, axes: Sequence[int],
-                       spatial_dims: int = 3) -> Path:
+def mirror_weight_file(
+    source: str | os.PathLike, target: str | os.PathLike, axes: Sequence[int], spatial_dims: int = 3
+) -> Path:
     """Read a plain state dict (``weights_only=True``), mirror it, write it atomically to ``target``; the
     network-settings sidecar is copied along (the architecture does not change)."""
     source, target = Path(source), Path(target)
@@ -79,9 +81,10 @@ def mirror_weight_file(source: str | os.PathLike, target: str | os.PathLike, axe
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m monai_probreg.weights.orientation",
-                                     description="Weights for inputs mirrored along array axes (two axes: a turn by "
-                                                 "180 degrees about the third).")
+    parser = argparse.ArgumentParser(
+        prog="python -m monai_probreg.weights.orientation",
+        description="Weights for inputs mirrored along array axes (two axes: a turn by 180 degrees about the third).",
+    )
     parser.add_argument("source")
     parser.add_argument("target")
     parser.add_argument("--axes", type=int, nargs="+", required=True, help="spatial array axes, e.g. 0 1")

@@ -21,12 +21,25 @@ from torch import nn
 
 from monai_probreg.utils.errors import InputError
 
-__all__ = ["SETTING_NAMES", "NetworkSettingsWriter", "check_network_settings", "network_settings", "settings_path",
-           "write_network_settings"]
+__all__ = [
+    "SETTING_NAMES",
+    "NetworkSettingsWriter",
+    "check_network_settings",
+    "network_settings",
+    "settings_path",
+    "write_network_settings",
+]
 
 # ProbRegNet arguments that change what the weights compute (the speed levers and padding do not)
-SETTING_NAMES = ("spatial_dims", "enc_channels", "dec_channels", "int_downsize", "num_steps", "bidirectional",
-                 "network_size")
+SETTING_NAMES = (
+    "spatial_dims",
+    "enc_channels",
+    "dec_channels",
+    "int_downsize",
+    "num_steps",
+    "bidirectional",
+    "network_size",
+)
 _SUFFIX = ".network.json"
 
 
@@ -38,10 +51,15 @@ def settings_path(model_file: str | os.PathLike) -> Path:
 
 def network_settings(network: nn.Module) -> dict[str, Any]:
     """The :data:`SETTING_NAMES` of a :class:`~monai_probreg.ProbRegNet` as JSON values (tuples as lists)."""
-    values = {"spatial_dims": network.spatial_dims, "enc_channels": network.enc_channels,
-              "dec_channels": network.dec_channels, "int_downsize": network.unet.int_downsize,
-              "num_steps": network.integrate.num_steps, "bidirectional": network.bidirectional,
-              "network_size": network.network_size}
+    values = {
+        "spatial_dims": network.spatial_dims,
+        "enc_channels": network.enc_channels,
+        "dec_channels": network.dec_channels,
+        "int_downsize": network.unet.int_downsize,
+        "num_steps": network.integrate.num_steps,
+        "bidirectional": network.bidirectional,
+        "network_size": network.network_size,
+    }
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in values.items()}
 
 
@@ -74,16 +92,23 @@ def check_network_settings(model_file: str | os.PathLike, network: nn.Module) ->
     try:
         recorded = json.loads(path.read_text())
     except (OSError, ValueError) as err:
-        raise InputError(f"{str(path)!r} (the network settings of {Path(model_file).name}) cannot be read: "
-                         f"{err}") from None
+        raise InputError(
+            f"{str(path)!r} (the network settings of {Path(model_file).name}) cannot be read: {err}"
+        ) from None
     if not isinstance(recorded, dict):
         raise InputError(f"{str(path)!r} must hold a JSON object of network settings; got {type(recorded).__name__}")
     actual = network_settings(network)
-    wrong = [f"{name}: trained with {recorded[name]!r}, the network has {actual[name]!r}"
-             for name in SETTING_NAMES if name in recorded and recorded[name] != actual[name]]
+    wrong = [
+        f"{name}: trained with {recorded[name]!r}, the network has {actual[name]!r}"
+        for name in SETTING_NAMES
+        if name in recorded and recorded[name] != actual[name]
+    ]
     if wrong:
-        raise InputError(f"{str(model_file)!r} does not fit this network ({path.name}): " + "; ".join(wrong)
-                         + ". Set the trained values in the config (e.g. --network_size ...) or use other weights")
+        raise InputError(
+            f"{str(model_file)!r} does not fit this network ({path.name}): "
+            + "; ".join(wrong)
+            + ". Set the trained values in the config (e.g. --network_size ...) or use other weights"
+        )
     return recorded
 
 

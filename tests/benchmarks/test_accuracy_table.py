@@ -51,8 +51,6 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return bundle_with_random_model(tmp_path_factory.mktemp("bundle"), REPO / "bundle", network_size=None)
 
 
-
-
 def _run(tmp_path: Path, dataset: Path, bundle: Path, *extra: str) -> dict:
     out = tmp_path / "out"
     argv = ["--dataset-dir", str(dataset), "--bundle-root", str(bundle), "--out-dir", str(out), *FAST, *extra]
@@ -64,8 +62,19 @@ def test_table_json_and_chart(tmp_path, tiny_dataset, bundle, capsys):
     with_ants = _ants_importable()
     methods = ["identity", "ours", "refined"] + (["ants"] if with_ants else [])
     # posterior weight 0: the random head's log_var of -10 would pin the refined mean to the network's
-    result = _run(tmp_path, tiny_dataset, bundle, "--subjects", *SUBJECTS, "--methods", *methods,
-                  "--refine-iterations", "3", "--override", "refine_posterior_weight=0")
+    result = _run(
+        tmp_path,
+        tiny_dataset,
+        bundle,
+        "--subjects",
+        *SUBJECTS,
+        "--methods",
+        *methods,
+        "--refine-iterations",
+        "3",
+        "--override",
+        "refine_posterior_weight=0",
+    )
 
     assert result["subjects"] == SUBJECTS and result["dataset_dir"] == str(tiny_dataset.resolve())
     assert {"settings", "versions", "methods", "markdown", "tasks"} <= set(result)
@@ -135,8 +144,9 @@ def test_default_subjects_are_train_yaml_val_ids(tmp_path, tiny_dataset, bundle)
     train = custom / "configs" / "train.yaml"
     text = train.read_text()
     assert text.count("\nval_ids: ") == 1
-    train.write_text("\n".join("val_ids: [T03, T01]" if line.startswith("val_ids: ") else line
-                               for line in text.splitlines()) + "\n")
+    train.write_text(
+        "\n".join("val_ids: [T03, T01]" if line.startswith("val_ids: ") else line for line in text.splitlines()) + "\n"
+    )
     result = _run(tmp_path, tiny_dataset, custom, "--methods", "identity", "--tasks", "pairs")
     assert result["subjects"] == ["T03", "T01"] and list(result["methods"]) == ["identity"]
     assert result["tasks"] == {"pairs": ["T03_to_T01", "T01_to_T03"]}
@@ -144,8 +154,21 @@ def test_default_subjects_are_train_yaml_val_ids(tmp_path, tiny_dataset, bundle)
 
 def test_rows_without_antspyx_or_weights_say_why(tmp_path, tiny_dataset, bundle, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "ants", None)  # `import ants` raises ImportError
-    result = _run(tmp_path, tiny_dataset, bundle, "--subjects", "T01", "--tasks", "atlas", "--methods", "identity",
-                  "ants", "ours", "--model-file", str(tmp_path / "missing.pt"))
+    result = _run(
+        tmp_path,
+        tiny_dataset,
+        bundle,
+        "--subjects",
+        "T01",
+        "--tasks",
+        "atlas",
+        "--methods",
+        "identity",
+        "ants",
+        "ours",
+        "--model-file",
+        str(tmp_path / "missing.pt"),
+    )
     rows = result["methods"]
     assert rows["ants"]["status"].startswith("skipped: antspyx not importable")
     assert rows["ours"]["status"] == f"not trained (no {tmp_path / 'missing.pt'})"
@@ -173,8 +196,9 @@ def test_ants_field_reproduces_ants_label_warp(tiny_dataset):
 
     item = Dataset(labelled_pairs(index_dataset(tiny_dataset), ["T01"]), registration_transforms())[0]
     pair = {k: v[None] for k, v in item.items() if isinstance(v, torch.Tensor)}
-    ants_labels, displacement, runtime = accuracy_table.ants_register(pair["moving"], pair["fixed"],
-                                                                      pair["moving_label"])
+    ants_labels, displacement, runtime = accuracy_table.ants_register(
+        pair["moving"], pair["fixed"], pair["moving_label"]
+    )
     assert displacement.shape == (1, 3, 32, 32, 32) and runtime > 0
     ours = warp_labels(pair["moving_label"].as_tensor(), displacement)
     # both sample the moving labels nearest neighbour at the same points x + u(x); only points within float32

@@ -16,8 +16,10 @@ affine_levers = load_benchmark("affine_levers")
 @pytest.fixture
 def atlas(tmp_path):
     image, labels = asymmetric_phantom()
-    return prepare_fixed(save_lps(tmp_path / "atlas.nii.gz", image.astype(np.float32), FIXED_LPS),
-                         save_lps(tmp_path / "atlas_label.nii.gz", labels.astype(np.int16), FIXED_LPS)), labels
+    return prepare_fixed(
+        save_lps(tmp_path / "atlas.nii.gz", image.astype(np.float32), FIXED_LPS),
+        save_lps(tmp_path / "atlas_label.nii.gz", labels.astype(np.int16), FIXED_LPS),
+    ), labels
 
 
 def test_affine_dice_is_one_for_the_atlas_itself_and_drops_when_shifted(atlas):

@@ -16,8 +16,13 @@ LOCAL = {p.stem for p in SCRIPTS}
 
 
 def _edits_sys_path(tree: ast.AST) -> bool:
-    return any(isinstance(node, ast.Attribute) and node.attr == "path" and isinstance(node.value, ast.Name)
-               and node.value.id == "sys" for node in ast.walk(tree))
+    return any(
+        isinstance(node, ast.Attribute)
+        and node.attr == "path"
+        and isinstance(node.value, ast.Name)
+        and node.value.id == "sys"
+        for node in ast.walk(tree)
+    )
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
@@ -39,7 +44,9 @@ def test_default_paths_are_next_to_the_checkout():
 
 def test_parse_overrides_reads_yaml_values_and_refuses_a_bare_key():
     assert common.parse_overrides(["network_size=[80,96,80]", "network_size=null", "unet_precision=fp32"]) == {
-        "network_size": None, "unet_precision": "fp32"}
+        "network_size": None,
+        "unet_precision": "fp32",
+    }
     assert common.parse_overrides(["a=1", "b=0.5", "c=[1, 2]"]) == {"a": 1, "b": 0.5, "c": [1, 2]}
     for bad in ("network_size", "=3"):
         with pytest.raises(SystemExit, match="--override expects KEY=VALUE"):

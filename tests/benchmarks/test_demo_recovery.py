@@ -21,15 +21,17 @@ def fixed(tmp_path_factory):
     pytest.importorskip("ants", reason="antspyx (the .[bench] extra) is not installed")
     image, labels = asymmetric_phantom((48, 52, 44))
     template = np.where(labels > 0, np.clip(image, 0.05, None) * 200, 0).astype(np.float32)
-    path = save_lps(tmp_path_factory.mktemp("template") / "template.nii.gz", template,
-                    FIXED_LPS @ np.diag([1.5, 1.5, 1.5, 1.0]))
+    path = save_lps(
+        tmp_path_factory.mktemp("template") / "template.nii.gz", template, FIXED_LPS @ np.diag([1.5, 1.5, 1.5, 1.0])
+    )
     return prepare_fixed(path)
 
 
 def test_ants_recovers_a_known_shift_in_our_convention(fixed, monkeypatch):
     monkeypatch.setenv("ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS", "1")
-    shift_only = SyntheticSettings(max_rotation_deg=0, max_shift_mm=4.0, deform_rms_mm=0, bias_coeff=0,
-                                   noise_fraction=0, axcodes="PIR")
+    shift_only = SyntheticSettings(
+        max_rotation_deg=0, max_shift_mm=4.0, deform_rms_mm=0, bias_coeff=0, noise_fraction=0, axcodes="PIR"
+    )
     case = demo_recovery.ants_case(fixed, 3, shift_only)
     assert case["before"]["median_mm"] > 2.0  # a shift of a few mm to undo
     assert case["after"]["median_mm"] < 0.35 * case["before"]["median_mm"], case

@@ -108,9 +108,30 @@ def test_turned_inputs_give_the_labels_the_scans_turned_header(tmp_path):
 def test_robustness_refine_adds_a_refined_row_per_model(tmp_path):
     dataset = make_tiny_dataset(tmp_path / "data", num_subjects=2, shape=(32, 36, 28))
     bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
-    assert robustness.main(["--dataset-dir", str(dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
-                            "--conditions", "clean", "--refine", "2", "--label", "net", "--out-dir",
-                            str(tmp_path / "out"), "--name", "r"]) == 0
+    assert (
+        robustness.main(
+            [
+                "--dataset-dir",
+                str(dataset),
+                "--bundle-root",
+                str(bundle),
+                "--subjects",
+                "T01",
+                "T02",
+                "--conditions",
+                "clean",
+                "--refine",
+                "2",
+                "--label",
+                "net",
+                "--out-dir",
+                str(tmp_path / "out"),
+                "--name",
+                "r",
+            ]
+        )
+        == 0
+    )
     result = json.loads((tmp_path / "out" / "r.json").read_text())
     assert result["methods"] == ["affine_alone", "net", "net + refine 2"]
     assert result["refinement"]["num_iterations"] == 2

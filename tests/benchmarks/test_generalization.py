@@ -55,10 +55,11 @@ def test_a_synthetic_head_is_cropped_in_place_deformed_and_rendered(label_maps, 
     hi = np.minimum(nonzero.max(0) + generalization.SYNTH_CROP_MARGIN + 1, original.shape)
     assert head.shape == tuple(hi - lo)  # the head's box plus the margin, inside the field of view
     # the crop's voxel 0 is where the original's voxel lo was: cropping moves no anatomy in space
-    np.testing.assert_allclose(head.index_to_lps[:3, 3], original.index_to_lps[:3, :3] @ lo
-                               + original.index_to_lps[:3, 3])
+    np.testing.assert_allclose(
+        head.index_to_lps[:3, 3], original.index_to_lps[:3, :3] @ lo + original.index_to_lps[:3, 3]
+    )
     assert set(np.unique(head.array)) <= set(np.unique(original.array))
-    crop = original.array[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    crop = original.array[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     moved = (head.array != crop)[crop > 0].mean()
     assert 0.0 < moved < 0.2, f"a smooth deformation of a few mm changes some labels, not most: {moved:.3f}"
     image = nib.load(image_path)
@@ -81,16 +82,34 @@ def test_ants_records_are_computed_once_and_kept_in_the_file(tmp_path):
 
 def test_the_script_scores_the_synthetic_pairs_and_skips_what_is_missing(label_maps, tmp_path, capsys):
     out = tmp_path / "out"
-    code = generalization.main(["--parts", "synthetic", "native", "--no-ants", "--label-maps", str(label_maps),
-                                "--native-dir", str(tmp_path / "none"), "--threads", "1", "--out-dir", str(out),
-                                "--refine-iterations", "2"])
+    code = generalization.main(
+        [
+            "--parts",
+            "synthetic",
+            "native",
+            "--no-ants",
+            "--label-maps",
+            str(label_maps),
+            "--native-dir",
+            str(tmp_path / "none"),
+            "--threads",
+            "1",
+            "--out-dir",
+            str(out),
+            "--refine-iterations",
+            "2",
+        ]
+    )
     assert code == 0
     result = json.loads((out / "generalization.json").read_text())
     assert "skipped" in result["parts"]["native"]
     rows = result["parts"]["synthetic"]
     assert set(rows) == {"network (shipped)", "default (shipped)"}
-    pairs = {f"{a}_{s}_to_{b}_{s}" for s in generalization.SYNTH_SEEDS
-             for a, b in (generalization.SYNTH_MAPS, generalization.SYNTH_MAPS[::-1])}
+    pairs = {
+        f"{a}_{s}_to_{b}_{s}"
+        for s in generalization.SYNTH_SEEDS
+        for a, b in (generalization.SYNTH_MAPS, generalization.SYNTH_MAPS[::-1])
+    }
     for row in rows.values():
         assert set(row["per_pair"]) == pairs and 0.0 < row["dice"] <= 1.0
         assert row["dice"] == pytest.approx(np.mean(list(row["per_pair"].values())))

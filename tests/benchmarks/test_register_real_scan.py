@@ -33,9 +33,28 @@ def _one_itk_thread(monkeypatch, single_thread):
 def test_wiring_on_the_tiny_dataset(tmp_path, tiny_dataset, capsys):
     """Structure, not accuracy: a random model and a spherical phantom (rotation not identifiable: none applied)."""
     bundle = tiny_bundle(tmp_path / "bundle", REPO / "bundle")
-    argv = ["--dataset-dir", str(tiny_dataset), "--subject", "T01", "--bundle-root", str(bundle), "--threads", "1",
-            "--max-rotation", "0", "--max-translation", "2", "--out-dir", str(tmp_path / "out"), "--no-ants",
-            "--in-process", "--extra", "--affine-levels", "2", "1"]
+    argv = [
+        "--dataset-dir",
+        str(tiny_dataset),
+        "--subject",
+        "T01",
+        "--bundle-root",
+        str(bundle),
+        "--threads",
+        "1",
+        "--max-rotation",
+        "0",
+        "--max-translation",
+        "2",
+        "--out-dir",
+        str(tmp_path / "out"),
+        "--no-ants",
+        "--in-process",
+        "--extra",
+        "--affine-levels",
+        "2",
+        "1",
+    ]
     assert register_real_scan.main(argv) == 0
     result = json.loads((tmp_path / "out" / "register_real_scan.json").read_text())
     dice = result["mean_dice"]

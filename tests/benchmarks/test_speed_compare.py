@@ -34,10 +34,33 @@ def bundle(tmp_path_factory):
 def test_runs_each_method_in_its_own_process_and_writes_json_and_png(tmp_path, tiny_dataset, bundle, monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     out = tmp_path / "out"
-    code = speed_compare.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01",
-                               "T02", "--size", "32", "32", "48", "--methods", "ours_mean", "ours_mean_no_reuse", "ours_trained",
-                               "--repeats", "1", "--threads", "1", "--override", "network_size=[16,16,16]",
-                               "--out-dir", str(out)])
+    code = speed_compare.main(
+        [
+            "--dataset-dir",
+            str(tiny_dataset),
+            "--bundle-root",
+            str(bundle),
+            "--subjects",
+            "T01",
+            "T02",
+            "--size",
+            "32",
+            "32",
+            "48",
+            "--methods",
+            "ours_mean",
+            "ours_mean_no_reuse",
+            "ours_trained",
+            "--repeats",
+            "1",
+            "--threads",
+            "1",
+            "--override",
+            "network_size=[16,16,16]",
+            "--out-dir",
+            str(out),
+        ]
+    )
     assert code == 0
     report = json.loads((out / "speed_compare.json").read_text())
     assert (out / "speed_compare.png").stat().st_size > 0
@@ -67,9 +90,11 @@ def test_runs_each_method_in_its_own_process_and_writes_json_and_png(tmp_path, t
 
 
 def test_rows_keep_failures_and_ratios_come_from_the_same_run():
-    results = {"ours_mean": {"status": "ok", "median_s": 0.5, "peak_rss_mb": 1024.0, "threads": 2, "scores": {}},
-               "voxelmorph": {"status": "ok", "median_s": 10.0, "peak_rss_mb": 4096.0, "threads": 2, "scores": {}},
-               "ants": {"status": "skipped: antspyx not installed"}}
+    results = {
+        "ours_mean": {"status": "ok", "median_s": 0.5, "peak_rss_mb": 1024.0, "threads": 2, "scores": {}},
+        "voxelmorph": {"status": "ok", "median_s": 10.0, "peak_rss_mb": 4096.0, "threads": 2, "scores": {}},
+        "ants": {"status": "skipped: antspyx not installed"},
+    }
     rows = speed_compare.summarise(results, k=10)
     assert [r["key"] for r in rows] == ["ours_mean", "voxelmorph", "ants"]  # table order, whatever came first
     assert rows[1]["ratio_to_ours"] == 20.0 and rows[1]["peak_rss_gb"] == 4.0

@@ -79,8 +79,10 @@ class _ConstantPosterior(torch.nn.Module):
 
 
 def test_population_velocities_are_the_mean_and_the_deviations_from_it():
-    items = [{"moving": torch.full((1, 8, 8, 8), value), "fixed": torch.zeros((1, 8, 8, 8)), "id": f"T{value}"}
-             for value in (1.0, 2.0, 6.0)]
+    items = [
+        {"moving": torch.full((1, 8, 8, 8), value), "fixed": torch.zeros((1, 8, 8, 8)), "id": f"T{value}"}
+        for value in (1.0, 2.0, 6.0)
+    ]
     mean, deviations = bench.population_velocities(_ConstantPosterior(), items)
     assert mean.shape == (3, 4, 5, 3) and deviations.shape == (3, 3, 4, 5, 3)
     assert torch.allclose(mean, torch.full_like(mean, 3.0))
@@ -89,8 +91,9 @@ def test_population_velocities_are_the_mean_and_the_deviations_from_it():
 
 def test_population_velocities_need_two_subjects():
     with pytest.raises(SystemExit, match=">= 2 training subjects"):
-        bench.population_velocities(_ConstantPosterior(), [{"moving": torch.ones((1, 8, 8, 8)),
-                                                             "fixed": torch.ones((1, 8, 8, 8))}])
+        bench.population_velocities(
+            _ConstantPosterior(), [{"moving": torch.ones((1, 8, 8, 8)), "fixed": torch.ones((1, 8, 8, 8))}]
+        )
 
 
 def test_population_deformation_is_the_drawn_subject_to_atlas_field_and_its_inverse(brain):
@@ -104,7 +107,8 @@ def test_population_deformation_is_the_drawn_subject_to_atlas_field_and_its_inve
     forward, truth = bench.population_deformation(brain, draw)
     w = torch.randn(2, generator=torch.Generator().manual_seed(3))
     expected = bench.ScalingAndSquaring(num_steps=bench.TRUTH_STEPS)(
-        bench.resize_displacement(((w[0] - w[1]) * d)[None], brain.shape[2:]))
+        bench.resize_displacement(((w[0] - w[1]) * d)[None], brain.shape[2:])
+    )
     assert torch.allclose(truth, expected, atol=1e-5)
     inside = brain[0, 0] > 0
     assert compose_displacements(forward, truth)[0][:, inside].abs().max() < 0.05
@@ -119,7 +123,9 @@ def test_displacement_metrics_on_a_perfectly_calibrated_gaussian_reach_their_cei
     assert m["spearman_vector"] == pytest.approx(m["spearman_vector_ceiling"], abs=0.02)
     # one component's |error| scatters more at a given std than a vector's length: the vector ceiling is higher
     assert 0.3 < m["spearman_ceiling"] < m["spearman_vector_ceiling"] < 1.0
-    blind = bench.displacement_metrics(np.ones_like(std) + 1e-9 * rng.random(std.shape), std * rng.standard_normal(std.shape))
+    blind = bench.displacement_metrics(
+        np.ones_like(std) + 1e-9 * rng.random(std.shape), std * rng.standard_normal(std.shape)
+    )
     assert abs(blind["spearman_std_abs_error"]) < 0.02  # a std that knows nothing ranks nothing
 
 
@@ -131,17 +137,40 @@ def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path
 
     bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")  # configs' network grid, random weights
     out = tmp_path / "out"
-    code = bench.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
-                       "--deformations", "1", "--samples", "2", "--probe", "noise", "--out-dir", str(out), "--write-calibration",
-                       "--refine", "0"])  # the network's mean: random weights refined on a 16^3 blob fit no calibration
+    code = bench.main(
+        [
+            "--dataset-dir",
+            str(tiny_dataset),
+            "--bundle-root",
+            str(bundle),
+            "--subjects",
+            "T01",
+            "T02",
+            "--deformations",
+            "1",
+            "--samples",
+            "2",
+            "--probe",
+            "noise",
+            "--out-dir",
+            str(out),
+            "--write-calibration",
+            "--refine",
+            "0",
+        ]
+    )  # the network's mean: random weights refined on a 16^3 blob fit no calibration
     assert code == 0
     report = json.loads((out / "uncertainty_calibration.json").read_text())
-    assert (out / "uncertainty_reliability.png").stat().st_size > 0 and (out / "uncertainty_figure4.png").stat().st_size > 0
+    assert (out / "uncertainty_reliability.png").stat().st_size > 0 and (
+        out / "uncertainty_figure4.png"
+    ).stat().st_size > 0
     for row in ("raw", "calibrated"):
         m = report["summary"][row]
         assert 0 <= m["coverage_68"] <= m["coverage_95"] <= 1
-        assert all(-1 <= m[k] <= 1 for k in ("spearman_std_abs_error", "spearman_ceiling", "spearman_vector",
-                                             "spearman_vector_ceiling"))
+        assert all(
+            -1 <= m[k] <= 1
+            for k in ("spearman_std_abs_error", "spearman_ceiling", "spearman_vector", "spearman_vector_ceiling")
+        )
     assert set(report["fold_calibrations"]) == {"0", "1"}
     written = load_calibration(bundle / "models" / "model.pt")
     assert written.std_scale == report["written_calibration"]["std_scale"] > 0
@@ -158,8 +187,21 @@ def test_deformations_outside_the_seed_stride_are_refused(tmp_path, tiny_dataset
 
     bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
     with pytest.raises(SystemExit, match=rf"--deformations must be in \[1, {bench.SEED_STRIDE}\]"):
-        bench.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
-                    "--deformations", str(deformations), "--out-dir", str(tmp_path / "out")])
+        bench.main(
+            [
+                "--dataset-dir",
+                str(tiny_dataset),
+                "--bundle-root",
+                str(bundle),
+                "--subjects",
+                "T01",
+                "T02",
+                "--deformations",
+                str(deformations),
+                "--out-dir",
+                str(tmp_path / "out"),
+            ]
+        )
 
 
 def test_the_posterior_of_the_default_path_has_the_refined_mean_and_the_networks_variance(brain):
@@ -184,8 +226,23 @@ def test_main_calibrates_the_refined_mean_when_asked(tmp_path, tiny_dataset, sin
 
     bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
     out = tmp_path / "out"
-    common = ["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01", "T02",
-              "--deformations", "1", "--samples", "2", "--probe", "noise", "--out-dir", str(out)]
+    common = [
+        "--dataset-dir",
+        str(tiny_dataset),
+        "--bundle-root",
+        str(bundle),
+        "--subjects",
+        "T01",
+        "T02",
+        "--deformations",
+        "1",
+        "--samples",
+        "2",
+        "--probe",
+        "noise",
+        "--out-dir",
+        str(out),
+    ]
     assert bench.main([*common, "--refine", "2"]) == 0
     report = json.loads((out / "uncertainty_calibration.json").read_text())
     assert report["settings"]["refinement"]["num_iterations"] == 2

@@ -46,8 +46,7 @@ def test_directional_samples_lie_on_the_line_through_the_mean_and_the_truth():
     assert torch.allclose(t, t[:, :1].expand_as(t), atol=1e-4)  # one t per sample, the same at every voxel
     assert abs(float(t[:, 0].mean())) < 0.4 and 0.6 < float(t[:, 0].std()) < 1.4  # t ~ N(0, 1)
     with pytest.raises(ValueError, match=r"\(1, D, \*V\)"):
-        bench.directional_samples(mean.expand(2, -1, -1, -1, -1), truth.expand(2, -1, -1, -1, -1), 4,
-                                  torch.Generator())
+        bench.directional_samples(mean.expand(2, -1, -1, -1, -1), truth.expand(2, -1, -1, -1, -1), 4, torch.Generator())
 
 
 def test_boundary_distance_is_zero_on_both_sides_of_a_boundary_and_grows_away_from_it():
@@ -77,8 +76,20 @@ def test_main_writes_the_table(tmp_path, tiny_dataset, single_thread):
     bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
     out = tmp_path / "out"
     with pytest.warns(UserWarning, match="no calibration"):
-        code = bench.main(["--dataset-dir", str(tiny_dataset), "--bundle-root", str(bundle), "--subjects", "T01",
-                           "--samples", "2", "--out-dir", str(out)])
+        code = bench.main(
+            [
+                "--dataset-dir",
+                str(tiny_dataset),
+                "--bundle-root",
+                str(bundle),
+                "--subjects",
+                "T01",
+                "--samples",
+                "2",
+                "--out-dir",
+                str(out),
+            ]
+        )
     assert code == 0
     report = json.loads((out / "uncertainty_ceiling.json").read_text())
     assert report["subjects"] == ["T01"] and report["train_subjects_for_the_probe"] == ["T02", "T03"]

@@ -246,7 +246,9 @@ def test_split_is_automatic_for_one_large_item(monkeypatch):
     """With 2 threads a grid of 2 * MIN_POINTS_PER_THREAD points is cut in two, a small one is not."""
     calls = []
     real = F.grid_sample
-    monkeypatch.setattr(F, "grid_sample", lambda image, grid, **kw: calls.append(image.shape[0]) or real(image, grid, **kw))
+    monkeypatch.setattr(
+        F, "grid_sample", lambda image, grid, **kw: calls.append(image.shape[0]) or real(image, grid, **kw)
+    )
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     shape = (64, 64, 2 * MIN_POINTS_PER_THREAD // 4096)
     image, ddf = torch.rand(1, 1, *shape), torch.zeros(1, 3, *shape)

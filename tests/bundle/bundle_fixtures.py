@@ -11,10 +11,17 @@ NETWORK_SIZE = [16, 16, 16]
 
 def infer_workflow(config: str, bundle: Path, dataset: Path, output: Path, **override) -> ConfigWorkflow:
     """``configs/<config>`` of ``bundle`` as an initialised infer workflow on ``dataset`` writing to ``output``."""
-    settings = {"bundle_root": str(bundle), "dataset_dir": str(dataset), "output_dir": str(output),
-                "network_size": NETWORK_SIZE, "num_workers": 0, **override}
-    wf = ConfigWorkflow(config_file=str(bundle / "configs" / config), workflow_type="infer",
-                        logging_file=False, **settings)
+    settings = {
+        "bundle_root": str(bundle),
+        "dataset_dir": str(dataset),
+        "output_dir": str(output),
+        "network_size": NETWORK_SIZE,
+        "num_workers": 0,
+        **override,
+    }
+    wf = ConfigWorkflow(
+        config_file=str(bundle / "configs" / config), workflow_type="infer", logging_file=False, **settings
+    )
     wf.initialize()
     return wf
 

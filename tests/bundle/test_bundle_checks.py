@@ -37,8 +37,13 @@ ZOO_ENTRY = {
     "channels_last": "@channels_last",
     "fast_sampling": "@fast_sampling",
 }
-SMALL = {"network_size": [16, 16, 16], "enc_channels": [4, 8, 8, 8], "dec_channels": [8, 8, 8, 8, 4],
-         "unet_precision": "fp32", "channels_last": False}
+SMALL = {
+    "network_size": [16, 16, 16],
+    "enc_channels": [4, 8, 8, 8],
+    "dec_channels": [8, 8, 8, 8, 4],
+    "unet_precision": "fp32",
+    "channels_last": False,
+}
 
 
 @pytest.fixture()
@@ -65,16 +70,32 @@ def test_verify_net_in_out_on_the_zoo_entry(bundle_configs):
 
 def test_verify_net_in_out_catches_a_wrong_channel_count(bundle_configs):
     with pytest.raises(ValueError, match="output channel number"):
-        verify_net_in_out(net_id=ZOO_KEY, device="cpu", n=1, **bundle_configs, **SMALL,
-                          **{"_meta_#network_data_format#outputs#pred#num_channels": 2})
+        verify_net_in_out(
+            net_id=ZOO_KEY,
+            device="cpu",
+            n=1,
+            **bundle_configs,
+            **SMALL,
+            **{"_meta_#network_data_format#outputs#pred#num_channels": 2},
+        )
 
 
 def test_pair_input_net_is_probreg_net_displacement():
     torch.manual_seed(0)
-    net = PairInputNet(enc_channels=(4, 8), dec_channels=(8, 8, 4), network_size=(16, 16, 16),
-                       unet_precision="fp32", channels_last=False).eval()
-    plain = ProbRegNet(enc_channels=(4, 8), dec_channels=(8, 8, 4), network_size=(16, 16, 16),
-                       unet_precision="fp32", channels_last=False).eval()
+    net = PairInputNet(
+        enc_channels=(4, 8),
+        dec_channels=(8, 8, 4),
+        network_size=(16, 16, 16),
+        unet_precision="fp32",
+        channels_last=False,
+    ).eval()
+    plain = ProbRegNet(
+        enc_channels=(4, 8),
+        dec_channels=(8, 8, 4),
+        network_size=(16, 16, 16),
+        unet_precision="fp32",
+        channels_last=False,
+    ).eval()
     plain.load_state_dict(net.state_dict())  # same parameters, same keys
     for p in net.parameters():
         p.data.normal_(0.0, 0.2)

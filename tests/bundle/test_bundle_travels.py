@@ -32,10 +32,25 @@ def test_a_copied_bundle_runs_inference_from_its_own_data_folder(tmp_path):
     bundle = _copy(tmp_path)
     make_tiny_dataset(bundle / "data", num_subjects=1, shape=(32, 32, 32))  # the configs' default dataset_dir
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "monai.bundle", "run", "--config_file", "configs/inference.yaml", "--bundle_root",
-           ".", "--output_dir", str(out), "--num_workers", "0", "--num_samples", "2"]
-    done = subprocess.run(cmd, cwd=bundle, capture_output=True, text=True, timeout=600,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    cmd = [
+        sys.executable,
+        "-m",
+        "monai.bundle",
+        "run",
+        "--config_file",
+        "configs/inference.yaml",
+        "--bundle_root",
+        ".",
+        "--output_dir",
+        str(out),
+        "--num_workers",
+        "0",
+        "--num_samples",
+        "2",
+    ]
+    done = subprocess.run(
+        cmd, cwd=bundle, capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"}
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     written = sorted(p.name for p in (out / "T01").iterdir())
     assert "warped.nii.gz" in written and "displacement.nii.gz" in written

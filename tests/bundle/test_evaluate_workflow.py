@@ -21,10 +21,6 @@ from conftest import TINY_LABELS, make_tiny_dataset, numpy_mean_dice
 pytestmark = pytest.mark.usefixtures("single_thread")
 
 
-
-
-
-
 def test_evaluate_scores_every_labelled_subject(tmp_path, tiny_dataset, bundle, capsys):
     wf = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "out")
     assert wf.check_properties() == []  # InferProperties (+ MetaProperties when metadata.json exists), optional IDs
@@ -39,7 +35,9 @@ def test_evaluate_scores_every_labelled_subject(tmp_path, tiny_dataset, bundle, 
         dice += [float(row[f"dice_{lab}"]) for lab in TINY_LABELS]
         assert all(0.0 <= d <= 1.0 for d in dice), row
         # padding and RAS reorientation do not change Dice: the baseline equals numpy on the files (float64: 1e-12)
-        assert float(row["mean_dice_no_registration"]) == pytest.approx(numpy_mean_dice(tiny_dataset, row["id"]), abs=1e-12)
+        assert float(row["mean_dice_no_registration"]) == pytest.approx(
+            numpy_mean_dice(tiny_dataset, row["id"]), abs=1e-12
+        )
         # random initial weights move voxels by < 1e-4: the nearest-neighbour warp is the identity
         assert float(row["mean_dice"]) == pytest.approx(float(row["mean_dice_no_registration"]), abs=1e-12)
         assert int(row["num_folding"]) == 0 and float(row["runtime_s"]) > 0
@@ -61,8 +59,9 @@ def test_evaluate_with_refinement_runs_inside_the_evaluator(tmp_path, tiny_datas
     are in summary.json and its time is in the runtime."""
     plain = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "plain")
     plain.run()
-    wf = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "refined", refine_iterations=5,
-                        refine_posterior_weight=0.0)
+    wf = infer_workflow(
+        "evaluate.yaml", bundle, tiny_dataset, tmp_path / "refined", refine_iterations=5, refine_posterior_weight=0.0
+    )
     wf.run()
     summary = json.loads((tmp_path / "refined" / "summary.json").read_text())
     assert summary["config"]["refinement"]["num_iterations"] == 5
@@ -75,8 +74,20 @@ def test_evaluate_with_refinement_runs_inside_the_evaluator(tmp_path, tiny_datas
 
 def test_evaluate_command_line_as_documented(tmp_path, tiny_dataset, bundle):
     """Exactly the documented command with nothing else set (default network_size, workers, device)."""
-    cmd = [sys.executable, "-m", "monai.bundle", "run", "--config_file", str(bundle / "configs" / "evaluate.yaml"),
-           "--bundle_root", str(bundle), "--dataset_dir", str(tiny_dataset), "--output_dir", str(tmp_path / "out")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "monai.bundle",
+        "run",
+        "--config_file",
+        str(bundle / "configs" / "evaluate.yaml"),
+        "--bundle_root",
+        str(bundle),
+        "--dataset_dir",
+        str(tiny_dataset),
+        "--output_dir",
+        str(tmp_path / "out"),
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -96,12 +107,16 @@ def test_evaluate_without_labels_says_so(tmp_path, bundle):
 
 def test_evaluate_takes_a_pairs_file_with_any_fixed_image(tmp_path, tiny_dataset, bundle):
     pairs = tmp_path / "pairs.csv"
-    pairs.write_text("moving,fixed,moving_label,fixed_label,id\n"
-                     f"{tiny_dataset}/images/T01.nii.gz,{tiny_dataset}/images/T02.nii.gz,"
-                     f"{tiny_dataset}/labels/T01.nii.gz,{tiny_dataset}/labels/T02.nii.gz,T01_to_T02\n"
-                     f"{tiny_dataset}/images/T03.nii.gz,{tiny_dataset}/atlas/A01_image.nii.gz,"
-                     f"{tiny_dataset}/labels/T03.nii.gz,{tiny_dataset}/atlas/A01_label.nii.gz,T03_to_atlas\n")
-    wf = infer_workflow("evaluate.yaml", bundle, tmp_path / "no_such_dataset", tmp_path / "pairs", pairs_file=str(pairs))
+    pairs.write_text(
+        "moving,fixed,moving_label,fixed_label,id\n"
+        f"{tiny_dataset}/images/T01.nii.gz,{tiny_dataset}/images/T02.nii.gz,"
+        f"{tiny_dataset}/labels/T01.nii.gz,{tiny_dataset}/labels/T02.nii.gz,T01_to_T02\n"
+        f"{tiny_dataset}/images/T03.nii.gz,{tiny_dataset}/atlas/A01_image.nii.gz,"
+        f"{tiny_dataset}/labels/T03.nii.gz,{tiny_dataset}/atlas/A01_label.nii.gz,T03_to_atlas\n"
+    )
+    wf = infer_workflow(
+        "evaluate.yaml", bundle, tmp_path / "no_such_dataset", tmp_path / "pairs", pairs_file=str(pairs)
+    )
     wf.run()
     wf.finalize()
     with open(tmp_path / "pairs" / "scores.csv") as f:

@@ -21,8 +21,6 @@ from monai_probreg.engines.refinement import RefinementSettings
 pytestmark = pytest.mark.usefixtures("single_thread")
 
 
-
-
 def test_inference_writes_every_subject_on_the_atlas_grid(tmp_path, tiny_dataset, bundle):
     # the network alone (refine_iterations 0): random weights then give the identity, which the Jacobian check pins;
     # the default path's refinement is covered by test_evaluate_workflow's refinement test
@@ -62,15 +60,17 @@ def test_inference_without_labels_writes_no_label_maps(tmp_path, bundle):
     wf = infer_workflow("inference.yaml", bundle, dataset, tmp_path / "out")
     wf.run()
     assert sorted(p.name for p in (tmp_path / "out" / "T01").iterdir()) == sorted(
-        f"{name}.nii.gz" for name in OUTPUT_NAMES if name not in ("warped_label", "label_entropy"))
+        f"{name}.nii.gz" for name in OUTPUT_NAMES if name not in ("warped_label", "label_entropy")
+    )
 
 
 def test_inference_takes_a_pairs_file_without_labels(tmp_path, tiny_dataset, bundle):
     pairs = tmp_path / "pairs.json"
     import json
 
-    pairs.write_text(json.dumps([{"moving": f"{tiny_dataset}/images/T01.nii.gz",
-                                  "fixed": f"{tiny_dataset}/images/T02.nii.gz"}]))
+    pairs.write_text(
+        json.dumps([{"moving": f"{tiny_dataset}/images/T01.nii.gz", "fixed": f"{tiny_dataset}/images/T02.nii.gz"}])
+    )
     wf = infer_workflow("inference.yaml", bundle, tmp_path / "no_such_dataset", tmp_path / "out", pairs_file=str(pairs))
     wf.run()
     wf.finalize()
@@ -106,7 +106,8 @@ def test_inference_twice_writes_the_same_files(tmp_path, tiny_dataset, bundle):
         wf.run()
         wf.finalize()
     first = sorted(p.relative_to(tmp_path / "first") for p in (tmp_path / "first").rglob("*") if p.is_file())
-    assert first and first == sorted(p.relative_to(tmp_path / "second") for p in (tmp_path / "second").rglob("*")
-                                     if p.is_file())
+    assert first and first == sorted(
+        p.relative_to(tmp_path / "second") for p in (tmp_path / "second").rglob("*") if p.is_file()
+    )
     for path in first:
         assert (tmp_path / "first" / path).read_bytes() == (tmp_path / "second" / path).read_bytes(), path

@@ -89,8 +89,9 @@ def test_large_files_pass_the_zoos_download_step_without_a_download(tmp_path):
     from monai.apps.utils import HashCheckError, download_url
 
     for entry in _large_files():
-        download_url(url=entry["url"], filepath=BUNDLE / entry["path"], hash_val=entry["hash_val"],
-                     hash_type=entry["hash_type"])
+        download_url(
+            url=entry["url"], filepath=BUNDLE / entry["path"], hash_val=entry["hash_val"], hash_type=entry["hash_type"]
+        )
     changed = tmp_path / "model.pt"
     changed.write_bytes((BUNDLE / "models" / "model.pt").read_bytes() + b"\0")
     entry = _large_files()[0]

@@ -32,7 +32,7 @@ def test_shards_are_disjoint_and_cover_every_subject_once(world_size):
     items = [f"S{i:02d}" for i in range(5)]
     shards = [shard_items(items, rank, world_size) for rank in range(world_size)]
     assert sorted(sum(shards, [])) == items  # each exactly once, also with more ranks than subjects (7)
-    assert shards[0][:2] == items[:: world_size][:2]  # rank r takes r, r + W, ...
+    assert shards[0][:2] == items[::world_size][:2]  # rank r takes r, r + W, ...
     with pytest.raises(ValueError, match="expected 0 <= rank < world_size, got rank=3, world_size=3"):
         shard_items(items, 3, 3)
 
@@ -47,8 +47,10 @@ def test_rank_comes_from_the_environment_without_a_process_group(monkeypatch, tm
 def _scores(seed: float, labels=(21, 22)) -> tuple[PairScores, PairScores]:
     dice = {lab: 0.5 + 0.1 * seed + 0.01 * lab % 0.2 for lab in labels}
     base = {lab: d - 0.2 for lab, d in dice.items()}
-    return (PairScores(dice, sum(dice.values()) / len(dice), int(seed), 0.01 * seed, 0.1 + seed / 100, 1.0 + seed),
-            PairScores(base, sum(base.values()) / len(base), 0, 0.0, 0.0, 0.0))
+    return (
+        PairScores(dice, sum(dice.values()) / len(dice), int(seed), 0.01 * seed, 0.1 + seed / 100, 1.0 + seed),
+        PairScores(base, sum(base.values()) / len(base), 0, 0.0, 0.0, 0.0),
+    )
 
 
 def test_merge_reproduces_the_single_process_summary(tmp_path):
@@ -68,8 +70,10 @@ def test_merge_reproduces_the_single_process_summary(tmp_path):
     assert manifest["summary"] == single
     assert json.loads((sharded / "summary.json").read_text()) == single
     assert (sharded / "scores.csv").read_text() == (tmp_path / "single" / "scores.csv").read_text()
-    assert json.loads((sharded / MANIFEST).read_text())["subjects_per_rank"] == {"0": ["S00", "S02", "S04"],
-                                                                                 "1": ["S01", "S03"]}
+    assert json.loads((sharded / MANIFEST).read_text())["subjects_per_rank"] == {
+        "0": ["S00", "S02", "S04"],
+        "1": ["S01", "S03"],
+    }
     assert [(sharded / f"S{i:02d}" / "warped.nii.gz").read_text() for i in range(5)] == [f"S{i:02d}" for i in range(5)]
     assert not (sharded / SHARDS_DIR).exists()
 
@@ -89,9 +93,23 @@ def test_merge_refuses_missing_or_mixed_shards(tmp_path):
 def _bundle_run(configs: list[Path], bundle: Path, dataset: Path, out: Path, nproc: int, returncode: int = 0) -> str:
     """Run ``monai.bundle run`` on ``configs``: under torchrun with ``nproc`` gloo processes, or plain if 0."""
     launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}"] if nproc else []
-    cmd = [sys.executable, *launcher, "-m", "monai.bundle", "run",
-           "--config_file", "[" + ",".join(f"'{c}'" for c in configs) + "]",
-           "--bundle_root", str(bundle), "--dataset_dir", str(dataset), "--output_dir", str(out), "--num_workers", "0"]
+    cmd = [
+        sys.executable,
+        *launcher,
+        "-m",
+        "monai.bundle",
+        "run",
+        "--config_file",
+        "[" + ",".join(f"'{c}'" for c in configs) + "]",
+        "--bundle_root",
+        str(bundle),
+        "--dataset_dir",
+        str(dataset),
+        "--output_dir",
+        str(out),
+        "--num_workers",
+        "0",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}  # gloo on CPU even on a GPU host
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
     log = proc.stdout + proc.stderr
@@ -99,8 +117,10 @@ def _bundle_run(configs: list[Path], bundle: Path, dataset: Path, out: Path, npr
     return log
 
 
-needs_gloo = pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
-                                reason="torch.distributed with the gloo backend is not available in this torch build")
+needs_gloo = pytest.mark.skipif(
+    not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+    reason="torch.distributed with the gloo backend is not available in this torch build",
+)
 
 
 @needs_gloo
@@ -131,8 +151,13 @@ def test_two_process_inference_writes_every_subject_once(tmp_path, tiny_dataset,
     assert "merged 2 shards, 3 subjects" in log
     assert sorted(p.name for p in out.iterdir()) == ["README.txt", "T01", "T02", "T03", MANIFEST]
     manifest = json.loads((out / MANIFEST).read_text())
-    assert manifest == {"world_size": 2, "subjects_per_rank": {"0": ["T01", "T03"], "1": ["T02"]},
-                        "num_subjects": 3, "scored": False, "failed": []}
+    assert manifest == {
+        "world_size": 2,
+        "subjects_per_rank": {"0": ["T01", "T03"], "1": ["T02"]},
+        "num_subjects": 3,
+        "scored": False,
+        "failed": [],
+    }
     for sid in ("T01", "T02", "T03"):
         assert (out / sid / "displacement.nii.gz").is_file() and (out / sid / "warped_label.nii.gz").is_file()
 

@@ -23,8 +23,12 @@ N = len(QualityFeatures._fields)
 @pytest.fixture
 def always_warns(bundle):
     weights = bundle / "models" / "model.pt"
-    save_quality_model(QualityModel(list(QualityFeatures._fields), [-1e9] * N, [1e9] * N, [0.0] * N, [1.0] * N, [0.0] * N, 0.42,
-                                    [0.0] * N, 20.0), weights)
+    save_quality_model(
+        QualityModel(
+            list(QualityFeatures._fields), [-1e9] * N, [1e9] * N, [0.0] * N, [1.0] * N, [0.0] * N, 0.42, [0.0] * N, 20.0
+        ),
+        weights,
+    )
     yield weights
     quality_path(weights).unlink()
 
@@ -40,7 +44,9 @@ def test_evaluate_adds_the_estimate_and_the_warnings(tmp_path, tiny_dataset, bun
         assert float(row["predicted_dice"]) == pytest.approx(0.42) and float(row["failure_probability"]) > 0.99
         assert "probably failed" in row["warning"]
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert summary["quality"]["num_warnings"] == 3 and summary["quality"]["predicted_dice"]["mean"] == pytest.approx(0.42)
+    assert summary["quality"]["num_warnings"] == 3 and summary["quality"]["predicted_dice"]["mean"] == pytest.approx(
+        0.42
+    )
     assert [w["id"] for w in summary["quality"]["warnings"]] == [r["id"] for r in rows]
     assert sum("WARNING" in r.getMessage() for r in caplog.records) == 3
 

@@ -30,8 +30,14 @@ TINY = {"network_size": [32, 32, 32], "val_ids": ["T01"], "val_interval": 1, "nu
 
 def _workflow(tmp_path: Path, dataset: Path, config: str | Sequence[str] = str(TRAIN), **override) -> ConfigWorkflow:
     """An initialised train workflow on ``dataset`` writing into ``tmp_path`` (ckpt/, runs/)."""
-    settings = {**TINY, "bundle_root": str(BUNDLE), "dataset_dir": str(dataset),
-                "ckpt_dir": str(tmp_path / "ckpt"), "output_dir": str(tmp_path / "runs"), **override}
+    settings = {
+        **TINY,
+        "bundle_root": str(BUNDLE),
+        "dataset_dir": str(dataset),
+        "ckpt_dir": str(tmp_path / "ckpt"),
+        "output_dir": str(tmp_path / "runs"),
+        **override,
+    }
     wf = ConfigWorkflow(config_file=config, workflow_type="train", logging_file=False, **settings)
     wf.initialize()
     return wf
@@ -48,9 +54,15 @@ def _epoch(trainer_state: dict) -> int:
 
 def _net_from_config(wf: ConfigWorkflow) -> ProbRegNet:
     p = wf.parser
-    return ProbRegNet(spatial_dims=3, enc_channels=p["enc_channels"], dec_channels=p["dec_channels"],
-                      int_downsize=p["int_downsize"], num_steps=p["num_steps"], bidirectional=p["bidirectional"],
-                      network_size=p["network_size"])
+    return ProbRegNet(
+        spatial_dims=3,
+        enc_channels=p["enc_channels"],
+        dec_channels=p["dec_channels"],
+        int_downsize=p["int_downsize"],
+        num_steps=p["num_steps"],
+        bidirectional=p["bidirectional"],
+        network_size=p["network_size"],
+    )
 
 
 def test_train_writes_best_weights_and_training_state(tmp_path, tiny_dataset):
@@ -66,6 +78,7 @@ def test_train_writes_best_weights_and_training_state(tmp_path, tiny_dataset):
     _net_from_config(wf).load_state_dict(weights)  # strict: the same architecture, plain (unwrapped) names
     # the settings the tensors cannot show travel beside them, and the training config's network fits them
     from monai_probreg.weights.settings import check_network_settings
+
     recorded = check_network_settings(ckpt / "model.pt", _net_from_config(wf))
     assert recorded is not None and recorded["network_size"] == TINY["network_size"]
     states = _train_states(ckpt)
@@ -158,8 +171,16 @@ def test_augmented_semi_supervised_training_runs_after_the_cache(tmp_path, tiny_
     from monai.transforms import RandAffined
 
     semi = str(TRAIN.parent / "train_semisupervised.yaml")
-    wf = _workflow(tmp_path, tiny_dataset, config=[str(TRAIN), semi], max_epochs=1, init_model_file=None,
-                   augment_prob=1.0, augment_rotate=0.2, augment_translate=3.0)
+    wf = _workflow(
+        tmp_path,
+        tiny_dataset,
+        config=[str(TRAIN), semi],
+        max_epochs=1,
+        init_model_file=None,
+        augment_prob=1.0,
+        augment_rotate=0.2,
+        augment_translate=3.0,
+    )
     dataset = wf.parser.get_parsed_content("train#dataset")
     steps = dataset.transform.transforms
     first_random = next(i for i, t in enumerate(steps) if isinstance(t, RandAffined))
@@ -183,18 +204,28 @@ def test_multi_gpu_config_parses_and_overrides_single_process_pieces():
     # the indices multi_gpu_train.yaml disables on ranks > 0 must still point at the handlers named there
     train_targets = [h["_target_"] for h in config["train"]["handlers"]]
     val_targets = [h["_target_"] for h in config["validate"]["handlers"]]
-    assert train_targets == ["ValidationHandler", "StatsHandler", "TensorBoardStatsHandler",
-                             "monai_probreg.engines.guards.NonFiniteGuard"]
-    assert val_targets == ["StatsHandler", "TensorBoardStatsHandler", "monai_probreg.engines.checkpoints.AtomicCheckpointSaver",
-                           "monai_probreg.weights.settings.NetworkSettingsWriter"]
+    assert train_targets == [
+        "ValidationHandler",
+        "StatsHandler",
+        "TensorBoardStatsHandler",
+        "monai_probreg.engines.guards.NonFiniteGuard",
+    ]
+    assert val_targets == [
+        "StatsHandler",
+        "TensorBoardStatsHandler",
+        "monai_probreg.engines.checkpoints.AtomicCheckpointSaver",
+        "monai_probreg.weights.settings.NetworkSettingsWriter",
+    ]
     # every rank keeps its NaN guard (its own weights); the other handlers run on rank 0 only
     assert all("_disabled_" in h for h in config["train"]["handlers"][:3] + config["validate"]["handlers"])
     assert "_disabled_" not in config["train"]["handlers"][3]
     assert "finalize" in config and "run" in config
 
 
-@pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
-                    reason="torch.distributed with the gloo backend is not available in this torch build")
+@pytest.mark.skipif(
+    not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+    reason="torch.distributed with the gloo backend is not available in this torch build",
+)
 def test_two_process_ddp_training_on_gloo(tmp_path, tiny_dataset):
     try:
         import torch.distributed.run  # noqa: F401  (what the torchrun script runs)
@@ -204,12 +235,36 @@ def test_two_process_ddp_training_on_gloo(tmp_path, tiny_dataset):
     probe = tmp_path / "probe.yaml"
     other = "$@ckpt_dir if dist.get_rank() == 0 else @ckpt_dir + '/other_ranks'"
     probe.write_text(f'checkpoint#saver#save_dir: "{other}"\nvalidate#handlers#2#save_dir: "{other}"\n')
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-           "-m", "monai.bundle", "run", "--config_file", f"['{TRAIN}','{MULTI_GPU}','{probe}']",
-           "--bundle_root", str(BUNDLE), "--dataset_dir", str(tiny_dataset),
-           "--ckpt_dir", str(tmp_path / "ckpt"), "--output_dir", str(tmp_path / "runs"),
-           "--network_size", "[32,32,32]", "--val_ids", "['T01']", "--val_interval", "1",
-           "--num_workers", "0", "--max_epochs", "1"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node=2",
+        "-m",
+        "monai.bundle",
+        "run",
+        "--config_file",
+        f"['{TRAIN}','{MULTI_GPU}','{probe}']",
+        "--bundle_root",
+        str(BUNDLE),
+        "--dataset_dir",
+        str(tiny_dataset),
+        "--ckpt_dir",
+        str(tmp_path / "ckpt"),
+        "--output_dir",
+        str(tmp_path / "runs"),
+        "--network_size",
+        "[32,32,32]",
+        "--val_ids",
+        "['T01']",
+        "--val_interval",
+        "1",
+        "--num_workers",
+        "0",
+        "--max_epochs",
+        "1",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}  # gloo on CPU even on a GPU host
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
     log = proc.stdout + proc.stderr
@@ -217,7 +272,10 @@ def test_two_process_ddp_training_on_gloo(tmp_path, tiny_dataset):
 
     ckpt = tmp_path / "ckpt"
     assert sorted(p.name for p in ckpt.iterdir() if p.name != "other_ranks") == [
-        "model.network.json", "model.pt", "train_state_checkpoint_epoch=1.pt"]
+        "model.network.json",
+        "model.pt",
+        "train_state_checkpoint_epoch=1.pt",
+    ]
     # one checkpoint writer: rank 1 builds the (unattached) saver, which may create its folder, but writes nothing
     assert not [p for p in (ckpt / "other_ranks").rglob("*")] if (ckpt / "other_ranks").exists() else True
     ProbRegNet(network_size=[32, 32, 32]).load_state_dict(torch.load(ckpt / "model.pt", weights_only=True))
@@ -241,8 +299,13 @@ def test_multi_gpu_sampler_gives_each_rank_its_own_subjects(tmp_path, tiny_datas
     for rank in (0, 1):
         parser = ConfigParser()  # parsed, not initialised: no init_process_group
         parser.read_config([str(TRAIN), str(MULTI_GPU)])
-        settings = {**TINY, "bundle_root": str(BUNDLE), "dataset_dir": str(tiny_dataset),
-                    "train#sampler#num_replicas": 2, "train#sampler#rank": rank}
+        settings = {
+            **TINY,
+            "bundle_root": str(BUNDLE),
+            "dataset_dir": str(tiny_dataset),
+            "train#sampler#num_replicas": 2,
+            "train#sampler#rank": rank,
+        }
         for key, value in settings.items():
             parser[key] = value
         sampler, dataset = parser.get_parsed_content("train#sampler"), parser.get_parsed_content("train#dataset")
@@ -254,14 +317,27 @@ def test_multi_gpu_sampler_gives_each_rank_its_own_subjects(tmp_path, tiny_datas
         assert sorted(shards[0, epoch] + shards[1, epoch]) == ["T02", "T03"]  # val_ids: T01
 
 
-
 def test_any_pair_training_draws_subject_and_atlas_pairs_and_validates_on_both(tmp_path):
     from conftest import make_tiny_dataset
 
     dataset = make_tiny_dataset(tmp_path / "data", num_subjects=4)
-    configs = [str(TRAIN), str(BUNDLE / "configs" / "train_semisupervised.yaml"), str(BUNDLE / "configs" / "train_pairs.yaml")]
-    wf = _workflow(tmp_path, dataset, configs, max_epochs=1, val_ids=["T01", "T02"], pairs_per_epoch=5,
-                   init_model_file=None, val_interval=1, augment_prob=0.0, self_repeats=2)
+    configs = [
+        str(TRAIN),
+        str(BUNDLE / "configs" / "train_semisupervised.yaml"),
+        str(BUNDLE / "configs" / "train_pairs.yaml"),
+    ]
+    wf = _workflow(
+        tmp_path,
+        dataset,
+        configs,
+        max_epochs=1,
+        val_ids=["T01", "T02"],
+        pairs_per_epoch=5,
+        init_model_file=None,
+        val_interval=1,
+        augment_prob=0.0,
+        self_repeats=2,
+    )
     seen_ids, scored = [], []
     wf.trainer.add_event_handler(Events.ITERATION_COMPLETED, lambda e: seen_ids.extend(e.state.batch["id"]))
     wf.evaluator.add_event_handler(Events.ITERATION_COMPLETED, lambda e: scored.extend(e.state.batch["id"]))
@@ -283,11 +359,24 @@ def test_template_training_draws_pairs_in_both_spaces_and_never_a_validation_sub
 
     dataset = make_tiny_dataset(tmp_path / "data", num_subjects=4)
     template = make_tiny_dataset(tmp_path / "template", num_subjects=4, shape=(24, 28, 20), seed=1)
-    configs = [str(TRAIN), *(str(BUNDLE / "configs" / f"train_{name}.yaml")
-                             for name in ("semisupervised", "pairs", "template"))]
-    wf = _workflow(tmp_path, dataset, configs, max_epochs=1, val_ids=["T01", "T02"], pairs_per_epoch=24,
-                   init_model_file=None, val_interval=1, augment_prob=0.0, self_repeats=1, template_repeats=3,
-                   template_dataset_dir=str(template))
+    configs = [
+        str(TRAIN),
+        *(str(BUNDLE / "configs" / f"train_{name}.yaml") for name in ("semisupervised", "pairs", "template")),
+    ]
+    wf = _workflow(
+        tmp_path,
+        dataset,
+        configs,
+        max_epochs=1,
+        val_ids=["T01", "T02"],
+        pairs_per_epoch=24,
+        init_model_file=None,
+        val_interval=1,
+        augment_prob=0.0,
+        self_repeats=1,
+        template_repeats=3,
+        template_dataset_dir=str(template),
+    )
     seen_ids, scored = [], []
     wf.trainer.add_event_handler(Events.ITERATION_COMPLETED, lambda e: seen_ids.extend(e.state.batch["id"]))
     wf.evaluator.add_event_handler(Events.ITERATION_COMPLETED, lambda e: scored.extend(e.state.batch["id"]))
@@ -317,17 +406,36 @@ def test_synthetic_heads_are_a_third_space_rendered_anew_with_their_structures_o
     for path in (synth / "labels").glob("*.nii.gz"):
         img = nib.load(path)
         data = np.asarray(img.dataobj).astype(np.int16)
-        nib.save(nib.Nifti1Image(np.vectorize(lambda v: freesurfer.get(int(v), 0))(data).astype(np.int16),
-                                 img.affine), path)
-    configs = [str(TRAIN), *(str(BUNDLE / "configs" / f"train_{name}.yaml")
-                             for name in ("semisupervised", "pairs", "template", "synth"))]
-    wf = _workflow(tmp_path, dataset, configs, max_epochs=1, val_ids=["T01", "T02"], pairs_per_epoch=30,
-                   init_model_file=None, val_interval=1, augment_prob=0.0, self_repeats=1, template_repeats=3,
-                   template_dataset_dir=str(template), synth_dataset_dir=str(synth),
-                   synth_structures=[2, 3])  # the tiny dataset has 3 slots, LPBA40 56 for the 32 of ASEG_LABELS
+        nib.save(
+            nib.Nifti1Image(np.vectorize(lambda v: freesurfer.get(int(v), 0))(data).astype(np.int16), img.affine), path
+        )
+    configs = [
+        str(TRAIN),
+        *(str(BUNDLE / "configs" / f"train_{name}.yaml") for name in ("semisupervised", "pairs", "template", "synth")),
+    ]
+    wf = _workflow(
+        tmp_path,
+        dataset,
+        configs,
+        max_epochs=1,
+        val_ids=["T01", "T02"],
+        pairs_per_epoch=30,
+        init_model_file=None,
+        val_interval=1,
+        augment_prob=0.0,
+        self_repeats=1,
+        template_repeats=3,
+        template_dataset_dir=str(template),
+        synth_dataset_dir=str(synth),
+        synth_structures=[2, 3],
+    )  # the tiny dataset has 3 slots, LPBA40 56 for the 32 of ASEG_LABELS
     seen = []
-    wf.trainer.add_event_handler(Events.ITERATION_COMPLETED, lambda e: seen.append(
-        (e.state.batch["id"][0], e.state.batch["moving"].clone(), e.state.batch["moving_label"].clone())))
+    wf.trainer.add_event_handler(
+        Events.ITERATION_COMPLETED,
+        lambda e: seen.append(
+            (e.state.batch["id"][0], e.state.batch["moving"].clone(), e.state.batch["moving_label"].clone())
+        ),
+    )
     wf.run()
     wf.finalize()
     spaces = {i.split(":")[0] if ":" in i else "lpba" for i, _, _ in seen}
@@ -341,7 +449,9 @@ def test_synthetic_heads_are_a_third_space_rendered_anew_with_their_structures_o
         values = {int(v) for v in labels.unique()}
         assert values <= {0, *slots[:2]}, f"{pair_id}: white matter and cortex on the first two slots, got {values}"
         moving_id = pair_id.split(":")[1].split("_to_")[0]
-        cached = next(synth_pairs.scans[k]["image"] for k, s in enumerate(synth_pairs.scans.data) if s["id"] == moving_id)
+        cached = next(
+            synth_pairs.scans[k]["image"] for k, s in enumerate(synth_pairs.scans.data) if s["id"] == moving_id
+        )
         assert moving.shape[2:] == cached.shape[1:] == (32, 32, 32)
         assert (moving[0] - cached).abs().max() > 0.05, f"{pair_id}: the cached image, not a rendering"
     assert (tmp_path / "ckpt" / "model_synth.pt").is_file()

@@ -37,9 +37,27 @@ def _register(scene, name: str, *extra: str) -> tuple[int, dict, np.ndarray]:
     out = root / name
     threads = torch.get_num_threads()
     try:
-        rc = main(["register", "--moving", str(moving), "--fixed", str(fixed), "--bundle-root", str(bundle),
-                   "--out", str(out), "--no-affine", "--no-qc", "--samples", "4", "--threads", "1", "--quiet",
-                   *extra])
+        rc = main(
+            [
+                "register",
+                "--moving",
+                str(moving),
+                "--fixed",
+                str(fixed),
+                "--bundle-root",
+                str(bundle),
+                "--out",
+                str(out),
+                "--no-affine",
+                "--no-qc",
+                "--samples",
+                "4",
+                "--threads",
+                "1",
+                "--quiet",
+                *extra,
+            ]
+        )
     finally:
         torch.set_num_threads(threads)
     if rc != 0:

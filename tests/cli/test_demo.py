@@ -16,9 +16,20 @@ from monai.bundle import ConfigParser
 from monai_probreg.cli.output_dir import OUTPUT_FILES
 from monai_probreg.spatial.volume_io import read_image
 
-EXPECTED = {"warped.nii.gz", "warp.nii.gz", "inverse_warp.nii.gz", "affine.tfm", "jacobian.nii.gz",
-            "entropy.nii.gz", "displacement_std.nii.gz", "subject.nii.gz", "true_warp.nii.gz", "qc.png",
-            "summary.json", "README.txt"}
+EXPECTED = {
+    "warped.nii.gz",
+    "warp.nii.gz",
+    "inverse_warp.nii.gz",
+    "affine.tfm",
+    "jacobian.nii.gz",
+    "entropy.nii.gz",
+    "displacement_std.nii.gz",
+    "subject.nii.gz",
+    "true_warp.nii.gz",
+    "qc.png",
+    "summary.json",
+    "README.txt",
+}
 
 
 @pytest.fixture(scope="module")
@@ -33,8 +44,19 @@ def setup(tmp_path_factory: pytest.TempPathFactory):
 
 def _demo(setup, out: Path, *extra: str):
     _root, template, bundle = setup
-    return run_cli("demo", "--fixed", str(template), "--out", str(out), "--bundle-root", str(bundle),
-                   "--samples", "2", *FAST_AFFINE, *extra)
+    return run_cli(
+        "demo",
+        "--fixed",
+        str(template),
+        "--out",
+        str(out),
+        "--bundle-root",
+        str(bundle),
+        "--samples",
+        "2",
+        *FAST_AFFINE,
+        *extra,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -84,8 +106,20 @@ def test_the_true_warp_file_holds_the_scored_truth(result, setup):
 
 def test_without_samples_there_is_no_coverage(setup):
     out = setup[0] / "no_samples"
-    run = run_cli("demo", "--fixed", str(setup[1]), "--out", str(out), "--bundle-root", str(setup[2]),
-                  "--samples", "0", "--no-qc", "--no-inverse", *FAST_AFFINE)
+    run = run_cli(
+        "demo",
+        "--fixed",
+        str(setup[1]),
+        "--out",
+        str(out),
+        "--bundle-root",
+        str(setup[2]),
+        "--samples",
+        "0",
+        "--no-qc",
+        "--no-inverse",
+        *FAST_AFFINE,
+    )
     assert run.rc == 0, run.err
     assert json.loads((out / "summary.json").read_text())["demo"]["coverage"] is None
     assert "needs --samples" in run.out
@@ -102,8 +136,7 @@ def test_the_bundle_config_runs_the_same_demo(setup, result):
     out = root / "bundle_out"
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / "demo.yaml"))
-    parser.update({"bundle_root": str(bundle), "out_dir": str(out), "template": str(template), "seed": 3,
-                   "samples": 2})
+    parser.update({"bundle_root": str(bundle), "out_dir": str(out), "template": str(template), "seed": 3, "samples": 2})
     parser.get_parsed_content("run")
     ours = json.loads((out / "summary.json").read_text())["demo"]
     assert ours["seed"] == 3 and ours["before"] == result[2]["demo"]["before"]  # the same subject was drawn

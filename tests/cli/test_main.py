@@ -47,14 +47,26 @@ from monai_probreg.spatial.volume_io import geometry_of, read_image
 def scene(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("cli")
     case = moved_phantom([10.0, -8.0, 12.0], [4.0, -3.0, 2.5])
-    image, labels, truth, moved, moved_labels, grid = (case.image, case.labels, case.truth, case.moved,
-                                                       case.moved_labels, case.grid)
-    s = SimpleNamespace(root=root, truth=truth, image=image, labels=labels, moving_grid=grid,
-                        bundle=tiny_bundle(root / "bundle", BUNDLE_DIR),
-                        fixed=save_lps(root / "fixed.nii.gz", image, FIXED_LPS),
-                        fixed_label=save_lps(root / "fixed_label.nii.gz", labels, FIXED_LPS),
-                        moving=save_lps(root / "moving.nii.gz", np.round(moved * 3000 + 200).astype(np.int16), grid),
-                        moving_label=save_lps(root / "moving_label.nii.gz", moved_labels.astype(np.uint8), grid))
+    image, labels, truth, moved, moved_labels, grid = (
+        case.image,
+        case.labels,
+        case.truth,
+        case.moved,
+        case.moved_labels,
+        case.grid,
+    )
+    s = SimpleNamespace(
+        root=root,
+        truth=truth,
+        image=image,
+        labels=labels,
+        moving_grid=grid,
+        bundle=tiny_bundle(root / "bundle", BUNDLE_DIR),
+        fixed=save_lps(root / "fixed.nii.gz", image, FIXED_LPS),
+        fixed_label=save_lps(root / "fixed_label.nii.gz", labels, FIXED_LPS),
+        moving=save_lps(root / "moving.nii.gz", np.round(moved * 3000 + 200).astype(np.int16), grid),
+        moving_label=save_lps(root / "moving_label.nii.gz", moved_labels.astype(np.uint8), grid),
+    )
     s.common = ["--fixed", str(s.fixed), "--bundle-root", str(s.bundle)]
     return s
 
@@ -62,9 +74,21 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
 @pytest.fixture(scope="module")
 def registered(scene) -> SimpleNamespace:
     out = scene.root / "out"
-    result = run_cli("register", "--moving", str(scene.moving), "--moving-label", str(scene.moving_label),
-                 "--fixed-label", str(scene.fixed_label), "--out", str(out), "--samples", "2", *scene.common,
-                 *FAST_AFFINE)
+    result = run_cli(
+        "register",
+        "--moving",
+        str(scene.moving),
+        "--moving-label",
+        str(scene.moving_label),
+        "--fixed-label",
+        str(scene.fixed_label),
+        "--out",
+        str(out),
+        "--samples",
+        "2",
+        *scene.common,
+        *FAST_AFFINE,
+    )
     result.dir = out
     return result
 
@@ -106,7 +130,9 @@ def test_output_headers(scene, registered):
         assert stored.header.get_intent()[0] == "vector" and stored.shape[3:] == (1, 3)
     assert nib.load(registered.dir / "warped_label.nii.gz").get_data_dtype() == np.uint8
     assert set(np.unique(np.asarray(nib.load(registered.dir / "fixed_label_in_moving.nii.gz").dataobj))) <= {
-        0, *PHANTOM_LABELS}
+        0,
+        *PHANTOM_LABELS,
+    }
     assert not [p for p in registered.dir.parent.iterdir() if ".partial-" in p.name]
 
 
@@ -121,14 +147,20 @@ def test_itk_reproduces_the_warped_image_and_labels(scene, registered):
     assert ours.max() > 1000  # original intensities, not the network's [0, 1]
     np.testing.assert_allclose(theirs, ours, atol=1e-5 * ours.max())
     labels = resample_with_itk(itk.imread(str(scene.moving_label), itk.SS), fixed, transform, nearest=True)
-    np.testing.assert_array_equal(itk.array_from_image(labels),
-                                  itk.array_from_image(itk.imread(str(registered.dir / "warped_label.nii.gz"), itk.SS)))
+    np.testing.assert_array_equal(
+        itk.array_from_image(labels),
+        itk.array_from_image(itk.imread(str(registered.dir / "warped_label.nii.gz"), itk.SS)),
+    )
 
 
 def test_ants_apply_transforms_reproduces_the_warped_image(scene, registered):
     ants = pytest.importorskip("ants")
-    theirs = ants.apply_transforms(ants.image_read(str(scene.fixed)), ants.image_read(str(scene.moving)),
-                                   [str(registered.dir / "warp.nii.gz")], interpolator="linear").numpy()
+    theirs = ants.apply_transforms(
+        ants.image_read(str(scene.fixed)),
+        ants.image_read(str(scene.moving)),
+        [str(registered.dir / "warp.nii.gz")],
+        interpolator="linear",
+    ).numpy()
     ours = ants.image_read(str(registered.dir / "warped.nii.gz")).numpy()
     np.testing.assert_allclose(theirs, ours, atol=1e-5 * ours.max())
 
@@ -145,8 +177,19 @@ def test_inverse_warp_maps_back(scene, registered):
 
 def test_summary_and_qc(scene, registered):
     summary = json.loads((registered.dir / "summary.json").read_text())
-    assert list(summary["timings_s"]) == ["read", "affine", "resample", "model", "refine", "maps", "samples",
-                                          "compose", "qc", "write", "total"]
+    assert list(summary["timings_s"]) == [
+        "read",
+        "affine",
+        "resample",
+        "model",
+        "refine",
+        "maps",
+        "samples",
+        "compose",
+        "qc",
+        "write",
+        "total",
+    ]
     assert summary["dice"]["mean"] > 0.85 and set(summary["dice"]["per_label"]) == {str(v) for v in PHANTOM_LABELS}
     assert summary["jacobian"]["num_nonpositive"] == 0
     assert summary["uncertainty"]["samples"] == 2 and summary["uncertainty"]["mean_displacement_std_mm"] >= 0
@@ -161,8 +204,20 @@ def test_summary_and_qc(scene, registered):
 def test_no_affine_for_an_aligned_scan(scene, tmp_path):
     """--no-affine: the identity pre-alignment (scans already in atlas space, as the paper assumes)."""
     aligned = save_lps(tmp_path / "aligned.nii.gz", (scene.image * 500).astype(np.float32), FIXED_LPS)
-    result = run_cli("register", "--moving", str(aligned), "--moving-label", str(scene.fixed_label), "--fixed-label",
-                 str(scene.fixed_label), "--out", str(tmp_path / "out"), "--no-affine", "--no-qc", *scene.common)
+    result = run_cli(
+        "register",
+        "--moving",
+        str(aligned),
+        "--moving-label",
+        str(scene.fixed_label),
+        "--fixed-label",
+        str(scene.fixed_label),
+        "--out",
+        str(tmp_path / "out"),
+        "--no-affine",
+        "--no-qc",
+        *scene.common,
+    )
     assert result.rc == 0, result.err
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["affine"]["stages"] == [] and summary["affine"]["matrix_fixed_to_moving_lps"] == np.eye(4).tolist()
@@ -171,14 +226,31 @@ def test_no_affine_for_an_aligned_scan(scene, tmp_path):
 
 def test_no_inverse_and_no_maps_leave_out_only_those_files(scene, tmp_path):
     """--no-inverse / --no-maps: the files asked for are byte-identical to a full run's; the others are absent."""
-    args = ["register", "--moving", str(scene.moving), "--moving-label", str(scene.moving_label), "--fixed-label",
-            str(scene.fixed_label), "--no-affine", "--no-qc", "--samples", "2", *scene.common]
+    args = [
+        "register",
+        "--moving",
+        str(scene.moving),
+        "--moving-label",
+        str(scene.moving_label),
+        "--fixed-label",
+        str(scene.fixed_label),
+        "--no-affine",
+        "--no-qc",
+        "--samples",
+        "2",
+        *scene.common,
+    ]
     assert run_cli(*args, "--out", str(tmp_path / "full")).rc == 0
     result = run_cli(*args, "--out", str(tmp_path / "lean"), "--no-inverse", "--no-maps")
     assert result.rc == 0, result.err
     full, lean = ({p.name for p in (tmp_path / d).iterdir()} for d in ("full", "lean"))
-    left_out = {"inverse_warp.nii.gz", "fixed_label_in_moving.nii.gz", "jacobian.nii.gz", "entropy.nii.gz",
-                "displacement_std.nii.gz"}
+    left_out = {
+        "inverse_warp.nii.gz",
+        "fixed_label_in_moving.nii.gz",
+        "jacobian.nii.gz",
+        "entropy.nii.gz",
+        "displacement_std.nii.gz",
+    }
     assert full - lean == left_out and lean <= full
     for name in lean - {"summary.json", "README.txt"}:
         assert (tmp_path / "lean" / name).read_bytes() == (tmp_path / "full" / name).read_bytes(), name
@@ -207,8 +279,20 @@ def test_register_batch_folder_with_one_bad_scan(scene, tmp_path):
     bad[0, 0, 0] = np.nan
     save_lps(scans / "C.nii.gz", bad, scene.moving_grid)
     out = tmp_path / "out"
-    result = run_cli("register-batch", "--moving", str(scans), "--moving-label-dir", str(labels), "--fixed-label",
-                 str(scene.fixed_label), "--out", str(out), "--no-qc", *scene.common, *FAST_AFFINE)
+    result = run_cli(
+        "register-batch",
+        "--moving",
+        str(scans),
+        "--moving-label-dir",
+        str(labels),
+        "--fixed-label",
+        str(scene.fixed_label),
+        "--out",
+        str(out),
+        "--no-qc",
+        *scene.common,
+        *FAST_AFFINE,
+    )
     assert result.rc == 1
     assert "1 of 3 scans failed" in result.err and "registering" in result.err  # the progress bar
     rows = {row["scan"]: row for row in csv.DictReader((out / "batch_summary.csv").open())}
@@ -234,15 +318,27 @@ def test_console_script_is_declared():
     assert project["scripts"]["monai-probreg"] == "monai_probreg.cli.main:run"
 
 
-@pytest.mark.parametrize("argv, status", [(["--help"], 0), (["register", "--moving", "m.nii.gz"], 2),
-                                          (["register", "--moving", "missing.nii.gz", "--out", "o"], 1)])
+@pytest.mark.parametrize(
+    "argv, status",
+    [
+        (["--help"], 0),
+        (["register", "--moving", "m.nii.gz"], 2),
+        (["register", "--moving", "missing.nii.gz", "--out", "o"], 1),
+    ],
+)
 def test_console_entry_point_keeps_the_exit_status_and_the_output(tmp_path, argv, status):
     """``run`` leaves with os._exit (no interpreter teardown): the status is main's and nothing printed is lost."""
     import subprocess
     import sys
 
-    result = subprocess.run([sys.executable, "-m", "monai_probreg.cli", *argv], capture_output=True, text=True, check=False,
-                            cwd=tmp_path, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-m", "monai_probreg.cli", *argv],
+        capture_output=True,
+        text=True,
+        check=False,
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert result.returncode == status
     if status == 0:
         assert "register-batch" in result.stdout and result.stdout.rstrip().endswith("show this help message and exit")
@@ -256,11 +352,26 @@ def test_the_torch_path_loads_no_itk_module(scene, tmp_path):
     import subprocess
     import sys
 
-    argv = ["register", "--moving", str(scene.moving), "--moving-label", str(scene.moving_label), "--fixed-label",
-            str(scene.fixed_label), "--out", str(tmp_path / "out"), "--threads", "1", *scene.common, *FAST_AFFINE]
-    code = ("import json, sys\nfrom monai_probreg.cli.main import main\n"
-            f"status = main({argv!r})\n"
-            "print(json.dumps([status, sorted(m for m in sys.modules if m.startswith('itk.') and m.endswith('Python'))]))")
+    argv = [
+        "register",
+        "--moving",
+        str(scene.moving),
+        "--moving-label",
+        str(scene.moving_label),
+        "--fixed-label",
+        str(scene.fixed_label),
+        "--out",
+        str(tmp_path / "out"),
+        "--threads",
+        "1",
+        *scene.common,
+        *FAST_AFFINE,
+    ]
+    code = (
+        "import json, sys\nfrom monai_probreg.cli.main import main\n"
+        f"status = main({argv!r})\n"
+        "print(json.dumps([status, sorted(m for m in sys.modules if m.startswith('itk.') and m.endswith('Python'))]))"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, timeout=600)
     status, loaded = json.loads(done.stdout.strip().splitlines()[-1])
     assert status == 0, done.stderr[-2000:]
@@ -297,8 +408,18 @@ def test_refine_adds_its_stage_and_records_its_settings(scene, tmp_path):
     """--refine N: a ``refine`` stage between ``model`` and ``maps``, its settings in summary.json (the rest from the
     bundle's inference.yaml), no folding."""
     out = tmp_path / "refined"
-    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--refine", "3", "--no-qc",
-                     *scene.common, *FAST_AFFINE)
+    result = run_cli(
+        "register",
+        "--moving",
+        str(scene.moving),
+        "--out",
+        str(out),
+        "--refine",
+        "3",
+        "--no-qc",
+        *scene.common,
+        *FAST_AFFINE,
+    )
     assert result.rc == 0, result.err
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["timings_s"])[3:6] == ["model", "refine", "maps"]
@@ -315,8 +436,20 @@ def test_dice_counts_only_the_labels_both_maps_have(scene, tmp_path):
     labels[labels == dropped] = 0
     partial = save_lps(tmp_path / "partial_label.nii.gz", labels.astype(np.uint8), scene.moving_grid)
     out = tmp_path / "partial"
-    result = run_cli("register", "--moving", str(scene.moving), "--moving-label", str(partial), "--fixed-label",
-                     str(scene.fixed_label), "--out", str(out), "--no-qc", *scene.common, *FAST_AFFINE)
+    result = run_cli(
+        "register",
+        "--moving",
+        str(scene.moving),
+        "--moving-label",
+        str(partial),
+        "--fixed-label",
+        str(scene.fixed_label),
+        "--out",
+        str(out),
+        "--no-qc",
+        *scene.common,
+        *FAST_AFFINE,
+    )
     assert result.rc == 0, result.err
     dice = json.loads((out / "summary.json").read_text())["dice"]
     assert set(dice["per_label"]) == set(dice["per_label_affine_only"]) == {str(v) for v in PHANTOM_LABELS[:-1]}
@@ -333,13 +466,26 @@ def test_brain_mask_of_a_skull_stripped_fixed_image_is_recorded_and_can_be_switc
     brain mask (its support + 3 mm) and the summary says so; --no-brain-mask records none; the noisy phantom itself has
     no background, so nothing is hidden."""
     assert json.loads((registered.dir / "summary.json").read_text())["model"]["brain_mask"] is None
-    stripped = save_lps(tmp_path / "stripped.nii.gz", np.where(scene.labels > 0, scene.image, 0.0).astype(np.float32),
-                        FIXED_LPS)
+    stripped = save_lps(
+        tmp_path / "stripped.nii.gz", np.where(scene.labels > 0, scene.image, 0.0).astype(np.float32), FIXED_LPS
+    )
     fraction = {}
     for name, extra in (("masked", []), ("unmasked", ["--no-brain-mask"])):
         out = tmp_path / name
-        result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--fixed", str(stripped),
-                         "--bundle-root", str(scene.bundle), "--no-qc", *extra, *FAST_AFFINE)
+        result = run_cli(
+            "register",
+            "--moving",
+            str(scene.moving),
+            "--out",
+            str(out),
+            "--fixed",
+            str(stripped),
+            "--bundle-root",
+            str(scene.bundle),
+            "--no-qc",
+            *extra,
+            *FAST_AFFINE,
+        )
         assert result.rc == 0, result.err
         fraction[name] = json.loads((out / "summary.json").read_text())["model"]["brain_mask"]
     assert fraction["unmasked"] is None and fraction["masked"]["margin_mm"] == 3.0
@@ -357,8 +503,18 @@ def test_refinement_is_on_by_default(registered):
 
 def test_refine_0_gives_the_network_alone(scene, tmp_path):
     out = tmp_path / "network"
-    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--refine", "0", "--no-qc",
-                     *scene.common, *FAST_AFFINE)
+    result = run_cli(
+        "register",
+        "--moving",
+        str(scene.moving),
+        "--out",
+        str(out),
+        "--refine",
+        "0",
+        "--no-qc",
+        *scene.common,
+        *FAST_AFFINE,
+    )
     assert result.rc == 0, result.err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["model"]["refinement"]["num_iterations"] == 0 and "refine" not in summary["timings_s"]
@@ -463,8 +619,18 @@ def test_affine_backend_and_levels_are_recorded(scene, tmp_path):
     """--affine-levels without --affine-iterations: the backend's defaults for the first levels (torch: rigid 30, 15;
     affine 30, 15); the backend is in summary.json."""
     out = tmp_path / "levels"
-    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), "--no-qc", "--affine-levels", "2",
-                     "1", *scene.common)
+    result = run_cli(
+        "register",
+        "--moving",
+        str(scene.moving),
+        "--out",
+        str(out),
+        "--no-qc",
+        "--affine-levels",
+        "2",
+        "1",
+        *scene.common,
+    )
     assert result.rc == 0, result.err
     settings = json.loads((out / "summary.json").read_text())["affine"]["settings"]
     assert settings["backend"] == "torch" and settings["shrink_factors"] == [2, 1]

@@ -17,11 +17,20 @@ def _data(with_labels: bool, constant_uncertainty: bool = False) -> QCData:
     uncertainty = np.full(image.shape, 1.7) if constant_uncertainty else rng.random(image.shape)
     jacobian = 1.0 + 0.3 * rng.standard_normal(image.shape)
     jacobian[10, 10, 10] = -0.2  # one folding voxel
-    return QCData(fixed=image, moving=np.roll(image, 2, axis=0), warped=image, displacement=displacement,
-                  jacobian=jacobian, uncertainty=uncertainty, uncertainty_name="velocity entropy",
-                  spacing=(1.0, 1.2, 0.9), fixed_label=labels if with_labels else None,
-                  moving_label=np.roll(labels, 2, axis=0) if with_labels else None,
-                  warped_label=labels if with_labels else None, title="S11   mean Dice 0.812")
+    return QCData(
+        fixed=image,
+        moving=np.roll(image, 2, axis=0),
+        warped=image,
+        displacement=displacement,
+        jacobian=jacobian,
+        uncertainty=uncertainty,
+        uncertainty_name="velocity entropy",
+        spacing=(1.0, 1.2, 0.9),
+        fixed_label=labels if with_labels else None,
+        moving_label=np.roll(labels, 2, axis=0) if with_labels else None,
+        warped_label=labels if with_labels else None,
+        title="S11   mean Dice 0.812",
+    )
 
 
 @pytest.mark.parametrize("with_labels", [True, False])
@@ -32,8 +41,13 @@ def test_figure_layout(with_labels):
         panels, bars = axes[:18], axes[18:]  # 3 x 6 panels (row-major), then the two colour bars
         assert len(bars) == 2
         assert [ax.get_title() for ax in panels[:6]] == [
-            "fixed", "moving (affine only)", "warped moving", "deformation (deformable part)",
-            "Jacobian determinant", "velocity entropy"]
+            "fixed",
+            "moving (affine only)",
+            "warped moving",
+            "deformation (deformable part)",
+            "Jacobian determinant",
+            "velocity entropy",
+        ]
         assert [panels[6 * row].get_ylabel().split()[0] for row in range(3)] == ["axial", "coronal", "sagittal"]
         assert fig._suptitle is not None and "Dice" in fig._suptitle.get_text()
     finally:

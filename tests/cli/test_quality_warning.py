@@ -23,8 +23,17 @@ N = len(QualityFeatures._fields)
 
 
 def _quality_model(failure_intercept: float) -> QualityModel:
-    return QualityModel(list(QualityFeatures._fields), [-1e9] * N, [1e9] * N, [0.0] * N, [1.0] * N, [0.0] * N, 0.61, [0.0] * N,
-                        failure_intercept)
+    return QualityModel(
+        list(QualityFeatures._fields),
+        [-1e9] * N,
+        [1e9] * N,
+        [0.0] * N,
+        [1.0] * N,
+        [0.0] * N,
+        0.61,
+        [0.0] * N,
+        failure_intercept,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +41,13 @@ def scene(tmp_path_factory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("quality")
     case = moved_phantom([6.0, -4.0, 5.0], [2.0, -1.0, 1.5])
     bundle = tiny_bundle(root / "bundle", BUNDLE_DIR)
-    s = SimpleNamespace(root=root, bundle=bundle, weights=bundle / "models" / "model.pt",
-                        fixed=save_lps(root / "fixed.nii.gz", case.image, FIXED_LPS),
-                        moving=save_lps(root / "moving.nii.gz", case.moved, case.grid))
+    s = SimpleNamespace(
+        root=root,
+        bundle=bundle,
+        weights=bundle / "models" / "model.pt",
+        fixed=save_lps(root / "fixed.nii.gz", case.image, FIXED_LPS),
+        moving=save_lps(root / "moving.nii.gz", case.moved, case.grid),
+    )
     s.common = ["--fixed", str(s.fixed), "--bundle-root", str(s.bundle), *FAST_AFFINE]
     return s
 
@@ -109,8 +122,9 @@ def test_the_batch_lists_the_warning_and_the_scan_stays_ok(scene, tmp_path):
     shutil.copy(scene.moving, scans / "A.nii.gz")
     save_quality_model(_quality_model(20.0), scene.weights)
     try:
-        result = run_cli("register-batch", "--moving", str(scans), "--out", str(tmp_path / "out"), "--no-qc",
-                         *scene.common)
+        result = run_cli(
+            "register-batch", "--moving", str(scans), "--out", str(tmp_path / "out"), "--no-qc", *scene.common
+        )
     finally:
         quality_path(scene.weights).unlink()
     assert result.rc == 0, result.err

@@ -17,8 +17,15 @@ from conftest import BUNDLE_DIR, FAST_AFFINE, FIXED_LPS, moved_phantom, run_cli,
 from monai_probreg.spatial.physical import affine_from_itk, apply_affine, grid_points
 from monai_probreg.utils.provenance import file_sha256
 
-_COMPARED = ("affine.tfm", "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "warped_label.nii.gz",
-             "jacobian.nii.gz", "displacement_std.nii.gz")
+_COMPARED = (
+    "affine.tfm",
+    "warp.nii.gz",
+    "inverse_warp.nii.gz",
+    "warped.nii.gz",
+    "warped_label.nii.gz",
+    "jacobian.nii.gz",
+    "displacement_std.nii.gz",
+)
 
 
 @pytest.fixture(scope="module")
@@ -30,9 +37,26 @@ def scene(tmp_path_factory):
     moving = save_lps(root / "moving.nii.gz", np.round(case.moved * 2500 + 100).astype(np.int16), case.grid)
     moving_label = save_lps(root / "moving_label.nii.gz", case.moved_labels.astype(np.uint8), case.grid)
     bundle = tiny_bundle(root / "bundle", BUNDLE_DIR)
-    return case, root, ["--moving", str(moving), "--moving-label", str(moving_label), "--fixed", str(fixed),
-                        "--fixed-label", str(fixed_label), "--bundle-root", str(bundle), "--samples", "2", "--no-qc",
-                        *FAST_AFFINE]
+    return (
+        case,
+        root,
+        [
+            "--moving",
+            str(moving),
+            "--moving-label",
+            str(moving_label),
+            "--fixed",
+            str(fixed),
+            "--fixed-label",
+            str(fixed_label),
+            "--bundle-root",
+            str(bundle),
+            "--samples",
+            "2",
+            "--no-qc",
+            *FAST_AFFINE,
+        ],
+    )
 
 
 def _register(scene, name: str, *extra: str) -> tuple[Path, dict]:

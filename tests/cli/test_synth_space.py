@@ -14,8 +14,13 @@ from monai_probreg.data.label_synthesis import T1_LIKE
 from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.spatial.volume_io import Volume
 
-FAST = AffineSettings(shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0), rigid_iterations=(100, 50),
-                      affine_iterations=(100, 50), sampling_percentage=0.25)
+FAST = AffineSettings(
+    shrink_factors=(2, 1),
+    smoothing_sigmas_mm=(1.0, 0.0),
+    rigid_iterations=(100, 50),
+    affine_iterations=(100, 50),
+    sampling_percentage=0.25,
+)
 
 
 def _freesurfer_phantom() -> tuple[np.ndarray, np.ndarray]:

@@ -46,10 +46,21 @@ def test_the_folder_holds_the_subjects_on_the_template_grid_after_the_affine_sta
         moved[:3, 3] += shift  # the same voxels, 3 mm elsewhere in space: the affine stage must undo the shift
         save_lps(data / "images" / f"{sid}.nii.gz", image * 50, moved)
         save_lps(data / "labels" / f"{sid}.nii.gz", labels, moved)
-    fast = AffineSettings(shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0), rigid_iterations=(100, 50),
-                          affine_iterations=(100, 50), sampling_percentage=0.25)
-    out = to_template_space(data, tmp_path / "out", ["S1", "S2"], template=template,
-                            bundle_root=tiny_bundle(tmp_path / "bundle", BUNDLE_DIR), affine=fast)
+    fast = AffineSettings(
+        shrink_factors=(2, 1),
+        smoothing_sigmas_mm=(1.0, 0.0),
+        rigid_iterations=(100, 50),
+        affine_iterations=(100, 50),
+        sampling_percentage=0.25,
+    )
+    out = to_template_space(
+        data,
+        tmp_path / "out",
+        ["S1", "S2"],
+        template=template,
+        bundle_root=tiny_bundle(tmp_path / "bundle", BUNDLE_DIR),
+        affine=fast,
+    )
     index = index_dataset(out)
     assert index.ids == ["S1", "S2"] and sorted(index.labels) == ["S1", "S2"]
     assert index.atlas_image.name == f"{TEMPLATE_ATLAS_NAME}_image.nii.gz" and index.atlas_label is not None

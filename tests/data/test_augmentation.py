@@ -7,8 +7,15 @@ import torch
 from monai.data import MetaTensor
 from monai.transforms import Randomizable
 
-from monai_probreg.data.augmentation import INPUT_SUFFIX, intensity_augmentation, moving_augmentation
+from monai_probreg.blocks.warp import warp_image, warp_labels
+from monai_probreg.data.augmentation import (
+    INPUT_SUFFIX,
+    RandDiffeomorphicd,
+    intensity_augmentation,
+    moving_augmentation,
+)
 from monai_probreg.data.transforms import registration_transforms
+from monai_probreg.metrics.jacobian import jacobian_determinant
 
 
 def _blob_pair(shape: tuple[int, ...]) -> dict:
@@ -22,8 +29,9 @@ def _blob_pair(shape: tuple[int, ...]) -> dict:
 
 
 def _strong(seed: int = 0, with_labels: bool = True):
-    return moving_augmentation(prob=1.0, rotate_range=0.3, scale_range=0.15, translate_range=4.0,
-                               with_labels=with_labels, seed=seed)
+    return moving_augmentation(
+        prob=1.0, rotate_range=0.3, scale_range=0.15, translate_range=4.0, with_labels=with_labels, seed=seed
+    )
 
 
 @pytest.mark.parametrize("shape", [(24, 28, 20), (32, 28)])
@@ -72,23 +80,22 @@ def test_after_the_cached_chain_only_the_augmentation_is_random():
     assert first_random == len(chain.transforms)  # CacheDataset caches every deterministic step
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"prob": 1.5}, "prob must be in"),
-    ({"prob": -0.1}, "prob must be in"),
-    ({"rotate_range": -0.1}, "rotate_range"),
-    ({"scale_range": (0.1, -0.2, 0.1)}, "scale_range"),
-    ({"translate_range": ()}, "translate_range"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"prob": 1.5}, "prob must be in"),
+        ({"prob": -0.1}, "prob must be in"),
+        ({"rotate_range": -0.1}, "rotate_range"),
+        ({"scale_range": (0.1, -0.2, 0.1)}, "scale_range"),
+        ({"translate_range": ()}, "translate_range"),
+    ],
+)
 def test_bad_arguments_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         moving_augmentation(**kwargs)
 
 
 # --- RandDiffeomorphicd -------------------------------------------------------------------------------------------
-
-from monai_probreg.blocks.warp import warp_image, warp_labels
-from monai_probreg.data.augmentation import RandDiffeomorphicd
-from monai_probreg.metrics.jacobian import jacobian_determinant
 
 
 def _deform(magnitude: float = 1.5, seed: int = 0, **kwargs) -> RandDiffeomorphicd:
@@ -127,8 +134,7 @@ def test_the_images_are_pulled_back_through_the_drawn_displacement():
     out = t(dict(pair))
     ddf = t.displacement((32, 36, 28))  # the same draw: displacement() re-reads the last noise
     torch.testing.assert_close(out["moving"][None].as_tensor(), warp_image(pair["moving"][None].as_tensor(), ddf))
-    assert torch.equal(out["moving_label"][None].as_tensor(),
-                       warp_labels(pair["moving_label"][None].as_tensor(), ddf))
+    assert torch.equal(out["moving_label"][None].as_tensor(), warp_labels(pair["moving_label"][None].as_tensor(), ddf))
     assert out["moving_label"].dtype == torch.int16 and torch.equal(out["fixed"], pair["fixed"])
     assert not torch.allclose(out["moving"], pair["moving"], atol=1e-3)
 
@@ -208,12 +214,20 @@ def test_intensity_draws_are_independent_per_image_and_seeded():
     assert not torch.equal(out["moving_input"], other["moving_input"])
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"prob": 1.5}, "prob"), ({"prob": -0.1}, "prob"),
-    ({"bias_coeff": -1.0}, "bias_coeff"), ({"noise_std": -0.1}, "noise_std"),
-    ({"gamma": (1.5, 0.5)}, "gamma"), ({"gamma": (0.0, 1.0)}, "gamma"), ({"gamma": (1.0,)}, "gamma"),
-    ({"smooth_sigma": (1.0, 0.5)}, "smooth_sigma"), ({"smooth_sigma": (-1.0, 0.5)}, "smooth_sigma"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"prob": 1.5}, "prob"),
+        ({"prob": -0.1}, "prob"),
+        ({"bias_coeff": -1.0}, "bias_coeff"),
+        ({"noise_std": -0.1}, "noise_std"),
+        ({"gamma": (1.5, 0.5)}, "gamma"),
+        ({"gamma": (0.0, 1.0)}, "gamma"),
+        ({"gamma": (1.0,)}, "gamma"),
+        ({"smooth_sigma": (1.0, 0.5)}, "smooth_sigma"),
+        ({"smooth_sigma": (-1.0, 0.5)}, "smooth_sigma"),
+    ],
+)
 def test_bad_intensity_arguments_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         intensity_augmentation(**{"prob": 0.5, **kwargs})

@@ -57,8 +57,12 @@ def test_scale_to_unit_maps_the_percentiles_to_zero_and_one():
 
 def test_one_table_per_pair_the_same_label_the_same_intensity_in_both_images():
     labels = _blocks()
-    pair = {"moving": MetaTensor(torch.zeros(1, 12, 10, 8)), "fixed": torch.zeros(1, 12, 10, 8),
-            "moving_label": labels, "fixed_label": labels.flip(1)}
+    pair = {
+        "moving": MetaTensor(torch.zeros(1, 12, 10, 8)),
+        "fixed": torch.zeros(1, 12, 10, 8),
+        "moving_label": labels,
+        "fixed_label": labels.flip(1),
+    }
     render = RandLabelContrastd(random_prob=0.0, texture_std=0.0, blur_sigma=(0.0, 0.0))
     render.set_random_state(seed=3)
     out = render(pair)
@@ -81,8 +85,12 @@ def test_t1_like_tables_keep_the_t1_order_random_ones_do_not():
 
 
 def test_prob_zero_leaves_the_pair_as_it_is():
-    pair = {"moving": torch.ones(1, 4, 4, 4), "fixed": torch.ones(1, 4, 4, 4),
-            "moving_label": torch.ones(1, 4, 4, 4, dtype=torch.int16), "fixed_label": torch.ones(1, 4, 4, 4)}
+    pair = {
+        "moving": torch.ones(1, 4, 4, 4),
+        "fixed": torch.ones(1, 4, 4, 4),
+        "moving_label": torch.ones(1, 4, 4, 4, dtype=torch.int16),
+        "fixed_label": torch.ones(1, 4, 4, 4),
+    }
     out = RandLabelContrastd(prob=0.0)(pair)
     assert out["moving"] is pair["moving"] and out["fixed"] is pair["fixed"]
 
@@ -90,7 +98,8 @@ def test_prob_zero_leaves_the_pair_as_it_is():
 def test_slots_map_the_structures_in_order_and_everything_else_to_zero():
     labels = torch.tensor([[0, 2, 3, 41, 163, 507, 24]], dtype=torch.int16)
     out = SlotLabelsd(keys=["moving_label"], structures=[2, 3, 41, 24], slots=[21, 22, 23, 24, 25])(
-        {"moving_label": MetaTensor(labels)})["moving_label"]
+        {"moving_label": MetaTensor(labels)}
+    )["moving_label"]
     assert out.tolist() == [[0, 21, 22, 23, 0, 0, 24]]  # 163 is an LPBA40 slot too: it must not survive as one
     assert out.dtype == torch.int16 and isinstance(out, MetaTensor)
 
@@ -102,31 +111,38 @@ def test_the_tables_know_the_aseg_structures_left_and_right():
     assert T1_LIKE[2] > T1_LIKE[3] > T1_LIKE[4]  # T1: white matter > grey matter > CSF
 
 
-@pytest.mark.parametrize("kwargs, words", [
-    ({"image_keys": ["moving"], "label_keys": ["moving_label", "fixed_label"]}, "one label key per image key"),
-    ({"random_prob": 1.5}, "random_prob"),
-    ({"jitter": -0.1}, "jitter"),
-    ({"texture_std": -1.0}, "texture_std"),
-    ({"blur_sigma": (1.0, 0.5)}, "blur_sigma"),
-    ({"blur_sigma": (0.5,)}, "blur_sigma"),
-])
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [
+        ({"image_keys": ["moving"], "label_keys": ["moving_label", "fixed_label"]}, "one label key per image key"),
+        ({"random_prob": 1.5}, "random_prob"),
+        ({"jitter": -0.1}, "jitter"),
+        ({"texture_std": -1.0}, "texture_std"),
+        ({"blur_sigma": (1.0, 0.5)}, "blur_sigma"),
+        ({"blur_sigma": (0.5,)}, "blur_sigma"),
+    ],
+)
 def test_rand_label_contrast_rejects_bad_arguments(kwargs, words):
     with pytest.raises(ValueError, match=words):
         RandLabelContrastd(**kwargs)
 
 
-@pytest.mark.parametrize("structures, slots, words", [
-    ([1, 2, 3], [5, 6], "at most 2"),
-    ([1, 1], [5, 6], "distinct"),
-    ([-1], [5], "non-negative"),
-])
+@pytest.mark.parametrize(
+    "structures, slots, words",
+    [
+        ([1, 2, 3], [5, 6], "at most 2"),
+        ([1, 1], [5, 6], "distinct"),
+        ([-1], [5], "non-negative"),
+    ],
+)
 def test_slots_reject_bad_arguments(structures, slots, words):
     with pytest.raises(ValueError, match=words):
         SlotLabelsd(keys=["moving_label"], structures=structures, slots=slots)
 
 
-@pytest.mark.parametrize("labels, words", [(torch.zeros(4, 4), "spatial axes"),
-                                            (-torch.ones(1, 3, 3, 3), "non-negative")])
+@pytest.mark.parametrize(
+    "labels, words", [(torch.zeros(4, 4), "spatial axes"), (-torch.ones(1, 3, 3, 3), "non-negative")]
+)
 def test_render_rejects_bad_label_maps(labels, words):
     with pytest.raises(ValueError, match=words):
         render_labels(labels.long(), {1: 1.0})

@@ -31,8 +31,17 @@ def test_subject_pairs_are_every_ordered_pair_then_every_subject_to_the_atlas(fo
     index = index_dataset(four)
     pairs = subject_pairs(index, ["T01", "T02", "T03"], require_labels=True)
     ids = [p["id"] for p in pairs]
-    assert ids == ["T01_to_T02", "T01_to_T03", "T02_to_T01", "T02_to_T03", "T03_to_T01", "T03_to_T02",
-                   "T01_to_atlas", "T02_to_atlas", "T03_to_atlas"]
+    assert ids == [
+        "T01_to_T02",
+        "T01_to_T03",
+        "T02_to_T01",
+        "T02_to_T03",
+        "T03_to_T01",
+        "T03_to_T02",
+        "T01_to_atlas",
+        "T02_to_atlas",
+        "T03_to_atlas",
+    ]
     first = pairs[0]
     assert first["moving"].endswith("T01.nii.gz") and first["fixed"].endswith("T02.nii.gz")
     assert first["moving_label"].endswith("labels/T01.nii.gz") and first["fixed_label"].endswith("labels/T02.nii.gz")
@@ -60,8 +69,8 @@ def test_ordered_pairs_adds_each_scan_against_itself_self_repeats_times():
     ids = ["S1", "S2", ATLAS_ID]
     plain = ordered_pairs(ids, atlas_repeats=1)
     pairs = ordered_pairs(ids, atlas_repeats=1, self_repeats=3)
-    assert pairs[:len(plain)] == plain
-    extra = pairs[len(plain):]
+    assert pairs[: len(plain)] == plain
+    extra = pairs[len(plain) :]
     assert sorted(extra) == sorted([(0, 0), (1, 1), (2, 2)] * 3)
     assert ordered_pairs(["S1"], self_repeats=1) == [(0, 0)]
     with pytest.raises(ValueError, match="self_repeats"):
@@ -91,27 +100,47 @@ def test_pair_dataset_builds_pairs_from_cached_scans_with_the_pair_keys(four):
 
 def test_read_pairs_file_csv_and_json_with_relative_paths(four, tmp_path):
     csv_file = four / "pairs.csv"
-    csv_file.write_text("moving,fixed,moving_label,fixed_label\nimages/T01.nii.gz,images/T02.nii.gz,"
-                        "labels/T01.nii.gz,labels/T02.nii.gz\nimages/T03.nii.gz,atlas/A01_image.nii.gz,,\n")
+    csv_file.write_text(
+        "moving,fixed,moving_label,fixed_label\nimages/T01.nii.gz,images/T02.nii.gz,"
+        "labels/T01.nii.gz,labels/T02.nii.gz\nimages/T03.nii.gz,atlas/A01_image.nii.gz,,\n"
+    )
     pairs = read_pairs_file(csv_file)
     assert [p["id"] for p in pairs] == ["T01_to_T02", "T03_to_A01_image"]
     assert pairs[0]["moving_label"] == str(four / "labels" / "T01.nii.gz") and "moving_label" not in pairs[1]
     json_file = tmp_path / "pairs.json"
-    json_file.write_text(json.dumps({"registration_val": [
-        {"moving": str(four / "images" / "T02.nii.gz"), "fixed": str(four / "images" / "T04.nii.gz"), "id": "a"}]}))
-    assert read_pairs_file(json_file) == [{"moving": str(four / "images" / "T02.nii.gz"),
-                                           "fixed": str(four / "images" / "T04.nii.gz"), "id": "a"}]
+    json_file.write_text(
+        json.dumps(
+            {
+                "registration_val": [
+                    {
+                        "moving": str(four / "images" / "T02.nii.gz"),
+                        "fixed": str(four / "images" / "T04.nii.gz"),
+                        "id": "a",
+                    }
+                ]
+            }
+        )
+    )
+    assert read_pairs_file(json_file) == [
+        {"moving": str(four / "images" / "T02.nii.gz"), "fixed": str(four / "images" / "T04.nii.gz"), "id": "a"}
+    ]
     with pytest.raises(InputError, match="needs moving_label"):
         read_pairs_file(csv_file, require_labels=True)
 
 
-@pytest.mark.parametrize("text, words", [
-    ("moving,fixed\nimages/T01.nii.gz,images/T99.nii.gz\n", "T99.nii.gz' does not exist"),
-    ("moving,other\nimages/T01.nii.gz,x\n", "expected 'moving' and 'fixed'"),
-    ("moving,fixed,moving_label\nimages/T01.nii.gz,images/T02.nii.gz,labels/T01.nii.gz\n", "both label maps"),
-    ("moving,fixed,id\nimages/T01.nii.gz,images/T02.nii.gz,x\nimages/T02.nii.gz,images/T01.nii.gz,x\n", "used twice"),
-    ("moving,fixed\n", "non-empty list"),
-])
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("moving,fixed\nimages/T01.nii.gz,images/T99.nii.gz\n", "T99.nii.gz' does not exist"),
+        ("moving,other\nimages/T01.nii.gz,x\n", "expected 'moving' and 'fixed'"),
+        ("moving,fixed,moving_label\nimages/T01.nii.gz,images/T02.nii.gz,labels/T01.nii.gz\n", "both label maps"),
+        (
+            "moving,fixed,id\nimages/T01.nii.gz,images/T02.nii.gz,x\nimages/T02.nii.gz,images/T01.nii.gz,x\n",
+            "used twice",
+        ),
+        ("moving,fixed\n", "non-empty list"),
+    ],
+)
 def test_bad_pairs_files_name_the_file_and_the_pair(four, tmp_path, text, words):
     bad = four / f"bad_{abs(hash(text))}.csv"
     bad.write_text(text)
@@ -142,9 +171,17 @@ def test_mixed_sampler_never_draws_a_dataset_of_fraction_zero():
     assert max(drawn) < 5
 
 
-@pytest.mark.parametrize("sizes, fractions, num_samples", [
-    ([5, 5], [1.0], 10), ([], [], 10), ([0, 5], [0.5, 0.5], 10), ([5, 5], [-0.1, 1.1], 10), ([5, 5], [0, 0], 10),
-    ([5, 5], [0.5, 0.5], 0)])
+@pytest.mark.parametrize(
+    "sizes, fractions, num_samples",
+    [
+        ([5, 5], [1.0], 10),
+        ([], [], 10),
+        ([0, 5], [0.5, 0.5], 10),
+        ([5, 5], [-0.1, 1.1], 10),
+        ([5, 5], [0, 0], 10),
+        ([5, 5], [0.5, 0.5], 0),
+    ],
+)
 def test_mixed_sampler_rejects_bad_arguments(sizes, fractions, num_samples):
     with pytest.raises(ValueError, match="expected|must be"):
         mixed_sampler(sizes, fractions, num_samples)

@@ -39,8 +39,10 @@ def test_input_error_is_found_through_wrapping():
 def test_bad_items_become_markers_and_are_recorded():
     data = [{"id": "a"}, {"id": "bad"}, {"id": "c"}]
     dataset = SkipBadInputs(data, transform=Lambda(_check))
-    assert dataset[1] == {"id": "bad", FAILED_KEY: str(InputError(
-        "moving image 'bad.nii.gz': expected a complete image file, got a truncated one"))}
+    assert dataset[1] == {
+        "id": "bad",
+        FAILED_KEY: str(InputError("moving image 'bad.nii.gz': expected a complete image file, got a truncated one")),
+    }
     failures = InputFailures()
     batches = list(SkipFailedBatches(DataLoader(dataset, batch_size=1), failures))
     assert [b["id"] for b in batches] == [["a"], ["c"]]

@@ -57,8 +57,7 @@ def test_a_shift_moves_the_anatomy_by_the_shift_and_the_field_says_so(template):
 
 
 def test_pulling_the_subject_back_through_the_true_field_gives_the_template(template):
-    settings = SyntheticSettings(max_rotation_deg=8, max_shift_mm=3, deform_rms_mm=2.0, deform_spacing_mm=12,
-                                 **CLEAN)
+    settings = SyntheticSettings(max_rotation_deg=8, max_shift_mm=3, deform_rms_mm=2.0, deform_spacing_mm=12, **CLEAN)
     subject = synthesize_subject(template, settings, seed=3)
     points = grid_points(template.shape, template.index_to_lps)
     back = sample_linear(subject.image, points + subject.true_warp)  # warped(p) = subject(phi(p))
@@ -87,9 +86,17 @@ def test_a_seed_repeats_the_draw_and_another_seed_differs(template):
     assert a.rotation_deg != c.rotation_deg and not np.allclose(a.true_warp, c.true_warp)
 
 
-@pytest.mark.parametrize("field, value", [("max_rotation_deg", -1.0), ("noise_fraction", float("nan")),
-                                          ("deform_spacing_mm", 0.0), ("num_steps", 0), ("axcodes", "PPR"),
-                                          ("axcodes", "RA")])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("max_rotation_deg", -1.0),
+        ("noise_fraction", float("nan")),
+        ("deform_spacing_mm", 0.0),
+        ("num_steps", 0),
+        ("axcodes", "PPR"),
+        ("axcodes", "RA"),
+    ],
+)
 def test_bad_settings_are_refused_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         SyntheticSettings(**{field: value})

@@ -56,6 +56,13 @@ def test_register_without_fixed_goes_to_the_template(tmp_path, monkeypatch):
 
 
 def test_fixed_label_needs_fixed(tmp_path):
-    result = run_cli("register", "--moving", str(tmp_path / "m.nii.gz"), "--fixed-label", str(tmp_path / "l.nii.gz"),
-                     "--out", str(tmp_path / "o"))
+    result = run_cli(
+        "register",
+        "--moving",
+        str(tmp_path / "m.nii.gz"),
+        "--fixed-label",
+        str(tmp_path / "l.nii.gz"),
+        "--out",
+        str(tmp_path / "o"),
+    )
     assert result.rc == 1 and "expected --fixed too" in result.err

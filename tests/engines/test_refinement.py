@@ -47,17 +47,35 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
     return _blobs(shape, offset), _blobs(shape, (0.0,) * len(shape))
 
 
-@pytest.mark.parametrize(("name", "value"), [
-    ("num_iterations", -1), ("num_iterations", 2.0), ("num_iterations", True),
-    ("learning_rate", 0.0), ("learning_rate", -0.1), ("learning_rate", "0.1"),
-    ("image_sigma", 0.0), ("image_sigma", math.nan),
-    ("prior_lambda", -1.0), ("prior_lambda", None),
-    ("posterior_weight", -0.5), ("posterior_weight", math.nan), ("posterior_weight", True),
-    ("image_loss", "ncc"), ("image_loss", None),
-    ("image_weight", -1.0), ("image_weight", math.nan), ("image_weight", "20"),
-    ("fold_backtracks", -1), ("fold_backtracks", 1.0), ("fold_backtracks", True),
-    ("lncc_kernel_size", 4), ("lncc_kernel_size", 1), ("lncc_kernel_size", 9.0),
-])
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("num_iterations", -1),
+        ("num_iterations", 2.0),
+        ("num_iterations", True),
+        ("learning_rate", 0.0),
+        ("learning_rate", -0.1),
+        ("learning_rate", "0.1"),
+        ("image_sigma", 0.0),
+        ("image_sigma", math.nan),
+        ("prior_lambda", -1.0),
+        ("prior_lambda", None),
+        ("posterior_weight", -0.5),
+        ("posterior_weight", math.nan),
+        ("posterior_weight", True),
+        ("image_loss", "ncc"),
+        ("image_loss", None),
+        ("image_weight", -1.0),
+        ("image_weight", math.nan),
+        ("image_weight", "20"),
+        ("fold_backtracks", -1),
+        ("fold_backtracks", 1.0),
+        ("fold_backtracks", True),
+        ("lncc_kernel_size", 4),
+        ("lncc_kernel_size", 1),
+        ("lncc_kernel_size", 9.0),
+    ],
+)
 def test_bad_setting_names_itself(name, value):
     with pytest.raises(ValueError, match=name):
         RefinementSettings(**{name: value})
@@ -80,9 +98,15 @@ def test_refinement_finds_a_known_shift(shape, axis):
     match smooth blobs about as well (with lambda 0.1 the mean displacement stops near 1.0)."""
     net = _identity_net(len(shape))
     moving, fixed = _pair(shape, axis)
-    settings = RefinementSettings(num_iterations=60, learning_rate=0.1, image_loss="gaussian", image_weight=1.0,
-                                  image_sigma=0.05, prior_lambda=10.0,
-                                  posterior_weight=0.0)  # the untrained posterior (log_var -10) would pin it
+    settings = RefinementSettings(
+        num_iterations=60,
+        learning_rate=0.1,
+        image_loss="gaussian",
+        image_weight=1.0,
+        image_sigma=0.05,
+        prior_lambda=10.0,
+        posterior_weight=0.0,
+    )  # the untrained posterior (log_var -10) would pin it
     start = register_pair(net, moving, fixed)
     refined = refine_registration(net, moving, fixed, start, settings)
     inside = fixed[0, 0] > 0.3
@@ -132,12 +156,16 @@ def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds()
     with torch.no_grad():  # brute force: the largest fold-free fraction of the change, 1/2 ... 1/16, else none
         fractions = [0.5**k for k in range(1, 5)] + [0.0]
         size = moving.shape[2:]
-        expected = next(f for f in fractions if f == 0.0 or _folds(
-            net.velocity_to_displacement(start.velocity_mean + f * full, size)) == 0)
+        expected = next(
+            f
+            for f in fractions
+            if f == 0.0 or _folds(net.velocity_to_displacement(start.velocity_mean + f * full, size)) == 0
+        )
     torch.testing.assert_close(change, expected * full, rtol=0, atol=1e-6)
     with torch.no_grad():  # and the returned fields are those of the kept mean
-        torch.testing.assert_close(guarded.displacement,
-                                   net.velocity_to_displacement(guarded.velocity_mean, moving.shape[2:]))
+        torch.testing.assert_close(
+            guarded.displacement, net.velocity_to_displacement(guarded.velocity_mean, moving.shape[2:])
+        )
 
 
 def test_the_fold_guard_leaves_a_fold_free_refinement_alone():
@@ -198,8 +226,9 @@ def test_refinement_checks_the_pair():
     with pytest.raises(ValueError, match="same shape"):
         refine_registration(net, moving, fixed[..., :32], output, RefinementSettings(num_iterations=1))
     with pytest.raises(ValueError, match="batch"):
-        refine_registration(net, moving.repeat(2, 1, 1, 1), fixed.repeat(2, 1, 1, 1), output,
-                            RefinementSettings(num_iterations=1))
+        refine_registration(
+            net, moving.repeat(2, 1, 1, 1), fixed.repeat(2, 1, 1, 1), output, RefinementSettings(num_iterations=1)
+        )
 
 
 def test_register_pair_and_the_engine_inferer_refine_the_same_way():

@@ -49,7 +49,9 @@ def _output(displacement: torch.Tensor, log_var: float = -4.0) -> RegistrationOu
     """A RegistrationOutput of one 3-d pair around ``displacement`` (1, 3, *S); velocity grid = S / 2."""
     size = displacement.shape[2:]
     vel = torch.zeros(1, 3, *(n // 2 for n in size))
-    return RegistrationOutput(torch.rand(1, 1, *size), displacement, vel, vel, torch.full_like(vel, log_var), None, None)
+    return RegistrationOutput(
+        torch.rand(1, 1, *size), displacement, vel, vel, torch.full_like(vel, log_var), None, None
+    )
 
 
 def _box_labels(shape, start: int) -> torch.Tensor:
@@ -133,13 +135,27 @@ def test_write_outputs_files_shapes_and_displacement_convention(tmp_path):
 def test_write_outputs_takes_the_calibrated_maps(tmp_path):
     shape = (12, 10, 8)
     maps = PosteriorMaps(torch.full(shape, 2.5), torch.full(shape, 0.75), torch.full(shape, 0.5))
-    written = write_outputs(tmp_path, "S98", _output(torch.zeros(1, 3, *shape), log_var=-4.0), np.eye(4),
-                            _box_labels(shape, 2), OUTPUT_NAMES, maps)
+    written = write_outputs(
+        tmp_path,
+        "S98",
+        _output(torch.zeros(1, 3, *shape), log_var=-4.0),
+        np.eye(4),
+        _box_labels(shape, 2),
+        OUTPUT_NAMES,
+        maps,
+    )
     assert set(written) == set(OUTPUT_NAMES)
     for name, value in (("entropy", 2.5), ("displacement_std", 0.75), ("label_entropy", 0.5)):
         np.testing.assert_array_equal(nib.load(written[name]).get_fdata(), value)
-    no_labels = write_outputs(tmp_path, "S97", _output(torch.zeros(1, 3, *shape), log_var=-4.0), np.eye(4),
-                              None, OUTPUT_NAMES, maps._replace(label_entropy=None))
+    no_labels = write_outputs(
+        tmp_path,
+        "S97",
+        _output(torch.zeros(1, 3, *shape), log_var=-4.0),
+        np.eye(4),
+        None,
+        OUTPUT_NAMES,
+        maps._replace(label_entropy=None),
+    )
     assert "label_entropy" not in no_labels and "warped_label" not in no_labels
 
 
@@ -166,8 +182,12 @@ def _write_oblique_dataset(root: Path, shape=(30, 28, 20)) -> np.ndarray:
     rng = np.random.default_rng(0)
     image = rng.uniform(0.0, 300.0, size=shape).astype(np.float32)
     labels = rng.choice(np.array([0, *LABELS], dtype=np.uint8), size=shape)
-    for sub, name, data in (("atlas", "A_image", image), ("atlas", "A_label", labels), ("images", "A01", image),
-                            ("labels", "A01", labels)):
+    for sub, name, data in (
+        ("atlas", "A_image", image),
+        ("atlas", "A_label", labels),
+        ("images", "A01", image),
+        ("labels", "A01", labels),
+    ):
         (root / sub).mkdir(parents=True, exist_ok=True)
         nib.save(nib.Nifti1Image(data, affine), root / sub / f"{name}.nii.gz")
     return affine
@@ -256,7 +276,9 @@ def test_write_scores_csv_summary_and_table(tmp_path):
         ("S01", PairScores({21: 0.8, 22: 0.6}, 0.7, 3, 0.1, 0.2, 1.0), PairScores({21: 0.5, 22: 0.3}, 0.4, 0, 0, 0, 0)),
         ("S02", PairScores({21: 0.9, 22: math.nan}, 0.9, 1, 0.05, 0.3, 2.0), PairScores({21: 0.6}, 0.6, 0, 0, 0, 0)),
     ]
-    summary = write_scores(tmp_path, rows, {"model_file": "m.pt", "network_size": (16, 16, 16), "device": torch.device("cpu")})
+    summary = write_scores(
+        tmp_path, rows, {"model_file": "m.pt", "network_size": (16, 16, 16), "device": torch.device("cpu")}
+    )
     with open(tmp_path / "scores.csv") as f:
         table = list(csv.DictReader(f))
     assert [r["id"] for r in table] == ["S01", "S02"]
@@ -276,7 +298,9 @@ def test_write_scores_csv_summary_and_table(tmp_path):
 
 def test_write_outputs_only_the_requested_maps(tmp_path):
     out = _output(torch.zeros(1, 3, 6, 6, 6))
-    written = write_outputs(tmp_path, "S1", out, np.eye(4), _box_labels((6, 6, 6), 0), names=("jacobian", "warped_label"))
+    written = write_outputs(
+        tmp_path, "S1", out, np.eye(4), _box_labels((6, 6, 6), 0), names=("jacobian", "warped_label")
+    )
     assert sorted(p.name for p in (tmp_path / "S1").iterdir()) == ["jacobian.nii.gz", "warped_label.nii.gz"]
     assert set(written) == {"jacobian", "warped_label"}
     assert write_outputs(tmp_path, "S2", out, np.eye(4), None, names=("warped_label",)) == {}  # no labels: skipped

@@ -37,8 +37,9 @@ def _output(batch: dict, warped_source: torch.Tensor) -> RegistrationOutput:
     gen = torch.Generator().manual_seed(1)
     displacement = torch.randn((shape[0], 3, *shape[2:]), generator=gen)
     velocity = torch.zeros((shape[0], 3, *(n // 2 for n in shape[2:])))
-    return RegistrationOutput(warp_image(warped_source, displacement), displacement, velocity, velocity,
-                              velocity - 2.0, None, None)
+    return RegistrationOutput(
+        warp_image(warped_source, displacement), displacement, velocity, velocity, velocity - 2.0, None, None
+    )
 
 
 def test_the_likelihood_compares_the_clean_images_when_the_network_saw_augmented_ones():

@@ -21,8 +21,15 @@ def _labels() -> torch.Tensor:
 
 def _output(displacement: torch.Tensor) -> RegistrationOutput:
     zero = torch.zeros_like(displacement)
-    return RegistrationOutput(warped=torch.zeros((1, 1, *SIZE)), displacement=displacement, velocity=zero,
-                              velocity_mean=zero, velocity_log_var=zero, inverse_displacement=None, warped_fixed=None)
+    return RegistrationOutput(
+        warped=torch.zeros((1, 1, *SIZE)),
+        displacement=displacement,
+        velocity=zero,
+        velocity_mean=zero,
+        velocity_log_var=zero,
+        inverse_displacement=None,
+        warped_fixed=None,
+    )
 
 
 def _folding_displacement() -> torch.Tensor:

@@ -50,8 +50,15 @@ def test_total_is_weighted_sum_of_terms(ndims, reduction):
     out = _output(ndims)
     moving, fixed = _images(ndims)
     moving_oh, fixed_oh = _one_hot(ndims, seed=2), _one_hot(ndims, seed=3)
-    loss = ProbRegLoss(image_loss="gaussian", image_sigma=0.1, prior_lambda=5.0, image_weight=2.0,
-                       label_weight=0.7, spatial_dims=ndims, reduction=reduction)
+    loss = ProbRegLoss(
+        image_loss="gaussian",
+        image_sigma=0.1,
+        prior_lambda=5.0,
+        image_weight=2.0,
+        label_weight=0.7,
+        spatial_dims=ndims,
+        reduction=reduction,
+    )
     terms = loss(out, moving, fixed, moving_oh, fixed_oh)
     assert isinstance(terms, LossTerms)
     image = gaussian_image_loss(out.warped, fixed, 0.1, reduction)
@@ -68,8 +75,14 @@ def test_bidirectional_image_term_is_half_forward_plus_half_backward(image_loss)
     ndims = 3
     out = _output(ndims, bidirectional=True)
     moving, fixed = _images(ndims)
-    loss = ProbRegLoss(image_loss=image_loss, image_sigma=0.2, prior_lambda=3.0, image_weight=1.5,
-                       spatial_dims=ndims, lncc_kernel_size=3)
+    loss = ProbRegLoss(
+        image_loss=image_loss,
+        image_sigma=0.2,
+        prior_lambda=3.0,
+        image_weight=1.5,
+        spatial_dims=ndims,
+        lncc_kernel_size=3,
+    )
     terms = loss(out, moving, fixed)
     term = make_image_loss(image_loss, ndims, 0.2, 3)
     expected = 0.5 * term(out.warped, fixed) + 0.5 * term(out.warped_fixed, moving)
@@ -175,7 +188,8 @@ def test_label_term_is_differentiable_wrt_displacement():
     disp = (0.3 * torch.randn(1, ndims, *s, generator=torch.Generator().manual_seed(0))).requires_grad_(True)
     out = _output(ndims, batch=1, displacement=disp)
     moving, fixed = _images(ndims, batch=1)
-    terms = ProbRegLoss(label_weight=1.0, spatial_dims=ndims)(out, moving, fixed, _one_hot(ndims, 1, 2),
-                                                              _one_hot(ndims, 1, 3))
+    terms = ProbRegLoss(label_weight=1.0, spatial_dims=ndims)(
+        out, moving, fixed, _one_hot(ndims, 1, 2), _one_hot(ndims, 1, 3)
+    )
     (grad,) = torch.autograd.grad(terms.total, disp)
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0

@@ -190,8 +190,9 @@ def test_optimum_is_a_minimum_in_log_var(ndims):
 
 
 def _smoothness(mean, log_var, prior_lambda=2.0, reduction="sum"):
-    return (laplacian_kl(mean, log_var, prior_lambda, reduction)
-            - laplacian_kl(torch.zeros_like(mean), log_var, prior_lambda, reduction))
+    return laplacian_kl(mean, log_var, prior_lambda, reduction) - laplacian_kl(
+        torch.zeros_like(mean), log_var, prior_lambda, reduction
+    )
 
 
 @pytest.mark.parametrize("ndims", [2, 3])
@@ -301,7 +302,8 @@ def test_voxelmorph_log_variance_part_equals_ours_with_same_lambda(ndims):
     lambda_v = 13.0
     # float64, same terms with a different normalisation order
     assert laplacian_kl(zero, log_var, lambda_v, "mean").item() == pytest.approx(
-        voxelmorph_kl(zero, log_var, lambda_v).item(), rel=1e-12)
+        voxelmorph_kl(zero, log_var, lambda_v).item(), rel=1e-12
+    )
 
 
 def _vm_smoothness(mean, log_var, lambda_v):

@@ -15,8 +15,10 @@ SHAPES = {2: (2, 1, 9, 10), 3: (2, 1, 6, 7, 8)}
 
 def _pair(ndims, seed=0, dtype=torch.float64):
     gen = torch.Generator().manual_seed(seed)
-    return (torch.rand(SHAPES[ndims], generator=gen, dtype=dtype),
-            torch.rand(SHAPES[ndims], generator=gen, dtype=dtype))
+    return (
+        torch.rand(SHAPES[ndims], generator=gen, dtype=dtype),
+        torch.rand(SHAPES[ndims], generator=gen, dtype=dtype),
+    )
 
 
 @pytest.mark.parametrize("ndims", [2, 3])
@@ -60,8 +62,9 @@ def test_voxelmorph_image_term_conversion():
     sigma_v = 0.07
     voxelmorph = torch.mean((fixed - warped) ** 2).item() / sigma_v**2
     # float64: 1e-12 relative
-    assert gaussian_image_loss(warped, fixed, sigma_v / math.sqrt(2), "mean").item() == pytest.approx(voxelmorph,
-                                                                                                      rel=1e-12)
+    assert gaussian_image_loss(warped, fixed, sigma_v / math.sqrt(2), "mean").item() == pytest.approx(
+        voxelmorph, rel=1e-12
+    )
 
 
 @pytest.mark.parametrize("sigma", [0.0, -0.1])

@@ -144,9 +144,7 @@ def test_axis_of_one_voxel_raises(shape):
 # jacobian_stats
 # ---------------------------------------------------------------------------------------------------
 
-DET_MAP = torch.tensor([[1.0, 2.0, -0.5, 0.0],
-                        [0.5, 3.0, 1.2, -2.0],
-                        [0.8, 1.0, 4.0, 0.25]], dtype=torch.float64)
+DET_MAP = torch.tensor([[1.0, 2.0, -0.5, 0.0], [0.5, 3.0, 1.2, -2.0], [0.8, 1.0, 4.0, 0.25]], dtype=torch.float64)
 
 
 def test_stats_on_hand_made_map():
@@ -194,6 +192,7 @@ def test_stats_of_identity_field():
 @pytest.mark.parametrize("ndims", [2, 3])
 def test_determinant_gradcheck_float64(ndims):
     """The cofactor determinant is differentiable (a Jacobian penalty can be trained through it)."""
-    ddf = (0.3 * torch.randn(1, ndims, *([4] * ndims), generator=torch.Generator().manual_seed(5),
-                             dtype=torch.float64)).requires_grad_()
+    ddf = (
+        0.3 * torch.randn(1, ndims, *([4] * ndims), generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    ).requires_grad_()
     assert torch.autograd.gradcheck(jacobian_determinant, (ddf,))

@@ -75,17 +75,24 @@ def test_the_level_sets_the_interval(case):
     variance = np.ones(truth.shape)
     error = np.array([1.5, 1.5, 1.5])  # 1.5 sigma: inside the 95% interval (1.96), outside the 80% one (1.28)
     assert displacement_recovery(truth, truth + error, mask, variance=variance, variance_axes=np.eye(3)).coverage == 1
-    assert displacement_recovery(truth, truth + error, mask, variance=variance, variance_axes=np.eye(3),
-                                 level=0.8).coverage == 0
+    assert (
+        displacement_recovery(
+            truth, truth + error, mask, variance=variance, variance_axes=np.eye(3), level=0.8
+        ).coverage
+        == 0
+    )
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"warp": np.zeros((2, 2, 2, 3))}, "expected two"),
-    ({"mask": np.zeros(SHAPE, bool)}, "no voxel"),
-    ({"level": 1.0}, "level"),
-    ({"variance": np.ones((*SHAPE, 3))}, "axes"),
-    ({"affine": np.eye(4)}, "points"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"warp": np.zeros((2, 2, 2, 3))}, "expected two"),
+        ({"mask": np.zeros(SHAPE, bool)}, "no voxel"),
+        ({"level": 1.0}, "level"),
+        ({"variance": np.ones((*SHAPE, 3))}, "axes"),
+        ({"affine": np.eye(4)}, "points"),
+    ],
+)
 def test_bad_arguments_are_refused(case, kwargs, match):
     _, truth, mask = case
     arguments = {"true_warp": truth, "warp": truth, "mask": mask} | kwargs

@@ -109,8 +109,11 @@ def test_the_environment_decides_what_auto_means_on_any_machine(monkeypatch, nat
     monkeypatch.setenv(acceleration.PRECISION_ENV, "fp32")
     assert unet_autocast_dtype("auto", "cpu") is None and unet_autocast_dtype("bf16", "cpu") is torch.bfloat16
     monkeypatch.setenv(acceleration.PRECISION_ENV, "auto")
-    with pytest.raises(ValueError, match=r"MONAI_PROBREG_UNET_PRECISION must be one of \['bf16', 'fp32'\] or unset; "
-                                         r"got 'auto'"):
+    with pytest.raises(
+        ValueError,
+        match=r"MONAI_PROBREG_UNET_PRECISION must be one of \['bf16', 'fp32'\] or unset; "
+        r"got 'auto'",
+    ):
         unet_autocast_dtype("auto", "cpu")
 
 
@@ -138,8 +141,12 @@ def test_bf16_keeps_dice_and_folding_on_a_synthetic_pair_with_the_shipped_weight
         with torch.inference_mode():
             disp = net.eval()(moving, fixed).displacement
         warped = warp_labels(moving_label, disp)
-        results[precision] = (disp, warped, label_dice(warped, fixed_label),
-                              jacobian_stats(jacobian_determinant(disp)).num_folding)
+        results[precision] = (
+            disp,
+            warped,
+            label_dice(warped, fixed_label),
+            jacobian_stats(jacobian_determinant(disp)).num_folding,
+        )
     (d32, w32, dice32, fold32), (d16, w16, dice16, fold16) = results["fp32"], results["bf16"]
     before = label_dice(moving_label, fixed_label)
     assert all(dice32[k] > before[k] + 0.05 for k in before), "the registration must do something to compare"

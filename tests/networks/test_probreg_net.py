@@ -50,7 +50,12 @@ def test_output_structure_and_shapes(spatial_dims, bidirectional):
     out = net(moving, fixed)
     assert isinstance(out, RegistrationOutput)
     assert out._fields == (
-        "warped", "displacement", "velocity", "velocity_mean", "velocity_log_var", "inverse_displacement",
+        "warped",
+        "displacement",
+        "velocity",
+        "velocity_mean",
+        "velocity_log_var",
+        "inverse_displacement",
         "warped_fixed",
     )  # same fields whatever the flags
     shape = SHAPES[spatial_dims]
@@ -181,8 +186,9 @@ def test_constant_velocity_is_a_translation_scaled_to_the_image_grid(spatial_dim
     # 2 b is (S - 1) / (V - 1) - 2 >= 0.067 * |b| > 0.03, far above the tolerance
     torch.testing.assert_close(out.displacement, expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(out.inverse_displacement, -expected, atol=1e-5, rtol=0)
-    torch.testing.assert_close(compose_displacements(out.displacement, out.inverse_displacement),
-                               torch.zeros_like(expected), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        compose_displacements(out.displacement, out.inverse_displacement), torch.zeros_like(expected), atol=1e-5, rtol=0
+    )
     torch.testing.assert_close(out.warped, warp_image(moving, expected), atol=1e-5, rtol=0)
     torch.testing.assert_close(out.warped_fixed, warp_image(fixed, -expected), atol=1e-5, rtol=0)
 
@@ -278,8 +284,9 @@ def test_sample_batching_does_not_change_the_samples(samples_per_batch):
     _set_heads(net, log_var_bias=-1.0)
     moving, fixed = _pair(2)
     fused = net.sample(moving, fixed, 3, generator=torch.Generator().manual_seed(5), samples_per_batch=3)
-    chunked = net.sample(moving, fixed, 3, generator=torch.Generator().manual_seed(5),
-                         samples_per_batch=samples_per_batch)
+    chunked = net.sample(
+        moving, fixed, 3, generator=torch.Generator().manual_seed(5), samples_per_batch=samples_per_batch
+    )
     assert chunked.displacements.shape == fused.displacements.shape
     # same draws, other batch layout: float32 rounding only
     torch.testing.assert_close(chunked.displacements, fused.displacements, atol=1e-5, rtol=0)

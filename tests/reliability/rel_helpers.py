@@ -20,8 +20,14 @@ def smooth(shape: tuple[int, ...], seed: int = 0) -> np.ndarray:
     return 0.5 + 0.3 * np.sin(3 * sum(grid)) + 0.1 * grid[0] + 0.01 * rng.random(shape)
 
 
-def save(path: Path, data: np.ndarray, affine: np.ndarray | None = None, dtype: type | None = None,
-         slope: float | None = None, inter: float = 0.0) -> Path:
+def save(
+    path: Path,
+    data: np.ndarray,
+    affine: np.ndarray | None = None,
+    dtype: type | None = None,
+    slope: float | None = None,
+    inter: float = 0.0,
+) -> Path:
     """nibabel save with an explicit on-disk dtype (int64 needs it) and optional scl_slope/scl_inter."""
     image = nib.Nifti1Image(data, np.eye(4) if affine is None else affine, dtype=dtype or data.dtype)
     if slope is not None:

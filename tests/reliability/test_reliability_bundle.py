@@ -47,20 +47,34 @@ def _nifti_voxels(path: Path) -> np.ndarray:
     return np.asarray(nib.load(path).dataobj)
 
 
-@pytest.mark.parametrize("config, damage, words", [
-    ("inference.yaml", lambda d: truncate(d / "images" / "T01.nii.gz", 0.6), "truncated"),
-    ("inference.yaml", lambda d: flip_byte(d / "images" / "T01.nii.gz", 0.5), "corrupt"),
-    ("evaluate.yaml", lambda d: save(d / "labels" / "T01.nii.gz",
-                                     _nifti_voxels(d / "labels" / "T01.nii.gz") * 0.5, np.diag([-1.0, -1, 1, 1])),
-     "non-integer"),
-    ("evaluate.yaml", lambda d: truncate(d / "images" / "T01.nii.gz", 0.6), "truncated"),
-])
+@pytest.mark.parametrize(
+    "config, damage, words",
+    [
+        ("inference.yaml", lambda d: truncate(d / "images" / "T01.nii.gz", 0.6), "truncated"),
+        ("inference.yaml", lambda d: flip_byte(d / "images" / "T01.nii.gz", 0.5), "corrupt"),
+        (
+            "evaluate.yaml",
+            lambda d: save(
+                d / "labels" / "T01.nii.gz", _nifti_voxels(d / "labels" / "T01.nii.gz") * 0.5, np.diag([-1.0, -1, 1, 1])
+            ),
+            "non-integer",
+        ),
+        ("evaluate.yaml", lambda d: truncate(d / "images" / "T01.nii.gz", 0.6), "truncated"),
+    ],
+)
 def test_infer_workflows_skip_and_report_the_damaged_subject(tmp_path, tiny_dataset, bundle, config, damage, words):
     dataset, damaged = _damaged_copy(tiny_dataset, tmp_path, damage)
     out = tmp_path / "out"
-    wf = ConfigWorkflow(config_file=str(bundle / "configs" / config), workflow_type="infer", logging_file=False,
-                        bundle_root=str(bundle), dataset_dir=str(dataset), output_dir=str(out),
-                        network_size=[16, 16, 16], num_workers=0)
+    wf = ConfigWorkflow(
+        config_file=str(bundle / "configs" / config),
+        workflow_type="infer",
+        logging_file=False,
+        bundle_root=str(bundle),
+        dataset_dir=str(dataset),
+        output_dir=str(out),
+        network_size=[16, 16, 16],
+        num_workers=0,
+    )
     wf.initialize()
     wf.run()
     with pytest.raises(SystemExit) as info:
@@ -87,9 +101,16 @@ def test_every_subject_damaged_writes_no_scores_and_fails(tmp_path, tiny_dataset
 
     dataset, _ = _damaged_copy(tiny_dataset, tmp_path, truncate_all)
     out = tmp_path / "out"
-    wf = ConfigWorkflow(config_file=str(bundle / "configs" / "evaluate.yaml"), workflow_type="infer",
-                        logging_file=False, bundle_root=str(bundle), dataset_dir=str(dataset), output_dir=str(out),
-                        network_size=[16, 16, 16], num_workers=0)
+    wf = ConfigWorkflow(
+        config_file=str(bundle / "configs" / "evaluate.yaml"),
+        workflow_type="infer",
+        logging_file=False,
+        bundle_root=str(bundle),
+        dataset_dir=str(dataset),
+        output_dir=str(out),
+        network_size=[16, 16, 16],
+        num_workers=0,
+    )
     wf.initialize()
     wf.run()
     with pytest.raises(SystemExit):
@@ -102,9 +123,16 @@ def test_a_clean_run_leaves_no_failed_file(tmp_path, tiny_dataset, bundle):
     out = tmp_path / "out"
     out.mkdir()
     (out / "failed.csv").write_text("id,reason\nT09,from an earlier run\n")  # stale: must not survive
-    wf = ConfigWorkflow(config_file=str(bundle / "configs" / "evaluate.yaml"), workflow_type="infer",
-                        logging_file=False, bundle_root=str(bundle), dataset_dir=str(tiny_dataset),
-                        output_dir=str(out), network_size=[16, 16, 16], num_workers=0)
+    wf = ConfigWorkflow(
+        config_file=str(bundle / "configs" / "evaluate.yaml"),
+        workflow_type="infer",
+        logging_file=False,
+        bundle_root=str(bundle),
+        dataset_dir=str(tiny_dataset),
+        output_dir=str(out),
+        network_size=[16, 16, 16],
+        num_workers=0,
+    )
     wf.initialize()
     wf.run()
     wf.finalize()  # no SystemExit
@@ -119,10 +147,19 @@ def test_training_refuses_a_nan_scan_before_the_first_step(tmp_path, tiny_datase
         return save(d / "images" / "T03.nii.gz", data, np.diag([-1.0, -1, 1, 1]))
 
     dataset, damaged = _damaged_copy(tiny_dataset, tmp_path, nan_scan)
-    wf = ConfigWorkflow(config_file=str(ROOT / "bundle" / "configs" / "train.yaml"), workflow_type="train",
-                        logging_file=False, bundle_root=str(ROOT / "bundle"), dataset_dir=str(dataset),
-                        ckpt_dir=str(tmp_path / "ckpt"), output_dir=str(tmp_path / "runs"), network_size=[32, 32, 32],
-                        val_ids=["T01"], num_workers=0, max_epochs=1)
+    wf = ConfigWorkflow(
+        config_file=str(ROOT / "bundle" / "configs" / "train.yaml"),
+        workflow_type="train",
+        logging_file=False,
+        bundle_root=str(ROOT / "bundle"),
+        dataset_dir=str(dataset),
+        ckpt_dir=str(tmp_path / "ckpt"),
+        output_dir=str(tmp_path / "runs"),
+        network_size=[32, 32, 32],
+        val_ids=["T01"],
+        num_workers=0,
+        max_epochs=1,
+    )
     error = _input_error(lambda: (wf.initialize(), wf.run()))
     assert str(damaged) in str(error) and "1 NaN" in str(error)
     assert not list((tmp_path / "ckpt").glob("*.pt"))

@@ -42,13 +42,26 @@ from monai_probreg.spatial.physical import (
 def scene(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("reliability_cli")
     case = moved_phantom([8.0, -6.0, 10.0], [3.0, -2.0, 2.0])
-    image, labels, truth, moved, moved_labels, grid = (case.image, case.labels, case.truth, case.moved,
-                                                       case.moved_labels, case.grid)
-    s = SimpleNamespace(root=root, truth=truth, image=image, labels=labels, moved=moved, grid=grid,
-                        bundle=tiny_bundle(root / "bundle", BUNDLE_DIR),
-                        fixed=save_lps(root / "fixed.nii.gz", image, FIXED_LPS),
-                        fixed_label=save_lps(root / "fixed_label.nii.gz", labels, FIXED_LPS),
-                        moving_label=save_lps(root / "moving_label.nii.gz", moved_labels.astype(np.uint8), grid))
+    image, labels, truth, moved, moved_labels, grid = (
+        case.image,
+        case.labels,
+        case.truth,
+        case.moved,
+        case.moved_labels,
+        case.grid,
+    )
+    s = SimpleNamespace(
+        root=root,
+        truth=truth,
+        image=image,
+        labels=labels,
+        moved=moved,
+        grid=grid,
+        bundle=tiny_bundle(root / "bundle", BUNDLE_DIR),
+        fixed=save_lps(root / "fixed.nii.gz", image, FIXED_LPS),
+        fixed_label=save_lps(root / "fixed_label.nii.gz", labels, FIXED_LPS),
+        moving_label=save_lps(root / "moving_label.nii.gz", moved_labels.astype(np.uint8), grid),
+    )
     s.common = ["--fixed", str(s.fixed), "--bundle-root", str(s.bundle)]
     return s
 
@@ -66,8 +79,20 @@ def test_intensity_units_do_not_change_the_registration(scene, tmp_path, units):
     """Whatever the units, the recovered transform is the true one (mean error < 0.5 mm over the brain, well under
     the 0.9-1.4 mm voxels, as in test_cli) and Dice after registration > 0.85."""
     moving = save_lps(tmp_path / "moving.nii.gz", UNITS[units](scene.moved), scene.grid)
-    result = run_cli("register", "--moving", str(moving), "--moving-label", str(scene.moving_label), "--fixed-label",
-                 str(scene.fixed_label), "--out", str(tmp_path / "out"), "--no-qc", *scene.common, *FAST_AFFINE)
+    result = run_cli(
+        "register",
+        "--moving",
+        str(moving),
+        "--moving-label",
+        str(scene.moving_label),
+        "--fixed-label",
+        str(scene.fixed_label),
+        "--out",
+        str(tmp_path / "out"),
+        "--no-qc",
+        *scene.common,
+        *FAST_AFFINE,
+    )
     assert result.rc == 0, result.err
     brain = grid_points(scene.image.shape, FIXED_LPS)[scene.labels > 0]
     affine = affine_from_itk(itk.transformread(str(tmp_path / "out" / "affine.tfm"))[0])
@@ -87,8 +112,9 @@ def test_extremely_anisotropic_oblique_scan(scene, tmp_path):
     result = run_cli("register", "--moving", str(moving), "--out", str(out), "--no-affine", "--no-qc", *scene.common)
     assert result.rc == 0, result.err
     transform = displacement_transform(itk.imread(str(out / "warp.nii.gz")))
-    theirs = itk.array_from_image(resample_with_itk(itk.imread(str(moving), itk.F), itk.imread(str(scene.fixed),
-                                                                                                itk.F), transform))
+    theirs = itk.array_from_image(
+        resample_with_itk(itk.imread(str(moving), itk.F), itk.imread(str(scene.fixed), itk.F), transform)
+    )
     ours = itk.array_from_image(itk.imread(str(out / "warped.nii.gz"), itk.F))
     np.testing.assert_allclose(theirs, ours, atol=1e-5 * ours.max())  # float32 field and image storage
     warped = ours.transpose(2, 1, 0)  # ITK's array is (k, j, i)
@@ -98,9 +124,20 @@ def test_extremely_anisotropic_oblique_scan(scene, tmp_path):
     np.testing.assert_allclose(header.affine, nib.load(moving).affine, atol=1e-4)  # on the moving grid
 
 
-FAULTS_VIA_CLI = ["truncated .nii.gz", "corrupt gzip (one byte flipped)", "header size smaller than data (.nii)",
-                  "zero-sized axis", "2-D image", "4-D series", "NaN voxel", "float64 beyond float32",
-                  "complex voxels", "all-zero image", "sheared axes", "header claims 4096^3 voxels"]
+FAULTS_VIA_CLI = [
+    "truncated .nii.gz",
+    "corrupt gzip (one byte flipped)",
+    "header size smaller than data (.nii)",
+    "zero-sized axis",
+    "2-D image",
+    "4-D series",
+    "NaN voxel",
+    "float64 beyond float32",
+    "complex voxels",
+    "all-zero image",
+    "sheared axes",
+    "header claims 4096^3 voxels",
+]
 
 
 @pytest.mark.parametrize("name", FAULTS_VIA_CLI)
@@ -119,12 +156,17 @@ def test_a_bad_scan_gives_one_line_and_writes_nothing(scene, tmp_path, name):
 def test_max_voxels_option_refuses_a_large_scan_and_restores_the_environment(scene, tmp_path):
     before = os.environ.get(MAX_VOXELS_ENV)
     moving = save_lps(tmp_path / "big.nii.gz", scene.moved, scene.grid)  # 70,720 voxels; the fixed image: 63,360
-    result = run_cli("register", "--moving", str(moving), "--out", str(tmp_path / "out"), "--max-voxels", "65000",
-                 *scene.common)
+    result = run_cli(
+        "register", "--moving", str(moving), "--out", str(tmp_path / "out"), "--max-voxels", "65000", *scene.common
+    )
     assert result.rc == 1 and "expected at most 65,000 voxels, got 70,720" in result.err, result.err
     assert os.environ.get(MAX_VOXELS_ENV) == before
-    assert run_cli("register", "--moving", str(moving), "--out", str(tmp_path / "o"), "--max-voxels", "0",
-               *scene.common).rc == 1
+    assert (
+        run_cli(
+            "register", "--moving", str(moving), "--out", str(tmp_path / "o"), "--max-voxels", "0", *scene.common
+        ).rc
+        == 1
+    )
 
 
 def test_batch_reports_every_bad_scan_and_registers_the_rest(scene, tmp_path):
@@ -146,8 +188,14 @@ def test_batch_reports_every_bad_scan_and_registers_the_rest(scene, tmp_path):
     assert result.rc == 1 and "Traceback" not in result.err
     assert "6 of 8 scans failed" in result.err
     rows = {row["scan"]: row for row in csv.DictReader((out / "batch_summary.csv").open())}
-    expected = {"cut": "truncated", "nan": "1 NaN", "blank": "constant", "liar": "dimensions", "notes": "corrupt",
-                "gone": "no such file"}
+    expected = {
+        "cut": "truncated",
+        "nan": "1 NaN",
+        "blank": "constant",
+        "liar": "dimensions",
+        "notes": "corrupt",
+        "gone": "no such file",
+    }
     for sid, words in expected.items():
         assert rows[sid]["status"] == "failed" and words in rows[sid]["error"] and sid in rows[sid]["error"], rows[sid]
     assert [rows[sid]["status"] for sid in good] == ["ok", "ok"]
@@ -173,7 +221,9 @@ def test_interrupted_batch_still_has_a_summary(scene, tmp_path, monkeypatch):
 
     monkeypatch.setattr(batch, "register_scan", interrupt_second)
     out = tmp_path / "out"
-    result = run_cli("register-batch", "--moving", str(scans), "--out", str(out), "--no-affine", "--no-qc", *scene.common)
+    result = run_cli(
+        "register-batch", "--moving", str(scans), "--out", str(out), "--no-affine", "--no-qc", *scene.common
+    )
     assert result.rc == 130 and "interrupted" in result.err
     rows = list(csv.DictReader((out / "batch_summary.csv").open()))
     assert [(r["scan"], r["status"]) for r in rows] == [("a", "ok"), ("b", "not run"), ("c", "not run")]

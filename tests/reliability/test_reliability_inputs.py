@@ -46,14 +46,17 @@ def _ok(name: str, data: np.ndarray, affine: np.ndarray | None = None, dtype=Non
         path = save(folder / f"{name}.nii.gz", data, affine, dtype=dtype, **kw)
         expected = data * kw["slope"] + kw.get("inter", 0.0) if "slope" in kw else data
         return path, expected, affine
+
     return make
 
 
-def _file(name: str, data: np.ndarray, affine: np.ndarray | None = None, edit: Callable | None = None,
-          suffix: str = ".nii.gz") -> Callable:
+def _file(
+    name: str, data: np.ndarray, affine: np.ndarray | None = None, edit: Callable | None = None, suffix: str = ".nii.gz"
+) -> Callable:
     def make(folder: Path):
         path = save(folder / f"{name}{suffix}", data, np.eye(4) if affine is None else affine)
         return (edit(path) if edit else path), None, None
+
     return make
 
 
@@ -65,6 +68,7 @@ def _raw(name: str, content: bytes | None) -> Callable:
         else:
             path.write_bytes(content)
         return path, None, None
+
     return make
 
 
@@ -90,20 +94,27 @@ CASES = [
     Case("uint16", _ok("uint16", np.round(DATA * 65000).astype(np.uint16)), None),
     Case("int32", _ok("int32", np.round(DATA * 1e9).astype(np.int32)), None),
     Case("int64", _ok("int64", np.round(DATA * 1e6).astype(np.int64), dtype=np.int64), None),
-    Case("scaled int16 (scl_slope)", _ok("scaled", np.round(DATA * 3000).astype(np.int16), slope=0.01, inter=-7.0),
-         None),
+    Case(
+        "scaled int16 (scl_slope)", _ok("scaled", np.round(DATA * 3000).astype(np.int16), slope=0.01, inter=-7.0), None
+    ),
     Case("intensities 1e-6", _ok("tiny", (DATA * 1e-6).astype(np.float32)), None),
     Case("intensities 1e9", _ok("huge", (DATA * 1e9).astype(np.float32)), None),
     Case("intensities 1e30 (float64)", _ok("f64huge", DATA * 1e30), None),
     Case("negative intensities", _ok("negative", (DATA * 4000 - 5000).astype(np.float32)), None),
     Case("4-D with one volume", _ok("trailing1", DATA.astype(np.float32)[..., None]), None),
-    Case("anisotropic 0.05 x 1 x 20 mm", _ok("aniso", DATA.astype(np.float32), affine_of(np.eye(3), (0.05, 1, 20))),
-         None),
-    Case("oblique", _ok("oblique", DATA.astype(np.float32),
-                        affine_of(rotation((25, -40, 70)), (0.8, 1.3, 2.5), (-40, 12, 7))), None),
-    Case("permuted and flipped axes", _ok("permuted", DATA.astype(np.float32),
-                                          affine_of(np.array([[0, 0, -1], [-1, 0, 0], [0, 1, 0]]), (1, 1.5, 2))),
-         None),
+    Case(
+        "anisotropic 0.05 x 1 x 20 mm", _ok("aniso", DATA.astype(np.float32), affine_of(np.eye(3), (0.05, 1, 20))), None
+    ),
+    Case(
+        "oblique",
+        _ok("oblique", DATA.astype(np.float32), affine_of(rotation((25, -40, 70)), (0.8, 1.3, 2.5), (-40, 12, 7))),
+        None,
+    ),
+    Case(
+        "permuted and flipped axes",
+        _ok("permuted", DATA.astype(np.float32), affine_of(np.array([[0, 0, -1], [-1, 0, 0], [0, 1, 0]]), (1, 1.5, 2))),
+        None,
+    ),
     Case("2 voxels thin", _ok("thin", smooth((2, 12, 12)).astype(np.float32)), None),
     Case("labels uint8", _ok("labels_u8", _LABELS.astype(np.uint8)), None, label=True),
     Case("labels float32, integer values", _ok("labels_f32", _LABELS.astype(np.float32)), None, label=True),
@@ -116,12 +127,21 @@ CASES = [
     Case("corrupt gzip (one byte flipped)", _file("flipped", DATA, edit=lambda p: flip_byte(p, 0.6)), "corrupt"),
     Case("not an image (garbage bytes)", _raw("garbage.nii.gz", b"\x1f\x8b\x08garbage" * 40), "corrupt"),
     Case("empty file", _raw("empty.nii.gz", b""), "empty file"),
-    Case("header size larger than data", _file("dims_up", DATA, edit=lambda p: set_header_dim(p, 1, 18),
-                                               suffix=".nii"), "truncated"),
-    Case("header size smaller than data (.nii)", _file("dims_down", DATA, edit=lambda p: set_header_dim(p, 1, 4),
-                                                       suffix=".nii"), "dimensions"),
-    Case("header size smaller than data (.nii.gz)", _file("dims_down_gz", DATA,
-                                                          edit=lambda p: set_header_dim(p, 3, 5)), "dimensions"),
+    Case(
+        "header size larger than data",
+        _file("dims_up", DATA, edit=lambda p: set_header_dim(p, 1, 18), suffix=".nii"),
+        "truncated",
+    ),
+    Case(
+        "header size smaller than data (.nii)",
+        _file("dims_down", DATA, edit=lambda p: set_header_dim(p, 1, 4), suffix=".nii"),
+        "dimensions",
+    ),
+    Case(
+        "header size smaller than data (.nii.gz)",
+        _file("dims_down_gz", DATA, edit=lambda p: set_header_dim(p, 3, 5)),
+        "dimensions",
+    ),
     Case("zero-sized axis", _file("empty_axis", np.zeros((0, 4, 4), np.float32)), "at least 2 voxels"),
     Case("one voxel", _file("one_voxel", np.ones((1, 1, 1), np.float32)), "at least 2 voxels"),
     Case("2-D image", _file("slice", DATA[:, :, 0]), "2-D"),
@@ -139,9 +159,11 @@ CASES = [
     Case("labels beyond int32", _file("big_labels", _LABELS * 1e10), "[0, 2^31)", label=True),
     Case("labels with NaN", _file("nan_labels", _with(np.nan, base=_LABELS)), "NaN", label=True),
     Case("more voxels than the limit", _file("over_limit", DATA), "at most 980 voxels", env={MAX_VOXELS_ENV: "980"}),
-    Case("header claims 4096^3 voxels", _file("huge_header", DATA, edit=lambda p: [set_header_dim(p, k, 4096)
-                                                                                  for k in (1, 2, 3)][-1],
-                                              suffix=".nii"), "at most 134,217,728 voxels"),
+    Case(
+        "header claims 4096^3 voxels",
+        _file("huge_header", DATA, edit=lambda p: [set_header_dim(p, k, 4096) for k in (1, 2, 3)][-1], suffix=".nii"),
+        "at most 134,217,728 voxels",
+    ),
     Case("missing file", lambda folder: (folder / "absent.nii.gz", None, None), "no such file"),
     Case("a folder", _raw("folder.nii.gz", None), "folder"),
 ]

@@ -24,8 +24,9 @@ from monai_probreg.spatial.point_sampling import sample_linear
 from monai_probreg.spatial.volume_io import read_image
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-SIGNED_PERMUTATIONS = [np.eye(3)[list(p)] * s for p in itertools.permutations(range(3))
-                       for s in itertools.product([-1.0, 1.0], repeat=3)]  # the 48 axis-aligned orientations
+SIGNED_PERMUTATIONS = [
+    np.eye(3)[list(p)] * s for p in itertools.permutations(range(3)) for s in itertools.product([-1.0, 1.0], repeat=3)
+]  # the 48 axis-aligned orientations
 
 shapes = st.tuples(*[st.integers(2, 7)] * 3)
 spacings = st.tuples(*[st.floats(0.05, 20.0)] * 3)
@@ -45,11 +46,20 @@ def _index_to_lps(signed_permutation: int, angles_deg, spacing, origin, oblique:
 
 
 @SETTINGS
-@given(shape=shapes, perm=st.integers(0, 47), oblique=st.booleans(), angles_deg=angles, spacing=spacings,
-       origin=origins, exponent=exponents, gradient=st.tuples(*[st.floats(-1.0, 1.0)] * 3),
-       dtype=st.sampled_from([np.float32, np.float64]))
-def test_read_then_resample_reproduces_a_linear_field(shape, perm, oblique, angles_deg, spacing, origin, exponent,
-                                                      gradient, dtype):
+@given(
+    shape=shapes,
+    perm=st.integers(0, 47),
+    oblique=st.booleans(),
+    angles_deg=angles,
+    spacing=spacings,
+    origin=origins,
+    exponent=exponents,
+    gradient=st.tuples(*[st.floats(-1.0, 1.0)] * 3),
+    dtype=st.sampled_from([np.float32, np.float64]),
+)
+def test_read_then_resample_reproduces_a_linear_field(
+    shape, perm, oblique, angles_deg, spacing, origin, exponent, gradient, dtype
+):
     """A file whose voxels are f(p) = s * (g . p + 1) at their physical centres p is read with the geometry of its
     header, and trilinear resampling at any physical point inside the grid gives f there (exact for a linear f).
     Tolerances: the header stores the affine in float32 (1e-6 relative of its entries, hence of p) and the voxels
@@ -66,15 +76,22 @@ def test_read_then_resample_reproduces_a_linear_field(shape, perm, oblique, angl
     np.testing.assert_allclose(volume.array, values, rtol=2e-7, atol=2e-7 * np.abs(values).max())
     inside = np.random.default_rng(0).uniform(0.0, 1.0, (50, 3)) * (np.asarray(shape) - 1)
     query = inside @ index_to_lps[:3, :3].T + index_to_lps[:3, 3]
-    np.testing.assert_allclose(sample_linear(volume, query), scale * (query @ g + 1.0), rtol=0,
-                               atol=1e-5 * np.abs(values).max())
+    np.testing.assert_allclose(
+        sample_linear(volume, query), scale * (query @ g + 1.0), rtol=0, atol=1e-5 * np.abs(values).max()
+    )
 
 
 @SETTINGS
-@given(shape=shapes, perm=st.integers(0, 47), spacing=spacings, origin=origins, exponent=exponents,
-       offset=st.floats(-10.0, 10.0), seed=st.integers(0, 2**16))
-def test_command_line_and_bundle_give_the_network_the_same_array(shape, perm, spacing, origin, exponent, offset,
-                                                                 seed):
+@given(
+    shape=shapes,
+    perm=st.integers(0, 47),
+    spacing=spacings,
+    origin=origins,
+    exponent=exponents,
+    offset=st.floats(-10.0, 10.0),
+    seed=st.integers(0, 2**16),
+)
+def test_command_line_and_bundle_give_the_network_the_same_array(shape, perm, spacing, origin, exponent, offset, seed):
     """For any axis-aligned orientation, spacing and intensity units, the command line's model input (ModelGrid
     + normalise_intensity on the ITK read) equals the bundle's (LoadCheckedd, Orientation RAS, percentiles,
     DivisiblePad). Tolerance 1e-5: both rescale the same float32 values to [0, 1], in different operation order."""
@@ -92,13 +109,18 @@ def test_command_line_and_bundle_give_the_network_the_same_array(shape, perm, sp
     assert ours.shape == tuple(bundle["fixed"].shape[1:])
     np.testing.assert_allclose(ours, bundle["fixed"][0].numpy(), atol=1e-5)
     # both affines come from the header's float32 sform: 1e-5 of its largest entry
-    np.testing.assert_allclose(grid.ras_affine, bundle["fixed"].affine.numpy(),
-                               atol=1e-5 * max(1.0, np.abs(index_to_lps).max()))
+    np.testing.assert_allclose(
+        grid.ras_affine, bundle["fixed"].affine.numpy(), atol=1e-5 * max(1.0, np.abs(index_to_lps).max())
+    )
 
 
 @SETTINGS
-@given(seed=st.integers(0, 2**16), exponent=exponents, offset=st.floats(-10.0, 10.0),
-       dtype=st.sampled_from([np.float16, np.float32, np.float64]))
+@given(
+    seed=st.integers(0, 2**16),
+    exponent=exponents,
+    offset=st.floats(-10.0, 10.0),
+    dtype=st.sampled_from([np.float16, np.float32, np.float64]),
+)
 def test_intensity_normalisation_ignores_units(seed, exponent, offset, dtype):
     """normalise_intensity(s * x + t) = normalise_intensity(x) in [0, 1] for s > 0, for float16/32/64 storage.
     Tolerance: storing s * (x + offset) in the dtype rounds by eps * |x + offset| relative to the range s of x,

@@ -32,7 +32,7 @@ ITERS = 2  # per epoch: 2 training subjects, batch 1
 
 # The child: a tiny train.yaml run that either pauses mid-epoch (the parent SIGKILLs it) or SIGKILLs itself halfway
 # through writing a training-state checkpoint.
-CHILD = r'''
+CHILD = r"""
 import io, json, os, signal, sys, time
 from pathlib import Path
 import torch
@@ -62,17 +62,24 @@ else:
         return real_save(obj, f, *args, **kwargs)
     torch.save = half_save
 wf.run()
-'''
+"""
 
 
 def _settings(tmp_path: Path, dataset: Path, **override) -> dict:
-    return {**TINY, "bundle_root": str(ROOT / "bundle"), "dataset_dir": str(dataset),
-            "ckpt_dir": str(tmp_path / "ckpt"), "output_dir": str(tmp_path / "runs"), **override}
+    return {
+        **TINY,
+        "bundle_root": str(ROOT / "bundle"),
+        "dataset_dir": str(dataset),
+        "ckpt_dir": str(tmp_path / "ckpt"),
+        "output_dir": str(tmp_path / "runs"),
+        **override,
+    }
 
 
 def _workflow(tmp_path: Path, dataset: Path, **override) -> ConfigWorkflow:
-    wf = ConfigWorkflow(config_file=str(TRAIN), workflow_type="train", logging_file=False,
-                        **_settings(tmp_path, dataset, **override))
+    wf = ConfigWorkflow(
+        config_file=str(TRAIN), workflow_type="train", logging_file=False, **_settings(tmp_path, dataset, **override)
+    )
     wf.initialize()
     return wf
 
@@ -80,14 +87,20 @@ def _workflow(tmp_path: Path, dataset: Path, **override) -> ConfigWorkflow:
 def _crash(tmp_path: Path, dataset: Path, mode: str, kill_epoch: int) -> None:
     """Run the child until its kill point; mid_epoch: wait for its marker, then SIGKILL it from here."""
     marker = tmp_path / "marker"
-    cfg = {"config": str(TRAIN), "settings": _settings(tmp_path, dataset, max_epochs=10), "mode": mode,
-           "kill_epoch": kill_epoch, "marker": str(marker)}
+    cfg = {
+        "config": str(TRAIN),
+        "settings": _settings(tmp_path, dataset, max_epochs=10),
+        "mode": mode,
+        "kill_epoch": kill_epoch,
+        "marker": str(marker),
+    }
     script = tmp_path / "child.py"
     script.write_text(CHILD)
     log = (tmp_path / "child.log").open("w")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}
-    child = subprocess.Popen([sys.executable, str(script), json.dumps(cfg)], cwd=ROOT, env=env, stdout=log,
-                             stderr=subprocess.STDOUT)
+    child = subprocess.Popen(
+        [sys.executable, str(script), json.dumps(cfg)], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT
+    )
     deadline = time.monotonic() + 150
     while not marker.exists() and child.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
@@ -151,8 +164,9 @@ def test_sigkill_then_resume(tmp_path, tiny_dataset, mode, single_thread):
 
 def test_atomic_write_temporaries_match_the_cleanup_pattern(tmp_path):
     names = []
-    atomic_write(tmp_path / "train_state_checkpoint_epoch=3.pt", lambda tmp: names.append(Path(tmp).name) or
-                 torch.save({}, tmp))
+    atomic_write(
+        tmp_path / "train_state_checkpoint_epoch=3.pt", lambda tmp: names.append(Path(tmp).name) or torch.save({}, tmp)
+    )
     assert PARTIAL_FILE.fullmatch(names[0])
     for keep in ("model.pt", "train_state_checkpoint_epoch=3.pt", ".hidden", "tmpab12cd34", "notes.tmp.txt"):
         (tmp_path / keep).write_text("mine")
@@ -171,10 +185,10 @@ def test_resume_skips_a_truncated_newest_checkpoint(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ numerical guards
-@pytest.mark.parametrize("fault, words", [("nan_gradient", "expected finite weights"),
-                                          ("tiny_sigma", "non-finite training loss")])
-def test_non_finite_training_stops_without_writing_a_checkpoint(tmp_path, tiny_dataset, fault, words,
-                                                                single_thread):
+@pytest.mark.parametrize(
+    "fault, words", [("nan_gradient", "expected finite weights"), ("tiny_sigma", "non-finite training loss")]
+)
+def test_non_finite_training_stops_without_writing_a_checkpoint(tmp_path, tiny_dataset, fault, words, single_thread):
     """nan_gradient: a finite loss whose gradient is NaN in one tensor (a hook), so Adam's step writes NaN weights:
     NonFiniteGuard stops at that iteration. tiny_sigma: image_sigma 1e-30 makes the image term Inf, refused by
     RegistrationLoss before backward. Either way: a clear error and no checkpoint of NaN weights on disk."""
@@ -203,8 +217,11 @@ def test_non_finite_guard_names_the_parameter():
     engine.run([0, 1], max_epochs=1)  # finite: nothing happens
     with torch.no_grad():
         net.bias[1] = float("nan")
-    with pytest.raises(FloatingPointError, match=r"epoch 1, iteration 1: expected finite weights, got 1 NaN/Inf "
-                                                 r"values in 'bias'"):
+    with pytest.raises(
+        FloatingPointError,
+        match=r"epoch 1, iteration 1: expected finite weights, got 1 NaN/Inf "
+        r"values in 'bias'",
+    ):
         engine.run([0, 1], max_epochs=1)
     nan_loss = Engine(lambda e, batch: {"loss": torch.tensor(float("inf"))})
     NonFiniteGuard().attach(nan_loss)
@@ -247,6 +264,7 @@ def test_log_variance_head_is_bounded_and_unchanged_at_initialisation():
 # ---------------------------------------------------------------------------------------------------- determinism
 def test_same_seed_gives_identical_weights(tmp_path, tiny_dataset, single_thread):
     """Two CPU runs of train.yaml with seed 0 give bit-identical weights; seed 1 differs (the test can fail)."""
+
     def train(folder: str, seed: int) -> dict:
         wf = _workflow(tmp_path / folder, tiny_dataset, max_epochs=1, seed=seed, val_interval=100)
         wf.run()

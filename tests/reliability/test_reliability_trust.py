@@ -68,8 +68,23 @@ def test_bundle_model_and_command_line_refuse_code(evil, tmp_path):
     fixed = save_lps(tmp_path / "fixed.nii.gz", image, FIXED_LPS)
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        rc = main(["register", "--moving", str(fixed), "--fixed", str(fixed), "--out", str(tmp_path / "out"),
-                   "--bundle-root", str(bundle), "--model-file", str(path), "--threads", "1"])
+        rc = main(
+            [
+                "register",
+                "--moving",
+                str(fixed),
+                "--fixed",
+                str(fixed),
+                "--out",
+                str(tmp_path / "out"),
+                "--bundle-root",
+                str(bundle),
+                "--model-file",
+                str(path),
+                "--threads",
+                "1",
+            ]
+        )
     assert rc == 1 and "refused" in err.getvalue() and "Traceback" not in err.getvalue()
     assert not marker.exists() and not (tmp_path / "out").exists()
 
@@ -92,10 +107,17 @@ def test_bundle_inference_refuses_code(evil, tmp_path, tiny_dataset, bundle, sin
     from monai.bundle import ConfigWorkflow
 
     path, _, marker = evil
-    wf = ConfigWorkflow(config_file=str(bundle / "configs" / "inference.yaml"), workflow_type="infer",
-                        logging_file=False, bundle_root=str(bundle), dataset_dir=str(tiny_dataset),
-                        output_dir=str(tmp_path / "out"), network_size=[16, 16, 16], num_workers=0,
-                        model_file=str(path))
+    wf = ConfigWorkflow(
+        config_file=str(bundle / "configs" / "inference.yaml"),
+        workflow_type="infer",
+        logging_file=False,
+        bundle_root=str(bundle),
+        dataset_dir=str(tiny_dataset),
+        output_dir=str(tmp_path / "out"),
+        network_size=[16, 16, 16],
+        num_workers=0,
+        model_file=str(path),
+    )
     wf.initialize()
     with pytest.raises(Exception) as info:
         wf.run()
@@ -128,13 +150,16 @@ def _calls(text: str, name: str) -> list[str]:
         while depth and i < len(text):
             depth += {"(": 1, ")": -1}.get(text[i], 0)
             i += 1
-        found.append(text[match.end(): i - 1])
+        found.append(text[match.end() : i - 1])
     return found
 
 
 def test_every_torch_load_is_weights_only():
-    sources = [*(ROOT / "monai_probreg").rglob("*.py"), *(ROOT / "benchmarks").rglob("*.py"),
-               *(ROOT / "bundle" / "configs").glob("*.yaml")]
+    sources = [
+        *(ROOT / "monai_probreg").rglob("*.py"),
+        *(ROOT / "benchmarks").rglob("*.py"),
+        *(ROOT / "bundle" / "configs").glob("*.yaml"),
+    ]
     calls = [(p.name, args) for p in sources for args in _calls(p.read_text(), "torch.load")]
     assert calls, "expected at least one torch.load (inference.load_weights goes through safe_torch_load)"
     unsafe = [(name, args) for name, args in calls if "weights_only=True" not in args]
@@ -145,8 +170,10 @@ def test_every_torch_load_is_weights_only():
 # `$` expressions of our configs may evaluate Python: nothing may reach the network, run programs or read files
 # or environment variables beyond those torchrun sets for the multi-GPU configs (which device, launched or not).
 TORCHRUN_VARIABLES = {"LOCAL_RANK", "MASTER_ADDR"}
-FORBIDDEN = re.compile(r"subprocess|os\.system|os\.popen|urllib|requests|http|socket|download|\beval\(|\bexec\("
-                       r"|__import__|\bopen\(|getenv|pickle|shutil")
+FORBIDDEN = re.compile(
+    r"subprocess|os\.system|os\.popen|urllib|requests|http|socket|download|\beval\(|\bexec\("
+    r"|__import__|\bopen\(|getenv|pickle|shutil"
+)
 
 
 def test_bundle_configs_read_nothing_they_do_not_need():

@@ -12,10 +12,20 @@ from monai_probreg.spatial.physical import apply_affine, grid_points
 from monai_probreg.spatial.volume_io import Volume
 
 # Small volumes: two levels at 1/2 and full resolution instead of the defaults' 1/4 and 1/2 of a 1 mm brain.
-FAST = AffineSettings.itk_defaults(shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0),
-                                   rigid_iterations=(100, 50), affine_iterations=(100, 50), sampling_percentage=0.25)
-FAST_TORCH = AffineSettings(shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0), rigid_iterations=(100, 50),
-                           affine_iterations=(100, 50), sampling_percentage=0.25)
+FAST = AffineSettings.itk_defaults(
+    shrink_factors=(2, 1),
+    smoothing_sigmas_mm=(1.0, 0.0),
+    rigid_iterations=(100, 50),
+    affine_iterations=(100, 50),
+    sampling_percentage=0.25,
+)
+FAST_TORCH = AffineSettings(
+    shrink_factors=(2, 1),
+    smoothing_sigmas_mm=(1.0, 0.0),
+    rigid_iterations=(100, 50),
+    affine_iterations=(100, 50),
+    sampling_percentage=0.25,
+)
 BACKENDS = {"itk": FAST, "torch": FAST_TORCH}
 # a permuted, flipped, anisotropic scanner grid (axcodes of the moving scan differ from the fixed LPS)
 DIRECTION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
@@ -52,8 +62,9 @@ def test_recovers_rotation_translation_across_grids(case, backend):
     assert all(len(s.iterations) == 2 and s.iterations[0] > 0 for s in result.stages)
     assert abs(result.summary()["rotation_deg"] - rotation_angle_deg(truth)) < 1.0
     point = brain[0]
-    np.testing.assert_allclose(np.asarray(result.transform.TransformPoint(point.tolist())),
-                               apply_affine(result.matrix, point), atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(result.transform.TransformPoint(point.tolist())), apply_affine(result.matrix, point), atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("backend", sorted(BACKENDS))
@@ -72,15 +83,18 @@ def test_rotation_angle():
     assert rotation_angle_deg(rigid_matrix([0.0, 0.0, 30.0], [1.0, 2.0, 3.0], [0.0, 0.0, 0.0])) == pytest.approx(30.0)
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"smoothing_sigmas_mm": (1.0,)}, "one value per level"),
-    ({"shrink_factors": (2, 0), "smoothing_sigmas_mm": (1.0, 0.0)}, "shrink_factors"),
-    ({"sampling_percentage": 0.0}, "sampling_percentage"),
-    ({"initializer": "landmarks"}, "initializer"),
-    ({"max_samples": 0}, "max_samples"),
-    ({"backend": "ants"}, "backend"),
-    ({"rigid_iterations": (10, -1, 0)}, "iterations must be >= 0"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"smoothing_sigmas_mm": (1.0,)}, "one value per level"),
+        ({"shrink_factors": (2, 0), "smoothing_sigmas_mm": (1.0, 0.0)}, "shrink_factors"),
+        ({"sampling_percentage": 0.0}, "sampling_percentage"),
+        ({"initializer": "landmarks"}, "initializer"),
+        ({"max_samples": 0}, "max_samples"),
+        ({"backend": "ants"}, "backend"),
+        ({"rigid_iterations": (10, -1, 0)}, "iterations must be >= 0"),
+    ],
+)
 def test_settings_are_validated(kwargs, message):
     with pytest.raises(ValueError, match=message):
         AffineSettings(**kwargs)

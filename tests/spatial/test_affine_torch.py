@@ -42,7 +42,7 @@ def _brute_force_mi(moving: np.ndarray, fixed_bins: np.ndarray, bins: int) -> fl
 def samples():
     generator = torch.Generator().manual_seed(3)
     fixed_bins = torch.randint(0, BINS, (300,), generator=generator)
-    moving = (fixed_bins.double() / BINS + 0.15 * torch.rand(300, generator=generator, dtype=torch.float64))
+    moving = fixed_bins.double() / BINS + 0.15 * torch.rand(300, generator=generator, dtype=torch.float64)
     return moving.clamp(0, 1), fixed_bins
 
 
@@ -68,8 +68,9 @@ def test_mutual_information_gradient_matches_finite_differences(samples):
 def test_mutual_information_is_highest_for_the_matching_image(samples):
     moving, fixed_bins = samples
     shuffled = moving[torch.randperm(300, generator=torch.Generator().manual_seed(0))]
-    assert float(mutual_information(moving, fixed_bins, BINS)) > 2 * float(mutual_information(shuffled, fixed_bins,
-                                                                                              BINS))
+    assert float(mutual_information(moving, fixed_bins, BINS)) > 2 * float(
+        mutual_information(shuffled, fixed_bins, BINS)
+    )
 
 
 def test_rotation_matrix_closed_forms():
@@ -95,8 +96,13 @@ def test_same_transform_with_one_or_two_threads():
     truth = rigid_matrix([6.0, -4.0, 8.0], [3.0, -2.0, 1.5], centre)
     moved, _, grid = moved_scan(image, labels, truth, spacing=(1.2, 1.0, 1.1), direction=np.eye(3), shape=(40, 48, 40))
     fixed, moving = Volume(image, FIXED_LPS), Volume(moved * 300.0 + 50.0, grid)
-    settings = AffineSettings(shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0), rigid_iterations=(40, 20),
-                              affine_iterations=(40, 20), sampling_percentage=0.5)
+    settings = AffineSettings(
+        shrink_factors=(2, 1),
+        smoothing_sigmas_mm=(1.0, 0.0),
+        rigid_iterations=(40, 20),
+        affine_iterations=(40, 20),
+        sampling_percentage=0.5,
+    )
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
@@ -111,9 +117,15 @@ def test_same_transform_with_one_or_two_threads():
 @pytest.mark.parametrize("max_samples, expected", [(None, 16 * 16 * 16 // 2), (300, 300), (10_000, 16 * 16 * 16 // 2)])
 def test_max_samples_caps_a_levels_sample_points(max_samples, expected):
     volume = Volume(np.random.default_rng(0).random((16, 16, 16)).astype(np.float32), np.eye(4))
-    settings = AffineSettings(shrink_factors=(1,), smoothing_sigmas_mm=(0.0,), rigid_iterations=(1,),
-                              affine_iterations=(1,), sampling_percentage=0.5, max_samples=max_samples,
-                              histogram_bins=BINS)
+    settings = AffineSettings(
+        shrink_factors=(1,),
+        smoothing_sigmas_mm=(0.0,),
+        rigid_iterations=(1,),
+        affine_iterations=(1,),
+        sampling_percentage=0.5,
+        max_samples=max_samples,
+        histogram_bins=BINS,
+    )
     samples = fixed_samples(volume, settings)
     assert samples.points[0].shape == (expected, 3) and samples.bins[0].shape == (expected,)
 
@@ -125,8 +137,14 @@ def test_fixed_samples_are_voxel_centres_of_the_fixed_level_with_their_bins():
     grid[:3, :3] = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]) * [0.8, 1.5, 1.1]
     grid[:3, 3] = [12.0, -7.0, 30.0]
     volume = Volume(np.random.default_rng(1).random((12, 10, 14)).astype(np.float32), grid)
-    settings = AffineSettings(shrink_factors=(1,), smoothing_sigmas_mm=(0.0,), rigid_iterations=(2,),
-                              affine_iterations=(2,), sampling_percentage=0.3, histogram_bins=BINS)
+    settings = AffineSettings(
+        shrink_factors=(1,),
+        smoothing_sigmas_mm=(0.0,),
+        rigid_iterations=(2,),
+        affine_iterations=(2,),
+        sampling_percentage=0.3,
+        histogram_bins=BINS,
+    )
     samples = fixed_samples(volume, settings)
     index = np.linalg.solve(grid[:3, :3], (samples.points[0].numpy() - grid[:3, 3]).T).T
     np.testing.assert_allclose(index, np.round(index), atol=1e-9)  # voxel centres
@@ -134,5 +152,7 @@ def test_fixed_samples_are_voxel_centres_of_the_fixed_level_with_their_bins():
     values = scaled[tuple(np.round(index).astype(int).T)]
     np.testing.assert_array_equal(samples.bins[0].numpy(), np.clip(np.round(values * (BINS - 1)), 0, BINS - 1))
     moving = Volume(np.roll(volume.array, 1, axis=0), grid)
-    np.testing.assert_array_equal(register_affine_torch(volume, moving, settings, samples).matrix,
-                                  register_affine_torch(volume, moving, settings).matrix)
+    np.testing.assert_array_equal(
+        register_affine_torch(volume, moving, settings, samples).matrix,
+        register_affine_torch(volume, moving, settings).matrix,
+    )

@@ -35,12 +35,15 @@ def test_no_background_means_no_mask():
     assert fixed_brain_mask(image, (1.0, 1.0, 1.0)) is None
 
 
-@pytest.mark.parametrize(("array", "spacing", "margin", "match"), [
-    (np.zeros((4, 4)), (1.0, 1.0), 1.0, "3-d image"),
-    (np.zeros((4, 4, 4)), (1.0, 1.0), 1.0, "3 spacings"),
-    (np.zeros((4, 4, 4)), (1.0, 1.0, 1.0), -1.0, "margin_mm must be >= 0"),
-    (np.zeros((4, 4, 4)), (1.0, 1.0, 1.0), float("nan"), "margin_mm must be >= 0"),
-])
+@pytest.mark.parametrize(
+    ("array", "spacing", "margin", "match"),
+    [
+        (np.zeros((4, 4)), (1.0, 1.0), 1.0, "3-d image"),
+        (np.zeros((4, 4, 4)), (1.0, 1.0), 1.0, "3 spacings"),
+        (np.zeros((4, 4, 4)), (1.0, 1.0, 1.0), -1.0, "margin_mm must be >= 0"),
+        (np.zeros((4, 4, 4)), (1.0, 1.0, 1.0), float("nan"), "margin_mm must be >= 0"),
+    ],
+)
 def test_bad_arguments(array, spacing, margin, match):
     with pytest.raises(ValueError, match=match):
         fixed_brain_mask(array, spacing, margin)
@@ -69,6 +72,9 @@ def test_separable_dilation_equals_the_box_brute_force():
     support = array > array.min()
     expected = np.zeros_like(support)
     for i, j, k in zip(*np.nonzero(support)):
-        expected[max(i - radius[0], 0):i + radius[0] + 1, max(j - radius[1], 0):j + radius[1] + 1,
-                 max(k - radius[2], 0):k + radius[2] + 1] = True
+        expected[
+            max(i - radius[0], 0) : i + radius[0] + 1,
+            max(j - radius[1], 0) : j + radius[1] + 1,
+            max(k - radius[2], 0) : k + radius[2] + 1,
+        ] = True
     np.testing.assert_array_equal(fixed_brain_mask(array, spacing, margin), expected)

@@ -21,8 +21,10 @@ def test_percentiles_are_the_training_ones():
     # the command line normalises with the very constants the training transforms default to; check the behaviour:
     # those percentiles of a ramp land on 0 and 1, clipped outside
     defaults = inspect.signature(registration_transforms).parameters
-    assert (defaults["lower_percentile"].default, defaults["upper_percentile"].default) == (LOWER_PERCENTILE,
-                                                                                            UPPER_PERCENTILE)
+    assert (defaults["lower_percentile"].default, defaults["upper_percentile"].default) == (
+        LOWER_PERCENTILE,
+        UPPER_PERCENTILE,
+    )
     ramp = np.arange(1000, dtype=np.float32).reshape(10, 10, 10)
     lo, hi = np.percentile(ramp, [LOWER_PERCENTILE, UPPER_PERCENTILE])
     out = normalise_intensity(ramp)

@@ -50,6 +50,7 @@ def _same_as_itk(path, read=read_image, pixel=itk.F):
 @pytest.fixture
 def no_itk_reader(monkeypatch):
     """Reading through ITK fails: what passes with this fixture was read without ITK."""
+
     def refuse(*args, **kwargs):
         raise AssertionError("ITK was asked to read")
 

@@ -25,8 +25,24 @@ SHAPE = (7, 5, 6)  # asymmetric: an axis swap or flip would show
 
 def _header_fields(path) -> dict:
     header = nib.load(path).header
-    keys = ("dim", "pixdim", "intent_code", "qform_code", "sform_code", "xyzt_units", "datatype", "quatern_b",
-            "quatern_c", "quatern_d", "qoffset_x", "qoffset_y", "qoffset_z", "srow_x", "srow_y", "srow_z")
+    keys = (
+        "dim",
+        "pixdim",
+        "intent_code",
+        "qform_code",
+        "sform_code",
+        "xyzt_units",
+        "datatype",
+        "quatern_b",
+        "quatern_c",
+        "quatern_d",
+        "qoffset_x",
+        "qoffset_y",
+        "qoffset_z",
+        "srow_x",
+        "srow_y",
+        "srow_z",
+    )
     return {key: np.asarray(header[key]) for key in keys}
 
 

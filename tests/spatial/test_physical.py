@@ -69,8 +69,11 @@ def test_plus_one_voxel_is_the_itk_displacement_r_times_u(axis):
     field = voxel_to_mm(u, _grid())
     np.testing.assert_allclose(field[0, 0, 0], _grid()[:3, axis])
     volume = Volume(image, _grid())
-    warped = itk.array_from_image(resample_with_itk(volume_to_itk(volume), volume_to_itk(volume),
-                                                    displacement_transform(field_to_itk(field, _grid()))))
+    warped = itk.array_from_image(
+        resample_with_itk(
+            volume_to_itk(volume), volume_to_itk(volume), displacement_transform(field_to_itk(field, _grid()))
+        )
+    )
     expected = list(bright)
     expected[axis] -= 1  # warped[i] = image[i + e_k]: content moves to the lower index
     ours = warp_image(torch.from_numpy(image)[None, None], torch.from_numpy(u).float()[None])[0, 0].numpy()
@@ -107,8 +110,9 @@ def test_sampling_matches_itk_resampling_linear_and_nearest():
     ours = sample_linear(moving, points)
     assert (ours == 0).mean() > 0.1 and (ours != 0).mean() > 0.1  # both inside and outside points are tested
     np.testing.assert_allclose(ours, theirs.transpose(2, 1, 0), atol=1e-3)  # float32 output of values ~100
-    theirs = itk.array_from_image(resample_with_itk(volume_to_itk(labels, np.int16), volume_to_itk(reference),
-                                                    transform, nearest=True))
+    theirs = itk.array_from_image(
+        resample_with_itk(volume_to_itk(labels, np.int16), volume_to_itk(reference), transform, nearest=True)
+    )
     np.testing.assert_array_equal(sample_nearest(labels, points), theirs.transpose(2, 1, 0))
 
 
@@ -150,8 +154,9 @@ def test_grid_points_are_index_to_lps_of_every_index():
     matrix = _grid()
     points = grid_points((4, 3, 5), matrix)
     for index in [(0, 0, 0), (3, 2, 4), (1, 2, 3)]:
-        np.testing.assert_allclose(points[index], matrix[:3, :3] @ np.asarray(index, float) + matrix[:3, 3],
-                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            points[index], matrix[:3, :3] @ np.asarray(index, float) + matrix[:3, 3], rtol=0, atol=1e-12
+        )
 
 
 def test_index_map_is_the_matrix_applied_to_every_index_plus_the_offset():
@@ -174,8 +179,11 @@ def test_mapped_index_is_the_continuous_index_of_the_moved_points():
     expected = np.linalg.solve(target[:3, :3], (moved - target[:3, 3]).reshape(-1, 3).T).T.reshape(*SHAPE, 3)
     ours = mapped_index(SHAPE, _grid(), target, _affine(), field)
     np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(mapped_index(SHAPE, _grid(), _grid()), np.stack(np.meshgrid(
-        *[np.arange(n) for n in SHAPE], indexing="ij"), axis=-1), atol=1e-9)  # a grid onto itself: its own index
+    np.testing.assert_allclose(
+        mapped_index(SHAPE, _grid(), _grid()),
+        np.stack(np.meshgrid(*[np.arange(n) for n in SHAPE], indexing="ij"), axis=-1),
+        atol=1e-9,
+    )  # a grid onto itself: its own index
     volume = Volume(_smooth((17, 13, 15), 1, 50.0, seed=6)[0], target)
     labels = Volume(np.random.default_rng(1).integers(0, 6, (17, 13, 15)).astype(np.int16), target)
     np.testing.assert_array_equal(sample_linear(volume, None, index=ours), sample_linear(volume, moved, index=ours))

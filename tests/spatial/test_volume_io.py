@@ -42,8 +42,9 @@ def test_volume_to_itk_round_trip():
     volume = Volume(np.random.default_rng(0).random((4, 5, 6)).astype(np.float32), _oblique())
     image = volume_to_itk(volume)
     assert tuple(image.GetLargestPossibleRegion().GetSize()) == (4, 5, 6)
-    np.testing.assert_allclose(np.asarray(image.TransformIndexToPhysicalPoint([3, 1, 2])),
-                               (_oblique() @ [3, 1, 2, 1])[:3], atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(image.TransformIndexToPhysicalPoint([3, 1, 2])), (_oblique() @ [3, 1, 2, 1])[:3], atol=1e-12
+    )
     assert image.GetPixel([3, 1, 2]) == volume.array[3, 1, 2]
 
 
@@ -90,15 +91,18 @@ def test_truncated_file(tmp_path):
 
 
 def test_two_dimensional_image(tmp_path):
-    nib.save(nib.Nifti1Image(np.random.default_rng(0).random((8, 9)).astype(np.float32), np.eye(4)),
-             tmp_path / "flat.nii.gz")
+    nib.save(
+        nib.Nifti1Image(np.random.default_rng(0).random((8, 9)).astype(np.float32), np.eye(4)), tmp_path / "flat.nii.gz"
+    )
     message = _error(read_image, tmp_path / "flat.nii.gz", "--moving")
     assert "flat.nii.gz" in message and "2-D" in message
 
 
 def test_four_dimensional_image(tmp_path):
-    nib.save(nib.Nifti1Image(np.random.default_rng(0).random((6, 7, 8, 3)).astype(np.float32), np.eye(4)),
-             tmp_path / "series.nii.gz")
+    nib.save(
+        nib.Nifti1Image(np.random.default_rng(0).random((6, 7, 8, 3)).astype(np.float32), np.eye(4)),
+        tmp_path / "series.nii.gz",
+    )
     message = _error(read_image, tmp_path / "series.nii.gz", "--moving")
     assert "series.nii.gz" in message and "4-D" in message and "single 3-D volume" in message
 
@@ -125,8 +129,9 @@ def test_inf_voxels(tmp_path):
 
 
 def test_constant_image(tmp_path):
-    message = _error(read_image, save_lps(tmp_path / "empty.nii.gz", np.full((6, 7, 8), 3.0, np.float32),
-                                          np.eye(4)), "--moving")
+    message = _error(
+        read_image, save_lps(tmp_path / "empty.nii.gz", np.full((6, 7, 8), 3.0, np.float32), np.eye(4)), "--moving"
+    )
     assert "empty.nii.gz" in message and "constant" in message
 
 
@@ -144,8 +149,10 @@ def test_negative_labels(tmp_path):
     assert "neg.nii.gz" in message
 
 
-@pytest.mark.parametrize("change, expected", [
-    ("shape", "size"), ("spacing", "spacing"), ("origin", "origins differ"), ("direction", "orientation")])
+@pytest.mark.parametrize(
+    "change, expected",
+    [("shape", "size"), ("spacing", "spacing"), ("origin", "origins differ"), ("direction", "orientation")],
+)
 def test_labels_on_another_grid(tmp_path, change, expected):
     image = Volume(np.zeros((6, 7, 8), np.float32), np.eye(4), "img.nii.gz")
     affine, shape = np.eye(4), (6, 7, 8)
@@ -173,8 +180,9 @@ def test_lps_to_ras_is_its_own_inverse():
 
 
 def test_truncated_gzip_file(tmp_path):
-    full = save_lps(tmp_path / "full.nii.gz", np.random.default_rng(0).random((20, 20, 20)).astype(np.float32),
-                    np.eye(4))
+    full = save_lps(
+        tmp_path / "full.nii.gz", np.random.default_rng(0).random((20, 20, 20)).astype(np.float32), np.eye(4)
+    )
     data = full.read_bytes()
     path = tmp_path / "cut.nii.gz"
     path.write_bytes(data[: len(data) // 2])

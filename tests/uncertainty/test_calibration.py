@@ -109,6 +109,7 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
 
 # --- the bias term: (bias_fraction |u|)^2 added to every component's variance ---------------------------------------
 
+
 def _biased_toy(scale: float, bias_fraction: float, n: int = 400_000):
     """Errors drawn exactly from N(0, scale^2 std^2 + (bias_fraction |u|)^2): the fit's known answer."""
     rng = np.random.default_rng(1)
@@ -134,12 +135,15 @@ def test_fit_calibration_without_bias_matches_fit_std_scale():
     assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0)
 
 
-@pytest.mark.parametrize("norm, fractions, match", [
-    (np.ones(4), (), "must not be empty"),
-    (np.ones(4), (-0.1,), "bias_fraction"),
-    (-np.ones(4), (0.1,), "displacement_norm finite and >= 0"),
-    (np.ones(3), (0.1,), "same non-empty shape"),
-])
+@pytest.mark.parametrize(
+    "norm, fractions, match",
+    [
+        (np.ones(4), (), "must not be empty"),
+        (np.ones(4), (-0.1,), "bias_fraction"),
+        (-np.ones(4), (0.1,), "displacement_norm finite and >= 0"),
+        (np.ones(3), (0.1,), "same non-empty shape"),
+    ],
+)
 def test_fit_calibration_rejects_bad_input(norm, fractions, match):
     with pytest.raises(ValueError, match=match):
         fit_calibration(np.ones(4), np.ones(4), norm, bias_fractions=fractions)

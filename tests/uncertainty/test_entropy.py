@@ -63,7 +63,9 @@ def test_velocity_entropy_same_size_is_identity():
     assert torch.equal(velocity_entropy(log_var, spatial_size=(3, 4, 5)), velocity_entropy(log_var))
 
 
-@pytest.mark.parametrize("shape", [(1, 2, 4, 4, 4), (1, 3, 4, 4), (1, 1, 4), (2, 3)], ids=["2ch-3d", "3ch-2d", "1d", "2d-tensor"])
+@pytest.mark.parametrize(
+    "shape", [(1, 2, 4, 4, 4), (1, 3, 4, 4), (1, 1, 4), (2, 3)], ids=["2ch-3d", "3ch-2d", "1d", "2d-tensor"]
+)
 def test_velocity_entropy_bad_shape_raises(shape):
     with pytest.raises(ValueError, match=r"\(B, spatial_dims, \*V\)"):
         velocity_entropy(torch.zeros(shape))
@@ -132,8 +134,11 @@ def test_displacement_uncertainty_needs_two_samples():
         displacement_uncertainty(torch.zeros(1, 1, 3, 4, 4, 4))
 
 
-@pytest.mark.parametrize("shape", [(4, 1, 2, 4, 4, 4), (4, 1, 3, 4, 4), (4, 3, 4, 4, 4), (4, 1, 1, 4)],
-                         ids=["2ch-3d", "3ch-2d", "no-batch", "1d"])
+@pytest.mark.parametrize(
+    "shape",
+    [(4, 1, 2, 4, 4, 4), (4, 1, 3, 4, 4), (4, 3, 4, 4, 4), (4, 1, 1, 4)],
+    ids=["2ch-3d", "3ch-2d", "no-batch", "1d"],
+)
 def test_displacement_uncertainty_bad_shape_raises(shape):
     with pytest.raises(ValueError, match=r"\(K, B, spatial_dims, \*S\)"):
         displacement_uncertainty(torch.zeros(shape))

@@ -99,8 +99,9 @@ def test_std_in_mm_matches_displacement_uncertainty_on_all_samples(single_thread
     size, spacing, samples, chunk = (10, 12, 8), np.array([1.0, 1.5, 0.8]), 7, SAMPLE_CHUNK
     ours = posterior_maps(network, mean, log_var, size, samples, seed=3, spacing=spacing).displacement_std.numpy()
     generator = torch.Generator().manual_seed(3)
-    draws = torch.cat([sample_velocity(mean, log_var, min(chunk, samples - s), generator=generator)
-                       for s in range(0, samples, chunk)])
+    draws = torch.cat(
+        [sample_velocity(mean, log_var, min(chunk, samples - s), generator=generator) for s in range(0, samples, chunk)]
+    )
     with torch.no_grad():
         displacements = network.velocity_to_displacement(draws.flatten(0, 1), size).unflatten(0, (samples, 1))
     variance = displacement_uncertainty(displacements).variance[0].double()
@@ -109,8 +110,9 @@ def test_std_in_mm_matches_displacement_uncertainty_on_all_samples(single_thread
     np.testing.assert_allclose(ours, expected, atol=1e-5)
     # the per-axis variances behind it, in mm^2 (the demo's coverage is per component)
     per_axis = posterior_maps(network, mean, log_var, size, samples, seed=3, spacing=spacing).displacement_variance
-    np.testing.assert_allclose(per_axis.numpy(), (variance * torch.as_tensor(spacing**2).view(3, 1, 1, 1)).numpy(),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        per_axis.numpy(), (variance * torch.as_tensor(spacing**2).view(3, 1, 1, 1)).numpy(), atol=1e-5
+    )
 
 
 def test_spacing_of_the_wrong_length_is_refused(setup):

@@ -39,12 +39,15 @@ def _training_set(seed: int = 0):
     return features, dice, dice < 0.4
 
 
-@pytest.mark.parametrize("dice, before, identity, expected", [
-    (0.70, 0.60, 0.55, False),
-    (0.59, 0.60, 0.50, True),                      # below the affine alone
-    (0.58, 0.50, 0.55, True),                      # below no registration + margin
-    (0.55 + FAILURE_MARGIN, 0.50, 0.55, False),    # exactly at the margin is not a failure
-])
+@pytest.mark.parametrize(
+    "dice, before, identity, expected",
+    [
+        (0.70, 0.60, 0.55, False),
+        (0.59, 0.60, 0.50, True),  # below the affine alone
+        (0.58, 0.50, 0.55, True),  # below no registration + margin
+        (0.55 + FAILURE_MARGIN, 0.50, 0.55, False),  # exactly at the margin is not a failure
+    ],
+)
 def test_the_failure_definition(dice, before, identity, expected):
     assert failed(dice, before, identity) is expected
 
@@ -103,11 +106,14 @@ def test_non_finite_features_warn():
     assert estimate.failure_probability == 1.0 and "not finite" in estimate.warning
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"features": [], "dice": [], "failures": []}, ">= 2 registrations"),
-    ({"dice": [0.5]}, ">= 2 registrations"),
-    ({"failures": [True]}, ">= 2 registrations"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"features": [], "dice": [], "failures": []}, ">= 2 registrations"),
+        ({"dice": [0.5]}, ">= 2 registrations"),
+        ({"failures": [True]}, ">= 2 registrations"),
+    ],
+)
 def test_bad_fit_inputs_are_refused(kwargs, match):
     features, dice, failures = _training_set()
     args = {"features": features, "dice": dice, "failures": failures, **kwargs}
@@ -129,16 +135,19 @@ def _model(**changes) -> dict:
     return data
 
 
-@pytest.mark.parametrize("changes, match", [
-    ({"feature_names": ["a"] * N}, "feature_names"),
-    ({"mean": [0.0]}, "mean must have"),
-    ({"scale": [0.0] * N}, "scale must be positive"),
-    ({"low": [1.0] * N, "high": [0.0] * N}, "low must be <= high"),
-    ({"threshold": 1.0}, "threshold"),
-    ({"lncc_drop_margin": -0.001}, "lncc_drop_margin"),
-    ({"lncc_drop_margin": 1.0}, "lncc_drop_margin"),
-    ({"dice_range": [0.8, 0.2]}, "dice_range"),
-])
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        ({"feature_names": ["a"] * N}, "feature_names"),
+        ({"mean": [0.0]}, "mean must have"),
+        ({"scale": [0.0] * N}, "scale must be positive"),
+        ({"low": [1.0] * N, "high": [0.0] * N}, "low must be <= high"),
+        ({"threshold": 1.0}, "threshold"),
+        ({"lncc_drop_margin": -0.001}, "lncc_drop_margin"),
+        ({"lncc_drop_margin": 1.0}, "lncc_drop_margin"),
+        ({"dice_range": [0.8, 0.2]}, "dice_range"),
+    ],
+)
 def test_bad_model_values_are_refused(changes, match):
     with pytest.raises(ValueError, match=match):
         QualityModel(**_model(**changes))

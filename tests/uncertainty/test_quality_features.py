@@ -64,18 +64,28 @@ def test_a_given_jacobian_is_used():
     assert f.folding_percent == pytest.approx(100.0)
 
 
-@pytest.mark.parametrize("name, value, match", [
-    ("moving", torch.zeros(10, 12, 8), "moving must have shape"),
-    ("warped", torch.zeros(12, 14, 10, 1), "warped must have shape"),
-    ("displacement", torch.zeros(2, 12, 14, 10), "displacement must have shape"),
-    ("entropy", torch.zeros(12, 14), "entropy must have shape"),
-    ("jacobian", torch.zeros(12, 14, 11), "jacobian must have shape"),
-])
+@pytest.mark.parametrize(
+    "name, value, match",
+    [
+        ("moving", torch.zeros(10, 12, 8), "moving must have shape"),
+        ("warped", torch.zeros(12, 14, 10, 1), "warped must have shape"),
+        ("displacement", torch.zeros(2, 12, 14, 10), "displacement must have shape"),
+        ("entropy", torch.zeros(12, 14), "entropy must have shape"),
+        ("jacobian", torch.zeros(12, 14, 11), "jacobian must have shape"),
+    ],
+)
 def test_shapes_that_do_not_match_are_refused(name, value, match):
     shape = (12, 14, 10)
     fixed = _blob(shape)
-    args = {"moving": fixed, "fixed": fixed, "warped": fixed, "displacement": torch.zeros((3, *shape)),
-            "entropy": torch.zeros(shape), "jacobian": None, name: value}
+    args = {
+        "moving": fixed,
+        "fixed": fixed,
+        "warped": fixed,
+        "displacement": torch.zeros((3, *shape)),
+        "entropy": torch.zeros(shape),
+        "jacobian": None,
+        name: value,
+    }
     with pytest.raises(ValueError, match=match):
         quality_features(**args)
 

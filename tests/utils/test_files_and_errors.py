@@ -95,8 +95,17 @@ def test_parallel_writes_wait_for_the_writers_when_the_body_fails(tmp_path):
     assert (tmp_path / "slow.txt").read_text() == "done"
 
 
-@pytest.mark.parametrize("name, stem", [("S01.nii.gz", "S01"), ("a.b.nii", "a.b"), ("scan.nrrd", "scan"),
-                                        ("x.mha", "x"), ("notes.txt", "notes"), ("S01_image.nii.gz", "S01_image")])
+@pytest.mark.parametrize(
+    "name, stem",
+    [
+        ("S01.nii.gz", "S01"),
+        ("a.b.nii", "a.b"),
+        ("scan.nrrd", "scan"),
+        ("x.mha", "x"),
+        ("notes.txt", "notes"),
+        ("S01_image.nii.gz", "S01_image"),
+    ],
+)
 def test_file_stem_strips_the_image_suffix(name, stem):
     assert file_stem(Path("/data") / name) == stem
 

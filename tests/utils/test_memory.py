@@ -38,8 +38,13 @@ print(statistics.median(faults))
 def _faults_per_allocation(mode: str) -> float:
     """Median minor page faults per 64 MB buffer in a fresh interpreter (the setting is process-wide, and a long-lived
     test process has a heap of its own history)."""
-    done = subprocess.run([sys.executable, "-c", FAULTS_SCRIPT, mode], capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    done = subprocess.run(
+        [sys.executable, "-c", FAULTS_SCRIPT, mode],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
     assert done.returncode == 0, done.stderr
     return float(done.stdout.split()[-1])
 

@@ -101,8 +101,12 @@ def test_metadata_states_the_fixed_shape_and_conventions(exported):
     assert meta["input_shape"] == SHAPE and meta["input_dtype"] == "float32" and meta["device"] == "cpu"
     assert meta["inputs"] == ["moving", "fixed"]
     velocity_grid = [n // 2 for n in (net.network_size or SIZE)]
-    assert meta["outputs"] == {"warped": SHAPE, "displacement": [1, 3, *SIZE], "velocity_mean": [1, 3, *velocity_grid],
-                               "velocity_log_var": [1, 3, *velocity_grid]}
+    assert meta["outputs"] == {
+        "warped": SHAPE,
+        "displacement": [1, 3, *SIZE],
+        "velocity_mean": [1, 3, *velocity_grid],
+        "velocity_log_var": [1, 3, *velocity_grid],
+    }
     assert list(meta["outputs"]) == list(EXPORT_OUTPUTS)  # the order of the returned tuple
     assert meta["units"] == "voxels" and "warped[x] = moving[x + displacement[x]]" in meta["convention"]
     assert meta["network"]["network_size"] == (list(net.network_size) if net.network_size else None)
@@ -144,8 +148,10 @@ def _graph_signature(net: ProbRegNet, moving: torch.Tensor, fixed: torch.Tensor)
         warnings.simplefilter("ignore")
         traced = torch.jit.trace(MeanRegistration(net.eval(), SHAPE), (moving, fixed), check_trace=False)
     _clear_grid_caches(net)
-    return [re.sub(r"___torch_mangle_\d+\.", "", re.sub(r"%[\w.]+", "%", str(n))).split(" # ")[0]
-            for n in traced.inlined_graph.nodes()]
+    return [
+        re.sub(r"___torch_mangle_\d+\.", "", re.sub(r"%[\w.]+", "%", str(n))).split(" # ")[0]
+        for n in traced.inlined_graph.nodes()
+    ]
 
 
 def test_trace_does_not_depend_on_the_tracing_input():
@@ -185,16 +191,24 @@ def test_bundle_export_config_on_top_of_inference(tmp_path):
     torch.save(net.state_dict(), tmp_path / "model.pt")
     parser = ConfigParser()
     parser.read_config([str(ROOT / "bundle" / "configs" / name) for name in ("inference.yaml", "export.yaml")])
-    parser.update({"bundle_root": str(tmp_path), "model_file": str(tmp_path / "model.pt"), "device": "cpu",
-                   "network_size": [16, 16, 16], "input_size": list(SIZE)})
+    parser.update(
+        {
+            "bundle_root": str(tmp_path),
+            "model_file": str(tmp_path / "model.pt"),
+            "device": "cpu",
+            "network_size": [16, 16, 16],
+            "input_size": list(SIZE),
+        }
+    )
     parser.get_parsed_content("run")
     out = tmp_path / "models" / "model.ts"
     assert read_export_metadata(out)["input_shape"] == SHAPE
     moving, fixed = _pair(seed=13)
     with torch.no_grad():
         displacement = _load(out)(moving, fixed)[1]
-    torch.testing.assert_close(displacement, register_pair(net, moving, fixed).displacement, rtol=VERIFY_RTOL,
-                               atol=VERIFY_ATOL)
+    torch.testing.assert_close(
+        displacement, register_pair(net, moving, fixed).displacement, rtol=VERIFY_RTOL, atol=VERIFY_ATOL
+    )
 
 
 def test_command_line_exports_from_a_bundle_config(tmp_path):
@@ -205,9 +219,24 @@ def test_command_line_exports_from_a_bundle_config(tmp_path):
     torch.save(net.state_dict(), tmp_path / "model.pt")
     out = tmp_path / "models" / "model.ts"
     result = subprocess.run(
-        [sys.executable, "-m", "monai_probreg.weights.export", "--model-file", str(tmp_path / "model.pt"),
-         "--config", str(tmp_path / "inference.yaml"), "--out", str(out), "--input-size", *map(str, SIZE)],
-        capture_output=True, text=True, timeout=120, cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        [
+            sys.executable,
+            "-m",
+            "monai_probreg.weights.export",
+            "--model-file",
+            str(tmp_path / "model.pt"),
+            "--config",
+            str(tmp_path / "inference.yaml"),
+            "--out",
+            str(out),
+            "--input-size",
+            *map(str, SIZE),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
     assert result.returncode == 0, result.stderr
     assert f"wrote {out}" in result.stdout and "[1, 1, 32, 32, 32]" in result.stdout

@@ -36,17 +36,27 @@ def test_the_json_sits_next_to_the_weights_and_records_the_settings(tmp_path):
     path, net = _saved(tmp_path, num_steps=5)
     assert settings_path(path) == tmp_path / "weights.network.json"
     recorded = json.loads(settings_path(path).read_text())
-    assert recorded == {"spatial_dims": 3, "enc_channels": [4, 8], "dec_channels": [8, 8, 4], "int_downsize": 2,
-                        "num_steps": 5, "bidirectional": False, "network_size": [16, 16, 16]}
+    assert recorded == {
+        "spatial_dims": 3,
+        "enc_channels": [4, 8],
+        "dec_channels": [8, 8, 4],
+        "int_downsize": 2,
+        "num_steps": 5,
+        "bidirectional": False,
+        "network_size": [16, 16, 16],
+    }
     assert check_network_settings(path, ProbRegNet(**SMALL, num_steps=5)) == recorded
 
 
-@pytest.mark.parametrize("change, named", [
-    ({"network_size": (32, 32, 32)}, "network_size: trained with [16, 16, 16], the network has [32, 32, 32]"),
-    ({"network_size": None}, "network_size: trained with [16, 16, 16], the network has None"),
-    ({"num_steps": 4}, "num_steps: trained with 7, the network has 4"),
-    ({"bidirectional": True}, "bidirectional: trained with False, the network has True"),
-])
+@pytest.mark.parametrize(
+    "change, named",
+    [
+        ({"network_size": (32, 32, 32)}, "network_size: trained with [16, 16, 16], the network has [32, 32, 32]"),
+        ({"network_size": None}, "network_size: trained with [16, 16, 16], the network has None"),
+        ({"num_steps": 4}, "num_steps: trained with 7, the network has 4"),
+        ({"bidirectional": True}, "bidirectional: trained with False, the network has True"),
+    ],
+)
 def test_a_setting_that_leaves_no_trace_in_the_tensors_is_refused_by_name(tmp_path, change, named):
     path, _ = _saved(tmp_path)
     other = ProbRegNet(**{**SMALL, **change})

@@ -131,12 +131,19 @@ class AntsCache:
         record = {
             **compute(),
             "computed_at": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "antspyx": importlib.metadata.version("antspyx"),
+            "antspyx": _antspyx_version(),
         }
         self.records[key] = record
         if self.path is not None:
             write_text(self.path, json.dumps(self.records, indent=1) + "\n")
         return record
+
+
+def _antspyx_version() -> str | None:
+    try:
+        return importlib.metadata.version("antspyx")
+    except importlib.metadata.PackageNotFoundError:
+        return None
 
 
 def _sha(*paths: Path) -> str:

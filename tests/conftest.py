@@ -12,6 +12,8 @@ import nibabel as nib
 import numpy as np
 import pytest
 
+from monai_probreg.spatial.affine_settings import AffineSettings
+
 DEFAULT_WEIGHTS = "model.pt"  # the configs' model_file: the shipped default (the model zoo's name)
 TINY_LABELS = (21, 22, 181)  # non-contiguous ids, like LPBA40's
 
@@ -193,6 +195,14 @@ def tiny_bundle(root: Path, bundle_dir: Path, network_size: Sequence[int] = (16,
 BUNDLE_DIR = Path(__file__).resolve().parents[1] / "bundle"
 OBLIQUE_DIRECTION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])  # a moved scan's axes (AIL-like)
 FAST_AFFINE = ["--affine-levels", "2", "1", "--affine-iterations", "100", "50", "--affine-sampling", "0.25"]
+# the same fast affine stage as settings, for tests that call the library (torch backend, the command's default)
+FAST_AFFINE_SETTINGS = AffineSettings(
+    shrink_factors=(2, 1),
+    smoothing_sigmas_mm=(1.0, 0.0),
+    rigid_iterations=(100, 50),
+    affine_iterations=(100, 50),
+    sampling_percentage=0.25,
+)
 
 
 def run_cli(*argv: str, threads: int = 1) -> SimpleNamespace:

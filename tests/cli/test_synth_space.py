@@ -6,21 +6,14 @@ from __future__ import annotations
 import nibabel as nib
 import numpy as np
 import pytest
-from conftest import FIXED_LPS, asymmetric_phantom, save_lps
+from conftest import FAST_AFFINE_SETTINGS, FIXED_LPS, asymmetric_phantom, save_lps
 
 from monai_probreg.cli.synth_space import SYNTH_ATLAS_NAME, main, render_head, to_synth_space
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.data.label_synthesis import T1_LIKE
-from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.spatial.volume_io import Volume
 
-FAST = AffineSettings(
-    shrink_factors=(2, 1),
-    smoothing_sigmas_mm=(1.0, 0.0),
-    rigid_iterations=(100, 50),
-    affine_iterations=(100, 50),
-    sampling_percentage=0.25,
-)
+FAST = FAST_AFFINE_SETTINGS
 
 
 def _freesurfer_phantom() -> tuple[np.ndarray, np.ndarray]:

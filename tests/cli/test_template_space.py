@@ -6,11 +6,10 @@ from __future__ import annotations
 import nibabel as nib
 import numpy as np
 import pytest
-from conftest import BUNDLE_DIR, FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
+from conftest import BUNDLE_DIR, FAST_AFFINE_SETTINGS, FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
 
 from monai_probreg.cli.template_space import TEMPLATE_ATLAS_NAME, majority_vote, to_template_space
 from monai_probreg.data.dataset import index_dataset
-from monai_probreg.spatial.affine import AffineSettings
 
 
 def test_majority_vote_is_the_most_frequent_value_per_voxel_ties_to_the_smaller():
@@ -46,13 +45,7 @@ def test_the_folder_holds_the_subjects_on_the_template_grid_after_the_affine_sta
         moved[:3, 3] += shift  # the same voxels, 3 mm elsewhere in space: the affine stage must undo the shift
         save_lps(data / "images" / f"{sid}.nii.gz", image * 50, moved)
         save_lps(data / "labels" / f"{sid}.nii.gz", labels, moved)
-    fast = AffineSettings(
-        shrink_factors=(2, 1),
-        smoothing_sigmas_mm=(1.0, 0.0),
-        rigid_iterations=(100, 50),
-        affine_iterations=(100, 50),
-        sampling_percentage=0.25,
-    )
+    fast = FAST_AFFINE_SETTINGS
     out = to_template_space(
         data,
         tmp_path / "out",

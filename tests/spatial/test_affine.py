@@ -5,7 +5,7 @@ from __future__ import annotations
 import itk
 import numpy as np
 import pytest
-from conftest import FIXED_LPS, asymmetric_phantom, moved_scan, rigid_matrix
+from conftest import FAST_AFFINE_SETTINGS, FIXED_LPS, asymmetric_phantom, moved_scan, rigid_matrix
 
 from monai_probreg.spatial.affine import AffineSettings, align, rotation_angle_deg
 from monai_probreg.spatial.physical import apply_affine, grid_points
@@ -19,13 +19,7 @@ FAST = AffineSettings.itk_defaults(
     affine_iterations=(100, 50),
     sampling_percentage=0.25,
 )
-FAST_TORCH = AffineSettings(
-    shrink_factors=(2, 1),
-    smoothing_sigmas_mm=(1.0, 0.0),
-    rigid_iterations=(100, 50),
-    affine_iterations=(100, 50),
-    sampling_percentage=0.25,
-)
+FAST_TORCH = FAST_AFFINE_SETTINGS
 BACKENDS = {"itk": FAST, "torch": FAST_TORCH}
 # a permuted, flipped, anisotropic scanner grid (axcodes of the moving scan differ from the fixed LPS)
 DIRECTION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])

@@ -104,7 +104,7 @@ def test_the_script_scores_the_synthetic_pairs_and_skips_what_is_missing(label_m
     result = json.loads((out / "generalization.json").read_text())
     assert "skipped" in result["parts"]["native"]
     rows = result["parts"]["synthetic"]
-    assert set(rows) == {"network (shipped)", "default (shipped)"}
+    assert set(rows) == {"network (shipped)", "refined (shipped)"}
     pairs = {
         f"{a}_{s}_to_{b}_{s}"
         for s in generalization.SYNTH_SEEDS
@@ -113,7 +113,7 @@ def test_the_script_scores_the_synthetic_pairs_and_skips_what_is_missing(label_m
     for row in rows.values():
         assert set(row["per_pair"]) == pairs and 0.0 < row["dice"] <= 1.0
         assert row["dice"] == pytest.approx(np.mean(list(row["per_pair"].values())))
-    assert (out / "generalization.png").is_file() and "| default (shipped) |" in result["markdown"]
+    assert (out / "generalization.png").is_file() and "| refined (shipped) |" in result["markdown"]
 
 
 def test_missing_label_maps_skip_the_part(tmp_path):

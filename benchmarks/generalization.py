@@ -58,6 +58,7 @@ from monai_probreg.data.augmentation import RandDiffeomorphicd
 from monai_probreg.data.label_synthesis import ASEG_LABELS
 from monai_probreg.data.synthetic import SyntheticSettings
 from monai_probreg.data.template import mni152_template_path
+from monai_probreg.metrics.dice import label_dice
 from monai_probreg.spatial.volume_io import Volume, read_image, read_label
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256, library_versions
@@ -77,13 +78,13 @@ ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
 
 
 def dice(warped: np.ndarray, fixed: np.ndarray, labels: Sequence[int]) -> float:
-    """Mean Dice over the ``labels`` present in both maps."""
-    scores = []
-    for v in labels:
-        a, b = warped == v, fixed == v
-        if a.any() and b.any():
-            scores.append(2.0 * np.logical_and(a, b).sum() / (a.sum() + b.sum()))
-    return float(np.mean(scores)) if scores else float("nan")
+    """Mean Dice over the ``labels`` present in both maps (:func:`monai_probreg.metrics.dice.label_dice`)."""
+    present = set(np.unique(warped).tolist()) & set(np.unique(fixed).tolist())
+    scored = [int(v) for v in labels if v in present]
+    if not scored:
+        return float("nan")
+    per_label = label_dice(torch.from_numpy(warped.astype(np.int64)), torch.from_numpy(fixed.astype(np.int64)), scored)
+    return float(np.mean(list(per_label.values())))
 
 
 def brain_ncc(warped: np.ndarray, template: np.ndarray) -> float:

@@ -25,14 +25,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, bundle_parser
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO
 from failure_detection import NORMAL, cases_for, load_scans, run_case
+from uncertainty_calibration import validation_model
 
 from monai_probreg.data.pairs import ATLAS_ID
 from monai_probreg.uncertainty.calibration import calibration_for
 from monai_probreg.uncertainty.quality import LNCC_DROP_MARGIN
 from monai_probreg.utils.files import write_text
-from monai_probreg.weights.loading import load_weights
 
 PRECISIONS = ("bf16", "fp32")
 
@@ -88,12 +88,8 @@ def main(argv=None) -> int:
         return 0
     torch.set_num_threads(args.threads)
     start = time.time()
-    bundle_root = args.bundle_root.resolve()
-    evaluate = bundle_parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(args.dataset_dir.resolve())})
-    model_file = (args.model_file or Path(evaluate.get_parsed_content("model_file"))).resolve()
-    network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
+    evaluate, model_file, network, val_ids = validation_model(args)  # the shared loading of the validation benchmarks
     calibration = calibration_for(model_file)
-    val_ids = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     scans = load_scans(args.dataset_dir, val_ids, int(evaluate.get_parsed_content("divisor")))
     normal = [c for c in cases_for(val_ids, 0, training=False) if c["perturbation"] == NORMAL]
     self_cases = [{"moving": s, "fixed": s, "perturbation": NORMAL, "seed": 0} for s in [*val_ids, ATLAS_ID]]

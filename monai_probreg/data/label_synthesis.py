@@ -25,7 +25,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import torch
-from monai.transforms import GaussianSmooth, MapTransform, RandomizableTransform
+from monai.transforms import GaussianSmooth, MapTransform, RandomizableTransform, ScaleIntensityRangePercentiles
 
 from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS
 from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
@@ -62,10 +62,10 @@ ASEG_LABELS: tuple[int, ...] = tuple(sorted(set(T1_LIKE) - {30, 62, 72, 85}))
 def scale_to_unit(
     image: torch.Tensor, lower: float = LOWER_PERCENTILE, upper: float = UPPER_PERCENTILE
 ) -> torch.Tensor:
-    """Intensities at the ``lower``/``upper`` percentiles -> 0 and 1, clipped (the preprocessing's scaling)."""
-    flat = image.reshape(-1).float()
-    lo, hi = torch.quantile(flat[:: max(1, flat.numel() // 2**20)], torch.tensor([lower, upper]) / 100.0)
-    return ((image - lo) / (hi - lo).clamp_min(1e-6)).clamp(0.0, 1.0)
+    """Intensities at the ``lower``/``upper`` percentiles -> 0 and 1, clipped: MONAI's
+    ``ScaleIntensityRangePercentiles``, as the preprocessing scales a scan."""
+    scale = ScaleIntensityRangePercentiles(lower=lower, upper=upper, b_min=0.0, b_max=1.0, clip=True)
+    return torch.as_tensor(scale(image.float()), dtype=torch.float32)
 
 
 def render_labels(

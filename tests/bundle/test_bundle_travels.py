@@ -22,8 +22,8 @@ def _copy(tmp_path):
 
 def test_no_config_points_outside_the_bundle_by_default():
     for config in sorted((BUNDLE_DIR / "configs").glob("*.yaml")):
-        text = config.read_text()
-        assert "/../" not in text.replace("# ", "\n#"), f"{config.name} reaches outside the bundle by default"
+        code = [line.split("#", 1)[0] for line in config.read_text().splitlines()]  # comments may cite commands
+        assert not [line for line in code if "/../" in line], f"{config.name} reaches outside the bundle by default"
     metadata = ConfigParser.load_config_file(str(BUNDLE_DIR / "configs" / "metadata.json"))
     assert "monai-probreg" in metadata["required_packages_version"]  # the package its configs import
 

@@ -50,10 +50,12 @@ import torch
 from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT, REPO, bundle_parser
 from failure_set import PERTURBATIONS
 from monai.data import Dataset
+from monai.networks.utils import eval_mode
 
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.data.pairs import ATLAS_ID, scan_dicts
 from monai_probreg.data.transforms import registration_transforms
+from monai_probreg.engines.refinement import refine_registration
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.calibration import auroc, spearman
 from monai_probreg.metrics.jacobian import jacobian_determinant
@@ -111,40 +113,48 @@ def cases_for(ids: list[str], seed: int, training: bool) -> list[dict[str, Any]]
 
 
 def run_case(network, calibration, scans: dict, case: dict, refinement=None) -> dict:
-    """One registration of the bundle path (the mean refined for the pair when ``refinement`` is enabled): its
-    quality features, Dice, Dice of no registration and whether it failed."""
+    """One registration of the bundle path (the mean refined for the pair when ``refinement`` is enabled): the quality
+    features of the network's own registration (what the estimate reads: quality.py, "Whose features") and, when
+    refined, of the refined one; Dice of the registration users get, Dice of no registration and whether it failed."""
     moving, fixed = scans[case["moving"]], scans[case["fixed"]]
     image, label = moving["image"], moving["label"]
     if case["perturbation"] != NORMAL:
         g = torch.Generator().manual_seed(case["seed"])
         image, label = PERTURBATIONS[case["perturbation"]](image, label, g)
-    output = register_pair(network, image, fixed["image"], refinement)
-    shape = output.displacement.shape[2:]
-    entropy = posterior_maps(
-        network,
-        output.velocity_mean,
-        output.velocity_log_var,
-        shape,
-        std_scale=calibration.std_scale,
-        bias_fraction=calibration.bias_fraction,
-    ).velocity_entropy
-    features = quality_features(
-        image[0, 0],
-        fixed["image"][0, 0],
-        output.warped[0, 0],
-        output.displacement[0],
-        entropy,
-        fixed["spacing"],
-        jacobian=jacobian_determinant(output.displacement)[0],
-    )
-    after = score_pair(output.displacement, label, fixed["label"]).mean_dice
+    network_output = register_pair(network, image, fixed["image"])
+    output = None
+    if refinement is not None and refinement.enabled:  # from the same network output: one forward pass
+        with eval_mode(network):
+            output = refine_registration(network, image, fixed["image"], network_output, refinement)
+
+    def features_of(out) -> QualityFeatures:
+        entropy = posterior_maps(
+            network,
+            out.velocity_mean,
+            out.velocity_log_var,
+            out.displacement.shape[2:],
+            std_scale=calibration.std_scale,
+            bias_fraction=calibration.bias_fraction,
+        ).velocity_entropy
+        return quality_features(
+            image[0, 0],
+            fixed["image"][0, 0],
+            out.warped[0, 0],
+            out.displacement[0],
+            entropy,
+            fixed["spacing"],
+            jacobian=jacobian_determinant(out.displacement)[0],
+        )
+
+    after = score_pair((output or network_output).displacement, label, fixed["label"]).mean_dice
     identity = score_pair(None, label, fixed["label"]).mean_dice
     return {
         **case,
         "dice": after,
         "dice_identity": identity,
         "failed": failed(after, identity, identity),
-        "features": features._asdict(),
+        "features": features_of(network_output)._asdict(),
+        "answer_features": None if output is None else features_of(output)._asdict(),
     }
 
 
@@ -534,6 +544,7 @@ def main(argv=None) -> int:
         [r["dice"] for r in train_records],
         [r["failed"] for r in train_records],
         fitted_on=fitted_on,
+        refinement=refinement_record if refinement_record and refinement_record.get("num_iterations") else None,
     )
     train_result, result = score(model, train_records), score(model, val_records)
     table = markdown(result, model.threshold)

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import importlib.metadata
 import json
 import os
@@ -149,6 +150,12 @@ def _antspyx_version() -> str | None:
 
 def _sha(*paths: Path) -> str:
     return ",".join(file_sha256(p)[:16] for p in paths)
+
+
+def _voxel_sha(*paths: Path) -> str:
+    """Of the images' voxels (not their files: a gzip header may differ between identical writes): a rendering that
+    changes changes the key of the ANTs records made from it."""
+    return ",".join(hashlib.sha256(np.ascontiguousarray(read_image(p).array).tobytes()).hexdigest()[:16] for p in paths)
 
 
 # ---------------------------------------------------------------------------------------------------- parts
@@ -284,10 +291,7 @@ def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: A
                             "dice": dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS),
                         }
 
-                    key = (
-                        f"synthetic:{_sha(*paths)}:{SYNTH_DEFORM_RMS_MM}:{SYNTH_DEFORM_SPACING_MM}:"
-                        f"{SYNTH_CROP_MARGIN}:{pair}"
-                    )
+                    key = f"synthetic:{_voxel_sha(moving, fixed_image)}:{pair}"
                     record = ants.get(key, compute)
                     _add(rows, "ANTs SyN", pair, record["dice"], record["num_folding"])
                 print(

@@ -57,6 +57,7 @@ from monai_probreg.engines.refinement import RefinementSettings, refine_registra
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
+from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.spatial.affine import AffineResult, AffineSettings, align
 from monai_probreg.spatial.affine_torch import FixedSamples, fixed_samples
 from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask, hide_outside
@@ -214,6 +215,16 @@ def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
     }
 
 
+class _Witness(NamedTuple):
+    """The network's registration before refinement, on the model grid: what the quality estimate reads
+    (:mod:`monai_probreg.uncertainty.quality`, "Whose features")."""
+
+    warped: np.ndarray
+    displacement: np.ndarray
+    jacobian: np.ndarray
+    entropy: np.ndarray
+
+
 @dataclass
 class _ModelMaps:
     """The network's results on the model grid: displacement and inverse (3, *S) voxels, maps (*S)."""
@@ -223,6 +234,7 @@ class _ModelMaps:
     jacobian: np.ndarray
     entropy: np.ndarray | None  # velocity entropy, filled in by _run_model (with the samples when there are any)
     warped: np.ndarray
+    network: RegistrationOutput | None = None  # the network's own registration when refined (the quality reads it)
     std: np.ndarray | None = None
     variance: np.ndarray | None = None  # (3, *S) mm^2 per model-grid axis, with the samples
 
@@ -241,8 +253,10 @@ def _run_model(
     fixed_t = torch.from_numpy(fixed_input)[None, None].to(model.device)
     with _timed(timings, "model", report):
         output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
+    network_output = None
     if options.refinement.enabled:
         with _timed(timings, "refine", report), eval_mode(model.network):
+            network_output = output
             output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement)
     with _timed(timings, "maps", report):
         inverse = None
@@ -255,6 +269,7 @@ def _run_model(
             _numpy(jacobian_determinant(output.displacement)[0]),
             None,
             _numpy(output.warped[0, 0]),
+            network=network_output,
         )
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
             posterior = posterior_maps(
@@ -284,27 +299,55 @@ def _run_model(
     return maps
 
 
+def _witness(model: LoadedModel, output: RegistrationOutput, shape: tuple[int, ...]) -> _Witness:
+    """The network's registration (before refinement) as the quality estimate reads it; calibrated entropy."""
+    entropy = posterior_maps(
+        model.network,
+        output.velocity_mean,
+        output.velocity_log_var,
+        shape,
+        std_scale=model.std_scale,
+        bias_fraction=model.bias_fraction,
+    ).velocity_entropy
+    return _Witness(
+        _numpy(output.warped[0, 0]),
+        _numpy(output.displacement[0]),
+        _numpy(jacobian_determinant(output.displacement)[0]),
+        _numpy(entropy),
+    )
+
+
 def _quality(
     model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, maps: _ModelMaps
-) -> tuple[QualityFeatures, QualityEstimate] | None:
-    """The label-free quality estimate on the model grid (:mod:`monai_probreg.uncertainty.quality`), or None when
+) -> tuple[QualityFeatures, QualityEstimate, QualityFeatures | None] | None:
+    """The label-free quality estimate on the model grid (:mod:`monai_probreg.uncertainty.quality`): the features of
+    the network's registration, the estimate, and the features of the refined answer (None: not refined); None when
     the weights have no quality model."""
     if model.quality is None:
         return None
     t = torch.from_numpy
-    features = quality_features(
-        t(moving_input),
-        t(fixed.model_input),
-        t(maps.warped),
-        t(maps.displacement),
-        t(maps.entropy),
-        fixed.grid.spacing,
-        jacobian=t(maps.jacobian),
-    )
-    return features, model.quality.estimate(features)
+
+    def features_of(m: _ModelMaps | _Witness) -> QualityFeatures:
+        return quality_features(
+            t(moving_input),
+            t(fixed.model_input),
+            t(m.warped),
+            t(m.displacement),
+            t(m.entropy),
+            fixed.grid.spacing,
+            jacobian=t(m.jacobian),
+        )
+
+    answer = features_of(maps)
+    if maps.network is None:
+        return answer, model.quality.estimate(answer), None
+    features = features_of(_witness(model, maps.network, tuple(maps.warped.shape)))
+    return features, model.quality.estimate(features, answer), answer
 
 
-def _quality_summary(model: LoadedModel, quality: tuple[QualityFeatures, QualityEstimate] | None) -> dict | None:
+def _quality_summary(
+    model: LoadedModel, quality: tuple[QualityFeatures, QualityEstimate, QualityFeatures | None] | None
+) -> dict | None:
     if quality is None:
         return None
     record = quality_record(*quality)  # strict JSON, the same record as the bundle's
@@ -493,7 +536,10 @@ def _qc_data(
 
 
 def _qc_title(
-    moving: Volume, dice: dict | None, num_folding: int, quality: tuple[QualityFeatures, QualityEstimate] | None
+    moving: Volume,
+    dice: dict | None,
+    num_folding: int,
+    quality: tuple[QualityFeatures, QualityEstimate, QualityFeatures | None] | None,
 ) -> str:
     title = Path(moving.path).name + (
         f"   mean Dice {dice['mean']:.3f} (affine only {dice['mean_affine_only']:.3f})" if dice else ""

@@ -2,7 +2,10 @@
 
 ``RegistrationWriter`` (inference.yaml) and ``RegistrationScorer`` (evaluate.yaml) call it per subject: it computes
 the label-free features of the registration (:mod:`monai_probreg.uncertainty.quality_features`) from the batch
-(``moving``/``fixed``: the network inputs) and the network's output, on the calibrated posterior, applies the
+(``moving``/``fixed``: the network inputs) and the network's output, on the calibrated posterior (when the workflow
+refines the mean, the features of the network's own registration, computed again here without refinement, and those
+of the refined answer for the local-NCC drop rule: :mod:`monai_probreg.uncertainty.quality`, "Whose features"),
+applies the
 weights' quality model (``<weights stem>.quality.json``, :mod:`monai_probreg.uncertainty.quality`) and logs one
 warning line for a registration that probably failed. The writer stores the estimate as ``<id>/quality.json``; the
 scorer adds it to ``scores.csv`` and ``summary.json``. Weights without a quality model: no estimate, said once.
@@ -17,10 +20,12 @@ import numpy as np
 import torch
 from torch import nn
 
+from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.engines.registration import register_pair
 from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.quality import QualityModel, load_quality_model, quality_path, quality_record
-from monai_probreg.uncertainty.quality_features import quality_features
+from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.tensors import plain_tensor
 
 __all__ = ["QualityCheck"]
@@ -37,6 +42,8 @@ class QualityCheck:
         std_scale, bias_fraction: the posterior calibration in use (the quality model is fitted on it).
         calibrate: False (raw posterior): no estimate, since the model was fitted on the calibrated one.
         quality_model: a model to use instead of the sidecar (tests).
+        refinement: the workflow's refinement of the mean; when enabled, the estimate reads the network's own
+            registration (one more forward pass per subject) and the refined one for the local-NCC drop rule.
     """
 
     def __init__(
@@ -47,8 +54,10 @@ class QualityCheck:
         bias_fraction: float = 0.0,
         calibrate: bool = True,
         quality_model: QualityModel | None = None,
+        refinement: RefinementSettings | None = None,
     ) -> None:
         self.network, self.std_scale, self.bias_fraction = network, float(std_scale), float(bias_fraction)
+        self.refined = refinement is not None and refinement.enabled
         self.model = (
             quality_model if quality_model is not None else (load_quality_model(model_file) if calibrate else None)
         )
@@ -70,6 +79,20 @@ class QualityCheck:
         if affine is not None:
             matrix = np.asarray(affine[0] if affine.ndim == 3 else affine, dtype=np.float64)
             spacing = np.linalg.norm(matrix[:3, :3], axis=0).tolist()
+        moving_in, fixed_in = targets["moving"][:1], targets["fixed"][:1]
+        answer = self._features(moving, fixed, pair, spacing)
+        if not self.refined:
+            estimate = self.model.estimate(answer)
+            features, answer = answer, None
+        else:  # the network's own registration (quality.py, "Whose features"); no gradients, eval mode
+            network_pair = register_pair(self.network, plain_tensor(moving_in), plain_tensor(fixed_in))
+            features = self._features(moving, fixed, network_pair, spacing)
+            estimate = self.model.estimate(features, answer)
+        if estimate.warning:  # a warning never stops the workflow
+            _LOG.warning(f"{sid}: WARNING: {estimate.warning}")
+        return quality_record(features, estimate, answer)  # strict JSON, the same record as the command line's
+
+    def _features(self, moving, fixed, pair: RegistrationOutput, spacing) -> QualityFeatures:
         shape = pair.displacement.shape[2:]
         entropy = posterior_maps(
             self.network,
@@ -80,10 +103,6 @@ class QualityCheck:
             bias_fraction=self.bias_fraction,
         ).velocity_entropy
         with torch.inference_mode():
-            features = quality_features(
+            return quality_features(
                 moving, fixed, plain_tensor(pair.warped)[0, 0], plain_tensor(pair.displacement)[0], entropy, spacing
             )
-        estimate = self.model.estimate(features)
-        if estimate.warning:  # a warning never stops the workflow
-            _LOG.warning(f"{sid}: WARNING: {estimate.warning}")
-        return quality_record(features, estimate)  # strict JSON, the same record as the command line's

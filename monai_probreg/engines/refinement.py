@@ -9,7 +9,8 @@ mean):
     L(mu) = image_weight * D(moving o exp(mu), fixed)  +  lambda / 2 * mu^T L mu / N_velocity
             + posterior_weight / 2 * mean((mu - mu_net)^2 / sigma_net^2)
 
-with Adam, on the grid the network sees (its ``network_size``, else the input grid). ``D`` is MONAI's local
+with Adam, on the grid the network sees (its ``network_size``, else the input grid), the velocity on the network's
+velocity grid or a finer one (``velocity_grid_factor``). ``D`` is MONAI's local
 normalised cross-correlation by default (``image_loss="lncc"``, per-voxel mean in [-1, 0]; it does not assume the two
 scans share an intensity scale, and it scored better than the alternative on training pairs), or the model's own
 Gaussian likelihood ``||fixed - moving o exp(mu)||^2 / (2 sigma^2) / N_image`` (``"gaussian"``: the terms of the
@@ -38,6 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from monai_probreg.blocks.integration import resize_displacement
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.losses.elbo import ProbRegLoss
 from monai_probreg.losses.likelihood import IMAGE_LOSSES
@@ -66,6 +68,11 @@ class RefinementSettings:
     fold_backtracks: the fold guard. If the refined field folds (any |J| <= 0 on the output grid), the refinement's
         change to the network's mean is halved, at most this many times; if it still folds, the network's mean is
         kept. 0 = no guard (the refined mean as the optimiser left it).
+    velocity_grid_factor: the refined mean lives on a grid this many times finer than the network's velocity grid
+        (1: the network's, 4 mm for the shipped weights; 2: twice finer, the paper's 2 mm). The network's mean and
+        log-variance are resized onto it (:func:`resize_log_var`) and the returned ones live there; the images of the
+        loss are the network's grid, or the velocity grid when that is finer. 2 measured worse and slower on training
+        pairs (``benchmarks/refinement_levers.py``, docs/accuracy.md).
     """
 
     num_iterations: int = 0
@@ -77,10 +84,12 @@ class RefinementSettings:
     image_weight: float = 20.0
     lncc_kernel_size: int = 9
     fold_backtracks: int = 4
+    velocity_grid_factor: int = 1
 
     def __post_init__(self) -> None:
         for name in ("num_iterations", "fold_backtracks"):
             _check_integer(name, getattr(self, name), minimum=0)
+        _check_integer("velocity_grid_factor", self.velocity_grid_factor, minimum=1)
         _check_integer("lncc_kernel_size", self.lncc_kernel_size, minimum=3)
         if self.lncc_kernel_size % 2 == 0:
             raise ValueError(f"lncc_kernel_size must be an odd integer >= 3; got {self.lncc_kernel_size!r}")
@@ -169,6 +178,10 @@ def refine_registration(
     # clones: tensors made under inference_mode cannot enter autograd; the images are constants here
     start = output.velocity_mean.detach().clone().float()
     log_var = output.velocity_log_var.detach().clone().float()
+    if settings.velocity_grid_factor > 1:
+        grid = [int(n) * settings.velocity_grid_factor for n in start.shape[2:]]
+        start, log_var = resize_displacement(start, grid), resize_log_var(log_var, grid)
+        size = tuple(max(int(s), g) for s, g in zip(size, grid))
     moving_small, fixed_small = (_on_grid(t.detach().clone().float(), size) for t in (moving, fixed))
     velocity = start.clone().requires_grad_(True)
     optimiser = torch.optim.Adam([velocity], lr=settings.learning_rate)
@@ -195,4 +208,16 @@ def refine_registration(
         if output.inverse_displacement is not None:
             inverse = network.velocity_to_displacement(-mean, full)
             warped_fixed = warp_image(fixed, inverse, padding_mode=network.padding_mode, fast=network.fast_sampling)
-    return RegistrationOutput(warped, displacement, mean, mean, output.velocity_log_var, inverse, warped_fixed)
+    return RegistrationOutput(
+        warped, displacement, mean, mean, log_var.to(output.velocity_log_var.dtype), inverse, warped_fixed
+    )
+
+
+def resize_log_var(log_var: Tensor, spatial_size: list[int]) -> Tensor:
+    """A velocity log-variance (B, D, *V) on another grid over the same extent, in that grid's voxel units: the
+    variance of channel k scales with the square of :func:`resize_displacement`'s factor for axis k."""
+    source = list(log_var.shape[2:])
+    scale = torch.tensor([(m - 1) / (n - 1) for n, m in zip(source, spatial_size)], dtype=log_var.dtype)
+    shift = 2.0 * scale.log().view([1, -1] + [1] * len(source)).to(log_var.device)
+    mode = "trilinear" if log_var.ndim == 5 else "bilinear"
+    return F.interpolate(log_var, size=list(spatial_size), mode=mode, align_corners=True) + shift

@@ -10,9 +10,18 @@ standardised with the training set's mean and spread:
   is below the Dice before the deformable step (the affine alone) or below no registration + ``FAILURE_MARGIN``
   (the issue "Uncertainty that warns": the definition the detector is scored on).
 
+Whose features: the *network's* registration, before any test-time refinement (the "witness"). Refinement
+(:mod:`monai_probreg.engines.refinement`) maximises the pair's local NCC, so the refined registration looks alike
+even when the input was wrong: with the features of refined registrations, a scan whose orientation header was turned
+by 180 degrees was registered to Dice 0.002 with failure probability 0.000, and a refit on refined registrations did
+not recover those cases (docs/uncertainty.md). The network's own registration, which the refinement starts from and is
+pulled towards, still shows the failure; so the models read its features, and are fitted on the outcome (Dice,
+failed) of the registration the user gets (the refined one, for the shipped default).
+
 A registration gets a warning when its failure probability is at least the model's ``threshold``, or when the
-deformable step lowered the local similarity of the pair by more than ``lncc_drop_margin`` (``lncc_after <
-lncc_before - margin``: the network moved the images apart, which no optimiser of its own loss would do). The margin
+deformable step the user gets lowered the local similarity of the pair by more than ``lncc_drop_margin``
+(``lncc_after < lncc_before - margin`` of the *answer*'s features: the registration moved the images apart, which no
+optimiser of its own loss would do). The margin
 keeps a registration that changes almost nothing (a scan onto a near copy of itself) from warning or not by the
 rounding of the UNet's arithmetic (bf16 on CPUs with native bf16, fp32 elsewhere): ``benchmarks/lncc_margin.py``
 measures both precisions (docs/uncertainty.md). That rule is not fitted: the clipping above hides such a case from
@@ -78,9 +87,10 @@ class QualityEstimate(NamedTuple):
     warning: str | None
 
 
-def quality_record(features: QualityFeatures, estimate: QualityEstimate) -> dict:
+def quality_record(features: QualityFeatures, estimate: QualityEstimate, answer: QualityFeatures | None = None) -> dict:
     """The estimate and its features as strict JSON (NaN -> null): what ``summary.json``, ``quality.json`` and
-    ``scores.json`` store, on the command line and in the bundle alike."""
+    ``scores.json`` store, on the command line and in the bundle alike. ``features``: the network's registration
+    (what the models read); ``answer``: the refined registration's, when it differs (``answer_features``, else null)."""
 
     def finite(v: float) -> float | None:
         return None if math.isnan(v) else float(v)
@@ -90,6 +100,7 @@ def quality_record(features: QualityFeatures, estimate: QualityEstimate) -> dict
         "failure_probability": estimate.failure_probability,
         "warning": estimate.warning,
         "features": {k: finite(v) for k, v in features._asdict().items()},
+        "answer_features": None if answer is None else {k: finite(v) for k, v in answer._asdict().items()},
     }
 
 
@@ -116,6 +127,7 @@ class QualityModel:
     weights_file: str = ""
     weights_sha256: str = ""
     fitted_on: list[str] = field(default_factory=list)
+    refinement: dict = field(default_factory=dict)  # the fit's outcomes: RefinementSettings.as_dict() ({}: network)
     definition: str = f"failed = Dice < Dice before the deformable step, or Dice < no registration + {FAILURE_MARGIN}"
 
     def __post_init__(self) -> None:
@@ -148,9 +160,12 @@ class QualityModel:
         probability = _sigmoid(z @ np.asarray(self.failure_coef) + self.failure_intercept)
         return dice, probability
 
-    def estimate(self, features: QualityFeatures) -> QualityEstimate:
-        """The estimate of one registration, with a one-line warning when it probably failed."""
-        if not all(math.isfinite(v) for v in features):
+    def estimate(self, features: QualityFeatures, answer: QualityFeatures | None = None) -> QualityEstimate:
+        """The estimate of one registration, with a one-line warning when it probably failed. ``features``: of the
+        network's registration (the models' input); ``answer``: of the registration the user gets when it differs
+        (refined), read by the local-NCC drop rule (None: ``features``)."""
+        answer = features if answer is None else answer
+        if not all(math.isfinite(v) for v in (*features, *answer)):
             return QualityEstimate(
                 math.nan,
                 1.0,
@@ -164,10 +179,10 @@ class QualityModel:
                 f"this registration probably failed (estimated probability {probability:.2f}, predicted Dice "
                 f"{dice:.2f}): check the QC figure, the input's orientation header, field of view and contrast"
             )
-        elif features.lncc_after < features.lncc_before - self.lncc_drop_margin:
+        elif answer.lncc_after < answer.lncc_before - self.lncc_drop_margin:
             warning = (
-                f"the deformable step made the images less alike (local NCC {features.lncc_before:.3f} -> "
-                f"{features.lncc_after:.3f}): it probably did worse than the affine alone (affine.tfm); check "
+                f"the deformable step made the images less alike (local NCC {answer.lncc_before:.3f} -> "
+                f"{answer.lncc_after:.3f}): it probably did worse than the affine alone (affine.tfm); check "
                 "the QC figure"
             )
         return QualityEstimate(dice, probability, warning)
@@ -179,8 +194,11 @@ def fit_quality_model(
     failures: Sequence[bool],
     threshold: float = DEFAULT_THRESHOLD,
     fitted_on: Sequence[str] = (),
+    refinement: dict | None = None,
 ) -> QualityModel:
-    """Fit both models on registrations with known outcome (training subjects only)."""
+    """Fit both models on registrations with known outcome (training subjects only): ``features`` of the network's
+    registrations, ``dice`` and ``failures`` of the registrations users get (refined with ``refinement``, a
+    ``RefinementSettings.as_dict()``, or the network's own: None)."""
     x = np.asarray([list(f) for f in features], dtype=np.float64)
     y = np.asarray(dice, dtype=np.float64)
     t = np.asarray(failures, dtype=np.float64)
@@ -219,6 +237,7 @@ def fit_quality_model(
         float(threshold),
         dice_range=[float(y.min()), float(y.max())],
         fitted_on=list(fitted_on),
+        refinement=dict(refinement or {}),
     )
 
 

@@ -79,11 +79,17 @@ def test_inference_takes_a_pairs_file_without_labels(tmp_path, tiny_dataset, bun
 
 
 @pytest.mark.parametrize("config", ["inference.yaml", "evaluate.yaml"])
-def test_refinement_is_off_by_default_and_settable_from_the_config(config):
-    """Both workflows hand the config's ``refinement`` to their inferer: off unless refine_iterations > 0."""
+def test_refinement_is_on_by_default_and_settable_from_the_config(config):
+    """Both workflows hand the config's ``refinement`` to their inferer: on by default (the default path), the
+    library's other defaults otherwise; refine_iterations 0 turns it off."""
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
-    assert parser.get_parsed_content("inferer").refinement == RefinementSettings()
+    default = parser.get_parsed_content("inferer").refinement
+    assert default.enabled and default == RefinementSettings(num_iterations=parser["refine_iterations"])
+    parser = ConfigParser()
+    parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    parser["refine_iterations"] = 0
+    assert not parser.get_parsed_content("inferer").refinement.enabled
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
     parser["refine_iterations"], parser["refine_prior_lambda"] = 20, 3.0

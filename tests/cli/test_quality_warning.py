@@ -147,3 +147,19 @@ def test_load_model_can_leave_a_stale_quality_model_out(scene):
     finally:
         path.unlink()
     assert load_model(scene.bundle).quality is None  # no sidecar: none either way
+
+
+def test_with_refinement_the_estimate_reads_the_networks_registration(scene):
+    """quality.py, "Whose features": with --refine the features are those of the network's own registration (the
+    same as with --refine 0) and the refined answer's are stored beside them; without, there is no second set."""
+    summaries = {}
+    for steps in ("0", "3"):
+        out = scene.root / f"witness_{steps}"
+        result = _register(scene, out, -20.0, "--refine", steps, "--no-qc")
+        assert result.rc == 0, result.err
+        summaries[steps] = json.loads((out / "summary.json").read_text())["quality"]
+    network, refined = summaries["0"], summaries["3"]
+    assert network["answer_features"] is None
+    assert refined["features"] == pytest.approx(network["features"], abs=1e-6)
+    assert refined["answer_features"] is not None
+    assert refined["answer_features"]["displacement_mm"] != pytest.approx(refined["features"]["displacement_mm"])

@@ -8,9 +8,10 @@ import math
 import pytest
 import torch
 
+from monai_probreg.blocks.integration import resize_displacement
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.handlers import RegistrationInferer
-from monai_probreg.engines.refinement import RefinementSettings, refine_registration
+from monai_probreg.engines.refinement import RefinementSettings, refine_registration, resize_log_var
 from monai_probreg.engines.registration import register_pair, timed_register_pair
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet
@@ -74,6 +75,9 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
         ("lncc_kernel_size", 4),
         ("lncc_kernel_size", 1),
         ("lncc_kernel_size", 9.0),
+        ("velocity_grid_factor", 0),
+        ("velocity_grid_factor", 2.0),
+        ("velocity_grid_factor", True),
     ],
 )
 def test_bad_setting_names_itself(name, value):
@@ -244,3 +248,40 @@ def test_register_pair_and_the_engine_inferer_refine_the_same_way():
     torch.testing.assert_close(through_inferer.displacement, by_hand.displacement)
     assert runtime > 0 and inferer.last_runtime_s > 0
     assert not torch.equal(RegistrationInferer()(moving, net, fixed).displacement, by_hand.displacement)
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+def test_a_resized_log_variance_is_in_the_new_grids_units(spatial_dims):
+    """Variance of a velocity component scales with the square of resize_displacement's factor on its axis."""
+    source = (5, 6, 7)[:spatial_dims]
+    target = [2 * n for n in source]
+    log_var = torch.full((1, spatial_dims, *source), -3.0)
+    resized = resize_log_var(log_var, target)
+    assert tuple(resized.shape) == (1, spatial_dims, *target)
+    for k, (n, m) in enumerate(zip(source, target)):
+        assert torch.allclose(resized[0, k], torch.tensor(-3.0 + 2.0 * math.log((m - 1) / (n - 1))), atol=1e-6)
+    # the same factor as the mean's: a sample's std and the resized mean scale alike
+    std = resize_displacement(torch.ones(1, spatial_dims, *source), target)
+    assert torch.allclose((0.5 * (resized + 3.0)).exp(), std, atol=1e-5)
+
+
+def test_a_finer_refinement_grid_starts_from_the_networks_field_and_finds_the_shift():
+    """velocity_grid_factor 2: the mean and log-variance live on a grid twice finer than the network's velocity
+    grid; a step so small that nothing moves keeps the network's displacement (the upsampled start integrates to the
+    same field), and a real refinement finds the known shift as the default grid does."""
+    net = _identity_net(2, int_downsize=2)
+    moving, fixed = _pair((32, 48), axis=1)
+    start = register_pair(net, moving, fixed)
+    coarse = tuple(start.velocity_mean.shape[2:])
+    still = RefinementSettings(num_iterations=1, learning_rate=1e-9, velocity_grid_factor=2)
+    kept = refine_registration(net, moving, fixed, start, still)
+    assert tuple(kept.velocity_mean.shape[2:]) == tuple(2 * n for n in coarse)
+    assert kept.velocity_log_var.shape == kept.velocity_mean.shape
+    assert torch.allclose(kept.displacement, start.displacement, atol=1e-5)
+    settings = RefinementSettings(
+        num_iterations=60, learning_rate=0.1, prior_lambda=10.0, posterior_weight=0.0, velocity_grid_factor=2
+    )
+    refined = refine_registration(net, moving, fixed, start, settings)
+    inside = fixed[0, 0] > 0.3
+    assert refined.displacement[0, 1][inside].mean().item() == pytest.approx(SHIFT, abs=0.35)
+    assert refined.displacement[0, 0][inside].abs().mean().item() < 0.35

@@ -18,6 +18,7 @@ from monai_probreg.uncertainty.quality import (
     fit_quality_model,
     load_quality_model,
     quality_path,
+    quality_record,
     save_quality_model,
 )
 from monai_probreg.uncertainty.quality_features import QualityFeatures
@@ -191,3 +192,38 @@ def test_the_shipped_default_weights_carry_their_own_quality_model():
     model = load_quality_model(weights)  # raises when the SHA-256 does not match the weights
     assert model is not None and len(model.fitted_on) >= 2
     assert not {"S11", "S14", "S16", "S21", "S28", "S29"} & set(model.fitted_on)  # never a validation subject
+
+
+def test_the_models_read_the_networks_registration_and_the_drop_rule_reads_the_answer():
+    """With refinement the estimate has two feature sets (quality.py, "Whose features"): the failure and Dice models
+    read the network's registration, the local-NCC drop rule the refined answer the user gets."""
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    rng = np.random.default_rng(5)
+    failed_network, good = _features(-0.25, rng), _features(0.85, rng)
+    # a refined answer that looks perfect does not hide a failed network registration (a turned header)
+    hidden = model.estimate(failed_network, answer=good)
+    assert hidden.failure_probability >= 0.5 and "probably failed" in hidden.warning
+    assert hidden.failure_probability == model.estimate(failed_network).failure_probability
+    # the network's step lowered the local NCC but the refined answer did not: no drop warning
+    network_dropped = good._replace(lncc_before=0.99, lncc_after=0.6)
+    assert "less alike" in model.estimate(network_dropped).warning
+    assert model.estimate(network_dropped, answer=good._replace(lncc_before=0.99, lncc_after=0.995)).warning is None
+    # the refined answer lowered it: warned, with the answer's numbers
+    warned = model.estimate(good, answer=good._replace(lncc_before=0.99, lncc_after=0.6)).warning
+    assert "less alike" in warned and "0.990 -> 0.600" in warned
+    # a non-finite answer is no answer to trust either
+    assert model.estimate(good, answer=QualityFeatures(*([math.nan] * N))).failure_probability == 1.0
+
+
+def test_the_record_names_both_feature_sets():
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures, refinement={"num_iterations": 10})
+    assert model.refinement == {"num_iterations": 10}
+    assert fit_quality_model(features, dice, failures).refinement == {}
+    rng = np.random.default_rng(6)
+    network, answer = _features(0.8, rng), _features(0.9, rng)
+    record = quality_record(network, model.estimate(network, answer), answer)
+    assert record["features"]["ncc_after"] == pytest.approx(network.ncc_after)
+    assert record["answer_features"]["ncc_after"] == pytest.approx(answer.ncc_after)
+    assert quality_record(network, model.estimate(network))["answer_features"] is None

@@ -1,0 +1,147 @@
+"""Which test-time refinement pays for its cost, measured on *training* pairs only (no split the benchmarks report).
+
+The refinement (:mod:`monai_probreg.engines.refinement`) has a few levers: the number of Adam steps, and the grid its
+velocity lives on (``velocity_grid_factor``: 1 = the network's velocity grid, 4 mm for the shipped weights; 2 = twice
+finer, 2 mm, the paper's velocity grid). Each variant registers the same pairs through the whole command
+(``register --fixed``):
+
+- LPBA40 training subjects (pairs of ``--lpba40-pairs``): Dice over the 56 structures;
+- synthetic heads rendered from SynthSeg label maps 01-10 (the maps ``train_synth.yaml`` trains on; 11-12 are the
+  generalisation benchmark's, 13-20 are left alone): Dice over FreeSurfer's aseg structures.
+
+    python benchmarks/refinement_levers.py --threads 2 --label-maps SynthSeg/data/training_label_maps
+
+Prints one table (Dice, folded voxels, refinement seconds) and writes ``OUT_DIR/refinement_levers.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from generalization import dice, synthetic_head
+
+from monai_probreg.cli.model import load_model
+from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
+from monai_probreg.data.label_synthesis import ASEG_LABELS
+from monai_probreg.spatial.volume_io import read_label
+from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import library_versions
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = REPO / "benchmarks" / "results"
+DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
+LPBA40_PAIRS = ("S12:S13", "S15:S17", "S18:S19")  # moving:fixed, training subjects (train.yaml's val_ids excluded)
+SYNTH_PAIRS = ("training_seg_01:training_seg_02", "training_seg_03:training_seg_04")
+SYNTH_SEED = 0
+# name -> RefinementSettings fields replaced in the bundle's settings
+VARIANTS = {
+    "network": {"num_iterations": 0},
+    "4mm x10": {"num_iterations": 10},
+    "4mm x30": {"num_iterations": 30},
+    "2mm x10": {"num_iterations": 10, "velocity_grid_factor": 2},
+    "2mm x20": {"num_iterations": 20, "velocity_grid_factor": 2},
+}
+
+
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``name=field:value,field:value`` -> (name, {field: value}) with int/float/str values."""
+    name, _, fields = text.partition("=")
+    out: dict = {}
+    for item in filter(None, fields.split(",")):
+        key, _, value = item.partition(":")
+        for cast in (int, float, str):
+            try:
+                out[key] = cast(value)
+                break
+            except ValueError:
+                continue
+    return name, out
+
+
+def fmt(value: float | None) -> str:
+    return "-" if value is None else f"{value:.4f}"
+
+
+def cases(dataset: Path, label_maps: Path | None, tmp: Path) -> list[tuple[str, Path, Path, Path, Path, list[int]]]:
+    """(name, moving, moving_label, fixed, fixed_label, labels) of every pair whose data is here."""
+    out = []
+    if dataset.is_dir():
+        for pair in LPBA40_PAIRS:
+            m, f = pair.split(":")
+            paths = [dataset / kind / f"{s}.nii.gz" for s in (m, f) for kind in ("images", "labels")]
+            paths = [paths[0], paths[1], paths[2], paths[3]]
+            if all(p.is_file() for p in paths):
+                labels = [int(v) for v in np.unique(read_label(paths[3]).array) if v > 0]
+                out.append((f"lpba40 {m}->{f}", *paths, labels))
+    if label_maps is not None:
+        for pair in SYNTH_PAIRS:
+            m, f = pair.split(":")
+            if all((label_maps / f"{n}.nii.gz").is_file() for n in (m, f)):
+                moving = synthetic_head(label_maps / f"{m}.nii.gz", SYNTH_SEED, tmp)
+                fixed = synthetic_head(label_maps / f"{f}.nii.gz", SYNTH_SEED, tmp)
+                out.append((f"synth {m[-2:]}->{f[-2:]}", *moving, *fixed, list(ASEG_LABELS)))
+                out.append((f"synth {f[-2:]}->{m[-2:]}", *fixed, *moving, list(ASEG_LABELS)))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model-file", type=Path, default=None)
+    ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET)
+    ap.add_argument("--label-maps", type=Path, default=None, help="folder with SynthSeg's training_seg_*.nii.gz")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), help="names of VARIANTS, or name=field:value,...")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    model = load_model(model_file=args.model_file)
+    variants = dict(parse_variant(v) if "=" in v else (v, VARIANTS[v]) for v in args.variants)
+    rows: dict[str, dict] = {name: {"per_pair": {}, "num_folding": 0, "refine_s": []} for name in variants}
+    with tempfile.TemporaryDirectory(prefix="refinement_levers_") as tmp:
+        for name, moving, moving_label, fixed_image, fixed_label, labels in cases(
+            args.dataset_dir, args.label_maps, Path(tmp)
+        ):
+            target = read_label(fixed_label).array
+            fixed = prepare_fixed(fixed_image, fixed_label)
+            for variant, fields in variants.items():
+                options = RegistrationOptions(qc=False, inverse=False, maps=False)
+                options = dataclasses.replace(options, refinement=dataclasses.replace(model.refinement, **fields))
+                out = Path(tmp) / f"{name}_{variant}".replace(" ", "_").replace(">", "")
+                start = time.perf_counter()
+                summary = register_scan(model, fixed, moving, out, moving_label, options)
+                score = dice(read_label(out / "warped_label.nii.gz").array, target, labels)
+                row = rows[variant]
+                row["per_pair"][name] = score
+                row["num_folding"] += int(summary["jacobian"]["num_nonpositive"])
+                row["refine_s"].append(summary["timings_s"].get("refine", 0.0))
+                print(f"{name:24s} {variant:12s} dice {score:.4f} ({time.perf_counter() - start:.1f} s)", flush=True)
+    lines = ["| variant | settings | LPBA40 Dice | synthetic Dice | folds | refine s |", "|---|---|---|---|---|---|"]
+    for variant, row in rows.items():
+        scores = row["per_pair"]
+        lp = [v for k, v in scores.items() if k.startswith("lpba40")]
+        sy = [v for k, v in scores.items() if k.startswith("synth")]
+        row["lpba40"] = float(np.mean(lp)) if lp else None
+        row["synthetic"] = float(np.mean(sy)) if sy else None
+        row["refine_s"] = float(np.mean(row["refine_s"])) if row["refine_s"] else None
+        lines.append(
+            f"| {variant} | {variants[variant]} | {fmt(row['lpba40'])} | {fmt(row['synthetic'])} | "
+            f"{row['num_folding']} | {fmt(row['refine_s'])} |"
+        )
+    result = {"variants": variants, "rows": rows, "threads": args.threads, "versions": library_versions()}
+    result["markdown"] = "\n".join(lines)
+    path = write_text(args.out_dir / "refinement_levers.json", json.dumps(result, indent=2) + "\n")
+    print(f"\n{result['markdown']}\n\nwrote {path}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

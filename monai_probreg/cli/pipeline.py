@@ -272,15 +272,7 @@ def _run_model(
             network=network_output,
         )
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
-            posterior = posterior_maps(
-                model.network,
-                output.velocity_mean,
-                output.velocity_log_var,
-                shape,
-                std_scale=model.std_scale,
-                bias_fraction=model.bias_fraction,
-            )  # 1, 0 = raw
-            maps.entropy = _numpy(posterior.velocity_entropy)
+            maps.entropy = _entropy(model, output, shape)
     if samples:
         with _timed(timings, "samples", report):
             sampled = posterior_maps(
@@ -301,20 +293,25 @@ def _run_model(
 
 def _witness(model: LoadedModel, output: RegistrationOutput, shape: tuple[int, ...]) -> _Witness:
     """The network's registration (before refinement) as the quality estimate reads it; calibrated entropy."""
-    entropy = posterior_maps(
+    return _Witness(
+        _numpy(output.warped[0, 0]),
+        _numpy(output.displacement[0]),
+        _numpy(jacobian_determinant(output.displacement)[0]),
+        _entropy(model, output, shape),
+    )
+
+
+def _entropy(model: LoadedModel, output: RegistrationOutput, shape: tuple[int, ...]) -> np.ndarray:
+    """The calibrated velocity entropy of ``output`` on ``shape`` (std_scale 1, bias 0 = raw)."""
+    posterior = posterior_maps(
         model.network,
         output.velocity_mean,
         output.velocity_log_var,
         shape,
         std_scale=model.std_scale,
         bias_fraction=model.bias_fraction,
-    ).velocity_entropy
-    return _Witness(
-        _numpy(output.warped[0, 0]),
-        _numpy(output.displacement[0]),
-        _numpy(jacobian_determinant(output.displacement)[0]),
-        _numpy(entropy),
     )
+    return _numpy(posterior.velocity_entropy)
 
 
 def _quality(

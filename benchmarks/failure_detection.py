@@ -7,6 +7,10 @@ Registrations (bundle path: evaluate.yaml's network, preprocessing and calibrate
 The detector (:mod:`monai_probreg.uncertainty.quality`) is fitted on the same kinds of registrations of the
 *training* subjects only (each to the atlas and to another training subject, and each perturbed by every
 perturbation onto the atlas or another training subject), never on a validation subject.
+With refinement (evaluate.yaml's ``refine_iterations``, the default path; ``--refine N``), each registration's
+features are those of the network's own registration and its Dice and "failed" those of the refined one
+(:mod:`monai_probreg.uncertainty.quality`, "Whose features"); the refined one's features are kept as
+``answer_features``; the whole-command cases do the same through the command.
 
 The whole command path (on by default; ``--no-command-cases`` leaves it out): the features of a registration depend on its path
 (the command line's affine stage undoes part of a wrong header, and its features are taken on the model grid behind

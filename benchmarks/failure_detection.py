@@ -169,8 +169,10 @@ def command_cases(
     model_file: Path | None,
     identity_dice: dict[str, float],
     seed: int,
+    refine: int | None = None,
 ) -> list[dict]:
-    """Each subject through the whole command onto the atlas, its header as it is and turned (module docstring)."""
+    """Each subject through the whole command onto the atlas, its header as it is and turned (module docstring), with
+    inference.yaml's refinement (``refine`` steps when given), as ``monai-probreg register`` runs it."""
     from monai_probreg.cli.model import load_model  # the command line's own loading, calibration and brain mask
     from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 
@@ -191,6 +193,9 @@ def command_cases(
     )
     model = dataclasses.replace(load_model(bundle_root, model_file, quality=False), quality=neutral)
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
+    refinement = model.refinement  # the command's default path (RegistrationOptions alone would not refine)
+    if refine is not None:
+        refinement = dataclasses.replace(refinement, num_iterations=refine)
     records = []
     with tempfile.TemporaryDirectory(prefix="failure_command_") as tmp:
         for sid in ids:
@@ -202,7 +207,7 @@ def command_cases(
                     scan,
                     Path(tmp) / f"{sid}_{degrees}",
                     labels,
-                    RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed),
+                    RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed, refinement=refinement),
                 )
                 dice, before = summary["dice"]["mean"], summary["dice"]["mean_affine_only"]
                 records.append(
@@ -216,6 +221,7 @@ def command_cases(
                         "dice_before": before,
                         "failed": failed(dice, before, identity_dice[sid]),
                         "features": summary["quality"]["features"],
+                        "answer_features": summary["quality"]["answer_features"],
                     }
                 )
                 print(
@@ -541,7 +547,7 @@ def main(argv=None) -> int:
         }
         for records, seed in ((train_records, args.seed), (val_records, args.seed + 100_000)):
             ids = sorted({r["moving"] for r in records} - native_ids)
-            records += command_cases(args.dataset_dir, ids, bundle_root, model_file, identity, seed)
+            records += command_cases(args.dataset_dir, ids, bundle_root, model_file, identity, seed, args.refine)
     fitted_on = sorted({r["moving"] for r in train_records})
     model = fit_quality_model(
         _features(train_records),

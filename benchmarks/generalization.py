@@ -153,9 +153,17 @@ def _sha(*paths: Path) -> str:
 
 
 def _voxel_sha(*paths: Path) -> str:
-    """Of the images' voxels (not their files: a gzip header may differ between identical writes): a rendering that
-    changes changes the key of the ANTs records made from it."""
-    return ",".join(hashlib.sha256(np.ascontiguousarray(read_image(p).array).tobytes()).hexdigest()[:16] for p in paths)
+    """Of the images' voxels, shape, dtype and voxel-to-world matrix (not their files: a gzip header may differ
+    between identical writes): a rendering or geometry that changes changes the key of the ANTs records made from it."""
+
+    def digest(path: Path) -> str:
+        volume = read_image(path)
+        h = hashlib.sha256(np.ascontiguousarray(volume.array).tobytes())
+        h.update(f"{volume.array.shape}{volume.array.dtype}".encode())
+        h.update(np.ascontiguousarray(volume.index_to_lps, dtype=np.float64).tobytes())
+        return h.hexdigest()[:16]
+
+    return ",".join(digest(p) for p in paths)
 
 
 # ---------------------------------------------------------------------------------------------------- parts

@@ -9,7 +9,7 @@ finer, 2 mm, the paper's velocity grid). Each variant registers the same pairs t
 - synthetic heads rendered from SynthSeg label maps 01-10 (the maps ``train_synth.yaml`` trains on; 11-12 are the
   generalisation benchmark's, 13-20 are left alone): Dice over FreeSurfer's aseg structures.
 
-    python benchmarks/refinement_levers.py --threads 2 --label-maps SynthSeg/data/training_label_maps
+    python benchmarks/refinement_levers.py --threads 1 --label-maps SynthSeg/data/training_label_maps
 
 Prints one table (Dice, folded voxels, refinement seconds) and writes ``OUT_DIR/refinement_levers.json``.
 """
@@ -41,7 +41,7 @@ DEFAULT_OUT = REPO / "benchmarks" / "results"
 DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
 LPBA40_PAIRS = ("S12:S13", "S15:S17", "S18:S19")  # moving:fixed, training subjects (train.yaml's val_ids excluded)
 SYNTH_PAIRS = ("training_seg_01:training_seg_02", "training_seg_03:training_seg_04")
-SYNTH_SEED = 0
+SYNTH_SEED = 0  # the random deformation and contrast of each synthetic head (generalization.synthetic_head)
 # name -> RefinementSettings fields replaced in the bundle's settings
 VARIANTS = {
     "network": {"num_iterations": 0},
@@ -77,8 +77,8 @@ def cases(dataset: Path, label_maps: Path | None, tmp: Path) -> list[tuple[str, 
     if dataset.is_dir():
         for pair in LPBA40_PAIRS:
             m, f = pair.split(":")
+            # moving image, moving labels, fixed image, fixed labels
             paths = [dataset / kind / f"{s}.nii.gz" for s in (m, f) for kind in ("images", "labels")]
-            paths = [paths[0], paths[1], paths[2], paths[3]]
             if all(p.is_file() for p in paths):
                 labels = [int(v) for v in np.unique(read_label(paths[3]).array) if v > 0]
                 out.append((f"lpba40 {m}->{f}", *paths, labels))
@@ -104,6 +104,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     model = load_model(model_file=args.model_file)
+    unknown = [v for v in args.variants if "=" not in v and v not in VARIANTS]
+    if unknown:
+        ap.error(f"unknown variants {unknown}: expected one of {list(VARIANTS)} or name=field:value,...")
     variants = dict(parse_variant(v) if "=" in v else (v, VARIANTS[v]) for v in args.variants)
     rows: dict[str, dict] = {name: {"per_pair": {}, "num_folding": 0, "refine_s": []} for name in variants}
     with tempfile.TemporaryDirectory(prefix="refinement_levers_") as tmp:

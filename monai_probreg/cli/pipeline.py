@@ -256,7 +256,7 @@ def _run_model(
     network_output = None
     if options.refinement.enabled:
         with _timed(timings, "refine", report), eval_mode(model.network):
-            network_output = output
+            network_output = output if model.quality is not None else None  # kept only for the quality estimate
             output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement)
     with _timed(timings, "maps", report):
         inverse = None

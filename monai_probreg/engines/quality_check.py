@@ -79,7 +79,8 @@ class QualityCheck:
         if affine is not None:
             matrix = np.asarray(affine[0] if affine.ndim == 3 else affine, dtype=np.float64)
             spacing = np.linalg.norm(matrix[:3, :3], axis=0).tolist()
-        moving_in, fixed_in = targets["moving"][:1], targets["fixed"][:1]
+        # what the workflow gave the network (prepare_registration_batch: the *_input entries where the batch has them)
+        moving_in, fixed_in = (targets.get(key + "_input", targets[key])[:1] for key in ("moving", "fixed"))
         answer = self._features(moving, fixed, pair, spacing)
         if not self.refined:
             estimate = self.model.estimate(answer)

@@ -17,14 +17,15 @@ Gaussian likelihood ``||fixed - moving o exp(mu)||^2 / (2 sigma^2) / N_image`` (
 negative ELBO that depend on ``mu``). The second term is the model's Laplacian smoothness prior; the last keeps ``mu``
 near the network's estimate in units of the network's posterior std (the network, trained with labels, knows more
 than the intensities of one pair: a weaker pull scored worse on training pairs). The log-variance stays the
-network's, so the uncertainty maps (samples, entropy) are centred on the refined mean. Written by hand: no MONAI or
+network's (resized into the finer grid's units with ``velocity_grid_factor`` > 1), so the uncertainty maps (samples,
+entropy) are centred on the refined mean. Written by hand: no MONAI or
 ITK block optimises a stationary velocity field of a trained model against a pair.
 
 The fold guard: the optimiser is not bound to a diffeomorphic *discrete* field (scaling and squaring of a rough
 velocity can fold between voxels). When the refined displacement folds on the output grid, the refinement's change to
-the network's mean is halved until it does not (``fold_backtracks`` times at most), and the network's mean itself is
-kept when no fraction is fold-free: a user asking for refinement never gets a folded warp the network alone would not
-have given.
+the network's mean is halved until it does not (``fold_backtracks`` times at most), and the network's registration
+itself is returned when no fraction is fold-free: a user asking for refinement never gets a folded warp the network
+alone would not have given.
 
 ``RefinementSettings()`` does not refine (``num_iterations = 0``): the steps come from the bundle's
 ``refine_iterations`` and the command line's ``--refine`` (the shipped configs refine; 0 gives the network alone).
@@ -72,7 +73,9 @@ class RefinementSettings:
         (1: the network's, 4 mm for the shipped weights; 2: twice finer, the paper's 2 mm). The network's mean and
         log-variance are resized onto it (:func:`resize_log_var`) and the returned ones live there; the images of the
         loss are the network's grid, or the velocity grid when that is finer. 2 measured worse and slower on training
-        pairs (``benchmarks/refinement_levers.py``, docs/accuracy.md).
+        pairs (``benchmarks/refinement_levers.py``, docs/accuracy.md). The log-variance is then in the finer grid's
+        units, so the velocity entropy is shifted (by 3 log 2 nats for 2 in 3-d) and the calibration, fitted on the
+        network's grid, does not apply as it is.
     """
 
     num_iterations: int = 0
@@ -128,20 +131,20 @@ def _on_grid(image: Tensor, size: tuple[int, ...]) -> Tensor:
 
 def _without_folds(
     network: ProbRegNet, start: Tensor, refined: Tensor, size: Sequence[int], backtracks: int
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor] | None:
     """The fold guard: (mean, its displacement on ``size``), the first of ``start + t * (refined - start)`` for
-    t = 1, 1/2, ..., 1/2**backtracks whose displacement has no |J| <= 0 voxel, else ``start`` (the network's mean)
-    itself. Unguarded (t = 1) when ``backtracks == 0``."""
+    t = 1, 1/2, ..., 1/2**backtracks whose displacement has no |J| <= 0 voxel, else None (keep the network's
+    registration). Unguarded (t = 1) when ``backtracks == 0``."""
     mean = refined
     displacement = network.velocity_to_displacement(mean, size)
     if backtracks == 0:
         return mean, displacement
-    for fraction in [0.5**k for k in range(1, backtracks + 1)] + [0.0]:
+    for fraction in [0.5**k for k in range(1, backtracks + 1)]:
         if not bool((jacobian_determinant(displacement) <= 0).any()):
-            break
+            return mean, displacement
         mean = start + fraction * (refined - start)
         displacement = network.velocity_to_displacement(mean, size)
-    return mean, displacement
+    return None if bool((jacobian_determinant(displacement) <= 0).any()) else (mean, displacement)
 
 
 def refine_registration(
@@ -149,9 +152,12 @@ def refine_registration(
 ) -> RegistrationOutput:
     """Refine ``output.velocity_mean`` (from ``network(moving, fixed)`` in eval mode) for this pair.
 
-    Shapes: moving, fixed (B, C, *S) as given to the network; returns a :class:`RegistrationOutput` on the same grids
-    with ``velocity = velocity_mean`` = the refined mean and ``displacement``, ``warped`` (and the inverse fields of a
-    bidirectional network) recomputed from it; ``velocity_log_var`` is the network's. The network is not changed.
+    Shapes: moving, fixed (B, C, *S) as given to the network; returns a :class:`RegistrationOutput` with
+    ``velocity = velocity_mean`` = the refined mean and ``displacement``, ``warped`` (and the inverse fields of a
+    bidirectional network) recomputed from it on the same image grids; ``velocity_log_var`` is the network's, on the
+    velocity grid of the refined mean (the network's, or ``velocity_grid_factor`` times finer, resized by
+    :func:`resize_log_var`). ``output`` itself when the fold guard finds no fold-free fraction of the change. The
+    network is not changed.
     Gradients are needed, so it cannot run under ``torch.inference_mode()``.
     """
     if not settings.enabled:
@@ -200,9 +206,11 @@ def refine_registration(
             loss.backward()
             optimiser.step()
     with torch.no_grad():
-        mean = velocity.detach()
         full = moving.shape[2:]
-        mean, displacement = _without_folds(network, start, mean, full, settings.fold_backtracks)
+        guarded = _without_folds(network, start, velocity.detach(), full, settings.fold_backtracks)
+        if guarded is None:  # no fold-free fraction of the change: the network's registration as it was
+            return output
+        mean, displacement = guarded
         warped = warp_image(moving, displacement, padding_mode=network.padding_mode, fast=network.fast_sampling)
         inverse = warped_fixed = None
         if output.inverse_displacement is not None:
@@ -213,10 +221,17 @@ def refine_registration(
     )
 
 
-def resize_log_var(log_var: Tensor, spatial_size: list[int]) -> Tensor:
+def resize_log_var(log_var: Tensor, spatial_size: Sequence[int]) -> Tensor:
     """A velocity log-variance (B, D, *V) on another grid over the same extent, in that grid's voxel units: the
     variance of channel k scales with the square of :func:`resize_displacement`'s factor for axis k."""
     source = list(log_var.shape[2:])
+    spatial_size = [int(m) for m in spatial_size]
+    if log_var.ndim not in (4, 5) or log_var.shape[1] != len(source) or len(spatial_size) != len(source):
+        raise ValueError(
+            f"expected a (B, D, *V) log-variance and D target sizes; got {tuple(log_var.shape)} and {spatial_size}"
+        )
+    if min(source + spatial_size) < 2:
+        raise ValueError(f"both grids need at least 2 voxels per axis; got {source} -> {spatial_size}")
     scale = torch.tensor([(m - 1) / (n - 1) for n, m in zip(source, spatial_size)], dtype=log_var.dtype)
     shift = 2.0 * scale.log().view([1, -1] + [1] * len(source)).to(log_var.device)
     mode = "trilinear" if log_var.ndim == 5 else "bilinear"

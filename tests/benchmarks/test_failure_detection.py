@@ -88,6 +88,13 @@ def test_command_cases_register_each_scan_as_it_is_and_turned(tmp_path):
         assert all(math.isfinite(v) for v in r["features"].values())
         assert r["failed"] == failed(r["dice"], r["dice_before"], 0.5)
     assert records[0]["dice_before"] > 0.5  # as it is: the affine stage finds the phantom
+    # the command's default path refines (inference.yaml), so each record has the refined answer's features too;
+    # --refine 0 gives the network alone and none
+    assert all(set(r["answer_features"]) == set(QualityFeatures._fields) for r in records)
+    plain = detection.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3, refine=0)
+    assert all(r["answer_features"] is None for r in plain)
+    for a, b in zip(plain, records):  # the estimate reads the network's registration either way
+        assert a["features"] == pytest.approx(b["features"], abs=1e-6)
 
 
 def test_turned_inputs_give_the_labels_the_scans_turned_header(tmp_path):

@@ -172,6 +172,16 @@ def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds()
         )
 
 
+def test_without_a_fold_free_fraction_the_networks_registration_is_returned_as_it_was():
+    net, moving, fixed, start = _folding_case()
+    loose = {"num_iterations": 30, "learning_rate": 2.0, "prior_lambda": 1e-6, "posterior_weight": 0.0}
+    unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
+    with torch.no_grad():  # the premise: half of the change still folds, so one backtrack cannot save it
+        half = start.velocity_mean + 0.5 * (unguarded.velocity_mean - start.velocity_mean)
+        assert _folds(net.velocity_to_displacement(half, moving.shape[2:])) > 0
+    assert refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=1)) is start
+
+
 def test_the_fold_guard_leaves_a_fold_free_refinement_alone():
     net = _identity_net(2)
     moving, fixed = _pair((32, 48), axis=0)
@@ -267,21 +277,38 @@ def test_a_resized_log_variance_is_in_the_new_grids_units(spatial_dims):
 
 def test_a_finer_refinement_grid_starts_from_the_networks_field_and_finds_the_shift():
     """velocity_grid_factor 2: the mean and log-variance live on a grid twice finer than the network's velocity
-    grid; a step so small that nothing moves keeps the network's displacement (the upsampled start integrates to the
-    same field), and a real refinement finds the known shift as the default grid does."""
+    grid; a step so small that nothing moves keeps the network's displacement (the start, a smooth field of about two
+    voxels, resized in the finer grid's units, integrates to the same field: a wrong unit would scale it), and a real
+    refinement finds the known shift as the default grid does."""
     net = _identity_net(2, int_downsize=2)
     moving, fixed = _pair((32, 48), axis=1)
     start = register_pair(net, moving, fixed)
     coarse = tuple(start.velocity_mean.shape[2:])
+    axes = torch.meshgrid(*[torch.linspace(0, math.pi, n) for n in coarse], indexing="ij")
+    smooth = torch.stack([1.5 * torch.sin(axes[0]) * torch.cos(axes[1]), torch.sin(axes[1])])[None]
+    start = start._replace(
+        velocity_mean=smooth, displacement=net.velocity_to_displacement(smooth, list(moving.shape[2:]))
+    )
     still = RefinementSettings(num_iterations=1, learning_rate=1e-9, velocity_grid_factor=2)
     kept = refine_registration(net, moving, fixed, start, still)
     assert tuple(kept.velocity_mean.shape[2:]) == tuple(2 * n for n in coarse)
     assert kept.velocity_log_var.shape == kept.velocity_mean.shape
-    assert torch.allclose(kept.displacement, start.displacement, atol=1e-5)
+    assert start.displacement.abs().max() > 1.0
+    # linear interpolation of the velocity before or after integrating differs by a few hundredths of a voxel here;
+    # a velocity left in the coarse grid's units would be off by half a voxel and more
+    assert (kept.displacement - start.displacement).abs().max() < 0.05
     settings = RefinementSettings(
         num_iterations=60, learning_rate=0.1, prior_lambda=10.0, posterior_weight=0.0, velocity_grid_factor=2
     )
-    refined = refine_registration(net, moving, fixed, start, settings)
+    refined = refine_registration(net, moving, fixed, register_pair(net, moving, fixed), settings)
     inside = fixed[0, 0] > 0.3
     assert refined.displacement[0, 1][inside].mean().item() == pytest.approx(SHIFT, abs=0.35)
     assert refined.displacement[0, 0][inside].abs().mean().item() < 0.35
+
+
+@pytest.mark.parametrize(
+    "shape, size", [((1, 2, 5, 6), [10, 12, 14]), ((1, 3, 5, 6), [10, 12]), ((1, 2, 1, 6), [2, 12])]
+)
+def test_a_log_variance_resize_names_a_bad_shape(shape, size):
+    with pytest.raises(ValueError, match="expected|at least 2"):
+        resize_log_var(torch.zeros(shape), size)

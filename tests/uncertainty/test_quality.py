@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from monai.bundle import ConfigParser
 
 from monai_probreg.uncertainty.quality import (
     FAILURE_MARGIN,
@@ -193,8 +194,6 @@ def test_the_shipped_default_weights_carry_their_own_quality_model():
     assert model is not None and len(model.fitted_on) >= 2
     assert not {"S11", "S14", "S16", "S21", "S28", "S29"} & set(model.fitted_on)  # never a validation subject
     # fitted on the outcome of the path the configs run by default (the refined one, with these settings)
-    from monai.bundle import ConfigParser
-
     parser = ConfigParser()
     parser.read_config(str(weights.parents[1] / "configs" / "inference.yaml"))
     assert model.refinement == parser.get_parsed_content("refinement").as_dict()

@@ -8,6 +8,8 @@ antspyx are imported by the functions that use them, so the light scripts (``ddp
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -30,6 +32,7 @@ __all__ = [
     "parse_overrides",
     "ants_available",
     "ants_register",
+    "run_command",
 ]
 
 REPO = Path(__file__).resolve().parents[1]
@@ -41,6 +44,20 @@ DEFAULT_OUT = REPO / "benchmarks" / "results"
 # refine_iterations); accuracy_table.py and end_to_end.py report the same default
 DEFAULT_REFINE_ITERATIONS = 10
 ANTS_INSTALL_HINT = "pip install -e '.[bench]'"  # antspyx is the optional extra "bench" (pyproject.toml)
+
+
+# ------------------------------------------------------------------------------------------------ the command
+def run_command(subcommand: str, *args: str) -> tuple[subprocess.CompletedProcess, float]:
+    """``monai-probreg SUBCOMMAND ARGS...`` in a fresh process of this interpreter, as a user runs it: (the finished
+    process, stdout and stderr captured; its wall seconds from start to exit). RuntimeError naming the command and the
+    tail of its stderr when it fails."""
+    cmd = [sys.executable, "-m", "monai_probreg.cli.main", subcommand, *args]
+    start = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr[-2000:]}")
+    return done, wall
 
 
 # ------------------------------------------------------------------------------------------------ configs

@@ -50,7 +50,7 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import torch
-from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT, DEFAULT_REFINE_ITERATIONS, ants_available
+from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT, DEFAULT_REFINE_ITERATIONS, ants_available, run_command
 
 import monai_probreg
 from monai_probreg.data.dataset import index_dataset
@@ -110,31 +110,20 @@ def run_ours(
     scan: Path, labels: Path, atlas: Path, atlas_label: Path, out: Path, threads: int, extra: Sequence[str] = ()
 ) -> dict:
     """The command in a fresh process; its summary.json plus the process wall time."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "monai_probreg.cli.main",
+    _, wall = run_command(
         "register",
-        "--moving",
-        str(scan),
-        "--moving-label",
-        str(labels),
-        "--fixed",
-        str(atlas),
-        "--fixed-label",
-        str(atlas_label),
-        "--out",
-        str(out),
-        "--threads",
-        str(threads),
-        "--quiet",
-        *extra,
-    ]
-    start = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    wall = time.perf_counter() - start
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr[-2000:]}")
+        *(
+            "--moving",
+            str(scan),
+            "--moving-label",
+            str(labels),
+            "--fixed",
+            str(atlas),
+            "--fixed-label",
+            str(atlas_label),
+        ),
+        *("--out", str(out), "--threads", str(threads), "--quiet", *extra),
+    )
     summary = json.loads((out / "summary.json").read_text())
     return {"wall_s": wall, "summary": summary}
 
@@ -193,26 +182,20 @@ def run_batch(dataset_dir: Path, atlas: Path, threads: int, size: int) -> dict |
         scans.mkdir()
         for image in images:
             (scans / Path(image).name).symlink_to(image)
-        cmd = [
-            sys.executable,
-            "-m",
-            "monai_probreg.cli.main",
+        _, wall = run_command(
             "register-batch",
-            "--moving",
-            str(scans),
-            "--fixed",
-            str(atlas),
-            "--out",
-            f"{tmp}/out",
-            "--threads",
-            str(threads),
-            "--quiet",
-        ]
-        start = time.perf_counter()
-        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
-        wall = time.perf_counter() - start
-        if done.returncode != 0:
-            raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr[-2000:]}")
+            *(
+                "--moving",
+                str(scans),
+                "--fixed",
+                str(atlas),
+                "--out",
+                f"{tmp}/out",
+                "--threads",
+                str(threads),
+                "--quiet",
+            ),
+        )
         totals = [json.loads(p.read_text())["timings_s"]["total"] for p in Path(tmp, "out").glob("*/summary.json")]
     return {
         "num_scans": len(totals),

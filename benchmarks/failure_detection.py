@@ -41,8 +41,6 @@ import argparse
 import dataclasses
 import json
 import math
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -51,7 +49,7 @@ from typing import Any
 import nibabel as nib
 import numpy as np
 import torch
-from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT, REPO, bundle_parser
+from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT, REPO, bundle_parser, run_command
 from failure_set import PERTURBATIONS
 from monai.data import Dataset
 from monai.networks.utils import eval_mode
@@ -193,9 +191,8 @@ def command_cases(
     )
     model = dataclasses.replace(load_model(bundle_root, model_file, quality=False), quality=neutral)
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
-    refinement = model.refinement  # the command's default path (RegistrationOptions alone would not refine)
-    if refine is not None:
-        refinement = dataclasses.replace(refinement, num_iterations=refine)
+    # None: the command's default path (the config's refinement)
+    refinement = None if refine is None else dataclasses.replace(model.refinement, num_iterations=refine)
     records = []
     with tempfile.TemporaryDirectory(prefix="failure_command_") as tmp:
         for sid in ids:
@@ -380,28 +377,11 @@ def native_cases(native_dir: Path, dataset_dir: Path, threads: int) -> list[dict
             for degrees in HEADER_TURNS:
                 moving, moving_labels = turned_inputs(scan, labels if labels.is_file() else None, degrees, Path(tmp))
                 out = Path(tmp) / f"{sid}_{degrees}"
-                cmd = [
-                    sys.executable,
-                    "-m",
-                    "monai_probreg.cli.main",
-                    "register",
-                    "--moving",
-                    str(moving),
-                    "--fixed",
-                    str(index.atlas_image),
-                    "--out",
-                    str(out),
-                    "--threads",
-                    str(threads),
-                    "--quiet",
-                    "--no-qc",
-                    "--no-inverse",
-                ]
+                args = ["--moving", str(moving), "--fixed", str(index.atlas_image), "--out", str(out)]
+                args += ["--threads", str(threads), "--quiet", "--no-qc", "--no-inverse"]
                 if labels.is_file():
-                    cmd += ["--moving-label", str(moving_labels), "--fixed-label", str(index.atlas_label)]
-                done = subprocess.run(cmd, capture_output=True, text=True, check=False)
-                if done.returncode != 0:
-                    raise RuntimeError(f"{' '.join(cmd)} failed: {done.stderr[-1500:]}")
+                    args += ["--moving-label", str(moving_labels), "--fixed-label", str(index.atlas_label)]
+                done, _ = run_command("register", *args)
                 summary = json.loads((out / "summary.json").read_text())
                 dice, quality = summary["dice"] or {}, summary["quality"] or {}
                 rows.append(

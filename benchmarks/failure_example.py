@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -24,7 +22,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from common import DEFAULT_OUT
+from common import DEFAULT_OUT, run_command
 from failure_detection import turned_header
 from register_real_scan import misalign
 
@@ -36,23 +34,9 @@ ROTATION_DEG, TRANSLATION_MM, SPACING_MM = 8.0, 6.0, (1.2, 1.0, 1.1)  # the move
 
 
 def register(moving: Path, out: Path, threads: int) -> dict:
-    cmd = [
-        sys.executable,
-        "-m",
-        "monai_probreg.cli.main",
-        "register",
-        "--moving",
-        str(moving),
-        "--out",
-        str(out),
-        "--threads",
-        str(threads),
-        "--quiet",
-        "--no-inverse",
-    ]
-    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed: {done.stderr[-1500:]}")
+    run_command(
+        "register", "--moving", str(moving), "--out", str(out), "--threads", str(threads), "--quiet", "--no-inverse"
+    )
     return json.loads((out / "summary.json").read_text())
 
 

@@ -398,17 +398,18 @@ def _setup(args: argparse.Namespace):
 
 
 def _with_refinement(options, model, iterations: int | None):
-    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps when given."""
+    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps when given; without it the
+    options keep ``refinement=None``, which ``register_scan`` reads as the config's."""
     import dataclasses
 
     from monai_probreg.utils.errors import InputError
 
-    refinement = model.refinement
-    if iterations is not None:
-        try:
-            refinement = dataclasses.replace(refinement, num_iterations=iterations)
-        except ValueError as err:
-            raise InputError(f"--refine: {err}") from None
+    if iterations is None:
+        return options
+    try:
+        refinement = dataclasses.replace(model.refinement, num_iterations=iterations)
+    except ValueError as err:
+        raise InputError(f"--refine: {err}") from None
     return dataclasses.replace(options, refinement=refinement)
 
 

@@ -32,7 +32,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -148,7 +148,8 @@ class RegistrationOptions:
     """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed (the
     command line gives the same seed to ``affine.seed``);
     ``affine``: settings of the ITK pre-alignment, or None to skip it (the identity: scans already aligned to the
-    fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean (off by default);
+    fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean, or None for the
+    model's own (its config's ``refinement``: the default path, as ``monai-probreg register`` runs it);
     ``inverse``: compute and write the inverse field and the fixed labels in moving space; ``maps``: write the
     Jacobian, entropy and std maps (their statistics stay in the summary either way)."""
 
@@ -158,7 +159,7 @@ class RegistrationOptions:
     inverse: bool = True
     maps: bool = True
     affine: AffineSettings | None = field(default_factory=AffineSettings)
-    refinement: RefinementSettings = field(default_factory=RefinementSettings)
+    refinement: RefinementSettings | None = None
 
     def __post_init__(self) -> None:
         if self.samples == 1 or self.samples < 0:
@@ -569,6 +570,8 @@ def register_scan(
     Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
     """
     options = options or RegistrationOptions()
+    if options.refinement is None:  # the model's (config's) refinement: what the command line runs by default
+        options = replace(options, refinement=model.refinement)
     out = check_output_dir(out_dir, overwrite)
     timings: dict[str, float] = {}
     start = time.perf_counter()

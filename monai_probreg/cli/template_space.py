@@ -36,6 +36,7 @@ from monai_probreg.cli.output_dir import label_dtype, write_volume
 from monai_probreg.cli.pipeline import Registered, RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.data.template import mni152_template_path
+from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.spatial.physical import mapped_index
 from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
@@ -102,7 +103,10 @@ def to_template_space(
         (out / sub).mkdir(parents=True, exist_ok=True)
     model = load_model(bundle_root, model_file, quality=False)
     fixed = prepare_fixed(template_path)
-    options = RegistrationOptions(qc=False, inverse=False, maps=False, affine=affine or AffineSettings())
+    # the network alone, as when the shipped weights' template-space data was made (refinement=None would refine)
+    options = RegistrationOptions(
+        qc=False, inverse=False, maps=False, affine=affine or AffineSettings(), refinement=RefinementSettings()
+    )
     fused_inputs, captured = [], []
 
     def keep(registered: Registered) -> dict:  # register_scan's check: keeps the affine, adds nothing to the summary

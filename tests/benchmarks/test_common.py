@@ -66,3 +66,11 @@ def test_ants_available_reports_a_missing_antspyx(monkeypatch):
     monkeypatch.setitem(sys.modules, "ants", None)  # `import ants` raises ImportError
     ok, message = common.ants_available()
     assert not ok and message.startswith("antspyx not importable (")
+
+
+def test_run_command_runs_the_cli_in_a_fresh_process_and_names_a_failure(tmp_path):
+    done, wall = common.run_command("--help")
+    assert done.returncode == 0 and "register" in done.stdout and wall > 0
+    missing = tmp_path / "missing.nii.gz"
+    with pytest.raises(RuntimeError, match="monai_probreg.cli.main register --moving .*missing.nii.gz.* failed"):
+        common.run_command("register", "--moving", str(missing), "--out", str(tmp_path / "out"))

@@ -404,22 +404,16 @@ def test_bad_refine_steps(scene, tmp_path):
     assert "--refine" in line and "got -2" in line
 
 
+def _register(scene, out: Path, *extra: str):
+    """``register`` of the scene's moving scan into ``out`` with the scene's fixed image and bundle, plus ``extra``."""
+    return run_cli("register", "--moving", str(scene.moving), "--out", str(out), *extra, *scene.common)
+
+
 def test_refine_adds_its_stage_and_records_its_settings(scene, tmp_path):
     """--refine N: a ``refine`` stage between ``model`` and ``maps``, its settings in summary.json (the rest from the
     bundle's inference.yaml), no folding."""
     out = tmp_path / "refined"
-    result = run_cli(
-        "register",
-        "--moving",
-        str(scene.moving),
-        "--out",
-        str(out),
-        "--refine",
-        "3",
-        "--no-qc",
-        *scene.common,
-        *FAST_AFFINE,
-    )
+    result = _register(scene, out, "--refine", "3", "--no-qc", *FAST_AFFINE)
     assert result.rc == 0, result.err
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["timings_s"])[3:6] == ["model", "refine", "maps"]
@@ -503,18 +497,7 @@ def test_refinement_is_on_by_default(registered):
 
 def test_refine_0_gives_the_network_alone(scene, tmp_path):
     out = tmp_path / "network"
-    result = run_cli(
-        "register",
-        "--moving",
-        str(scene.moving),
-        "--out",
-        str(out),
-        "--refine",
-        "0",
-        "--no-qc",
-        *scene.common,
-        *FAST_AFFINE,
-    )
+    result = _register(scene, out, "--refine", "0", "--no-qc", *FAST_AFFINE)
     assert result.rc == 0, result.err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["model"]["refinement"]["num_iterations"] == 0 and "refine" not in summary["timings_s"]
@@ -585,7 +568,7 @@ def test_bad_output_folder_not_empty(scene, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), *scene.common)
+    result = _register(scene, out)
     assert result.rc == 1 and "not empty" in result.err and "--overwrite" in result.err
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
@@ -619,18 +602,7 @@ def test_affine_backend_and_levels_are_recorded(scene, tmp_path):
     """--affine-levels without --affine-iterations: the backend's defaults for the first levels (torch: rigid 30, 15;
     affine 30, 15); the backend is in summary.json."""
     out = tmp_path / "levels"
-    result = run_cli(
-        "register",
-        "--moving",
-        str(scene.moving),
-        "--out",
-        str(out),
-        "--no-qc",
-        "--affine-levels",
-        "2",
-        "1",
-        *scene.common,
-    )
+    result = _register(scene, out, "--no-qc", "--affine-levels", "2", "1")
     assert result.rc == 0, result.err
     settings = json.loads((out / "summary.json").read_text())["affine"]["settings"]
     assert settings["backend"] == "torch" and settings["shrink_factors"] == [2, 1]

@@ -97,6 +97,8 @@ def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     refinement = parser.get_parsed_content("inferer").refinement
     assert refinement.enabled and refinement.num_iterations == 20 and refinement.prior_lambda == 3.0
     assert (refinement.image_loss, refinement.image_weight, refinement.fold_backtracks) == ("gaussian", 1.0, 0)
+    parser["refine_fold_local_steps"] = 2
+    assert parser.get_parsed_content("inferer", lazy=False).refinement.fold_local_steps == 2
 
 
 def test_inference_twice_writes_the_same_files(tmp_path, tiny_dataset, bundle):

@@ -11,7 +11,7 @@ import torch
 from monai_probreg.blocks.integration import resize_displacement
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.handlers import RegistrationInferer
-from monai_probreg.engines.refinement import RefinementSettings, refine_registration, resize_log_var
+from monai_probreg.engines.refinement import RefinementSettings, local_blend, refine_registration, resize_log_var
 from monai_probreg.engines.registration import register_pair, timed_register_pair
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet
@@ -78,6 +78,9 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
         ("velocity_grid_factor", 0),
         ("velocity_grid_factor", 2.0),
         ("velocity_grid_factor", True),
+        ("fold_local_steps", -1),
+        ("fold_local_steps", 2.0),
+        ("fold_local_steps", True),
     ],
 )
 def test_bad_setting_names_itself(name, value):
@@ -191,6 +194,54 @@ def test_the_fold_guard_leaves_a_fold_free_refinement_alone():
     unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**settings, fold_backtracks=0))
     assert _folds(unguarded.displacement) == 0
     torch.testing.assert_close(guarded.velocity_mean, unguarded.velocity_mean, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+def test_the_local_blend_is_one_around_the_folds_and_zero_far_from_them(spatial_dims):
+    """One folded voxel of a fine grid (4x the velocity grid): weight 1 on its cell and within ``radius`` cells,
+    between 0 and 1 up to ``3 radius`` cells, 0 beyond; the cell is found with an anisotropic ratio too."""
+    grid = (12, 16, 10)[:spatial_dims]
+    fine = [4 * n for n in grid]
+    fine[0] += 3  # not an integer multiple: the adaptive pooling still maps the voxel to its cell
+    folds = torch.zeros((1, 1, *fine), dtype=torch.bool)
+    cell = (5, 7, 4)[:spatial_dims]
+    voxel = tuple(int((c + 0.5) * f / g) for c, f, g in zip(cell, fine, grid))
+    folds[(0, 0, *voxel)] = True
+    weight = local_blend(folds, grid, radius=1)[0, 0]
+    assert tuple(weight.shape) == grid
+    index = torch.stack(torch.meshgrid(*[torch.arange(n) for n in grid], indexing="ij"))
+    distance = (index - torch.tensor(cell).view(-1, *[1] * spatial_dims)).abs().amax(0)  # chessboard, in cells
+    assert torch.all(weight[distance <= 1] == 1.0)
+    assert torch.all(weight[distance >= 4] == 0.0)
+    ramp = weight[(distance == 2) | (distance == 3)]
+    assert torch.all((ramp > 0) & (ramp < 1))
+
+
+def test_the_local_fold_guard_keeps_the_change_away_from_the_folds():
+    """A shifted pair with unrelated noise in one corner: refined with a large step and a weak prior, the field folds
+    in that corner only. The local guard returns a fold-free field that keeps the whole change in the opposite corner, and
+    more of the change overall than halving it."""
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    generator = torch.Generator().manual_seed(3)
+    for image in (moving, fixed):
+        image[..., 2:12, 34:46] = torch.rand((10, 12), generator=generator)
+    start = register_pair(net, moving, fixed)
+    loose = {"num_iterations": 30, "learning_rate": 0.5, "prior_lambda": 0.01, "posterior_weight": 0.0}
+    free = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
+    assert _folds(free.displacement) > 0
+    local = refine_registration(
+        net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0, fold_local_steps=4)
+    )
+    assert _folds(local.displacement) == 0
+    change = local.velocity_mean - start.velocity_mean
+    full = free.velocity_mean - start.velocity_mean
+    far = (..., slice(10, None), slice(0, 8))  # velocity cells (16 x 24 grid) of the corner opposite the noise
+    torch.testing.assert_close(change[far], full[far], rtol=0, atol=1e-6)
+    assert float(full[far].abs().max()) > 0.1  # the premise: there is a change to keep there
+    halved = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=4))
+    assert _folds(halved.displacement) == 0
+    assert float((change - full).abs().mean()) < float((halved.velocity_mean - start.velocity_mean - full).abs().mean())
 
 
 def test_refined_fields_are_consistent_and_the_network_is_untouched():

@@ -154,10 +154,17 @@ def _folds(displacement: torch.Tensor) -> int:
 
 def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds():
     net, moving, fixed, start = _folding_case()
-    loose = {"num_iterations": 30, "learning_rate": 2.0, "prior_lambda": 1e-6, "posterior_weight": 0.0}
+    loose = {
+        "num_iterations": 30,
+        "learning_rate": 2.0,
+        "prior_lambda": 1e-6,
+        "posterior_weight": 0.0,
+        "fold_local_steps": 0,
+    }
     unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
     assert _folds(unguarded.displacement) > 0  # the case folds without the guard, so the guard has work to do
-    guarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=4))
+    halving = RefinementSettings(**loose, fold_backtracks=4)  # the halving alone
+    guarded = refine_registration(net, moving, fixed, start, halving)
     assert _folds(guarded.displacement) == 0
     change, full = guarded.velocity_mean - start.velocity_mean, unguarded.velocity_mean - start.velocity_mean
     with torch.no_grad():  # brute force: the largest fold-free fraction of the change, 1/2 ... 1/16, else none
@@ -177,12 +184,19 @@ def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds()
 
 def test_without_a_fold_free_fraction_the_networks_registration_is_returned_as_it_was():
     net, moving, fixed, start = _folding_case()
-    loose = {"num_iterations": 30, "learning_rate": 2.0, "prior_lambda": 1e-6, "posterior_weight": 0.0}
+    loose = {
+        "num_iterations": 30,
+        "learning_rate": 2.0,
+        "prior_lambda": 1e-6,
+        "posterior_weight": 0.0,
+        "fold_local_steps": 0,
+    }
     unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
     with torch.no_grad():  # the premise: half of the change still folds, so one backtrack cannot save it
         half = start.velocity_mean + 0.5 * (unguarded.velocity_mean - start.velocity_mean)
         assert _folds(net.velocity_to_displacement(half, moving.shape[2:])) > 0
-    assert refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=1)) is start
+    settings = RefinementSettings(**loose, fold_backtracks=1)
+    assert refine_registration(net, moving, fixed, start, settings) is start
 
 
 def test_the_fold_guard_leaves_a_fold_free_refinement_alone():
@@ -228,7 +242,8 @@ def test_the_local_fold_guard_keeps_the_change_away_from_the_folds():
         image[..., 2:12, 34:46] = torch.rand((10, 12), generator=generator)
     start = register_pair(net, moving, fixed)
     loose = {"num_iterations": 30, "learning_rate": 0.5, "prior_lambda": 0.01, "posterior_weight": 0.0}
-    free = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
+    unguarded = RefinementSettings(**loose, fold_backtracks=0, fold_local_steps=0)
+    free = refine_registration(net, moving, fixed, start, unguarded)
     assert _folds(free.displacement) > 0
     local = refine_registration(
         net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0, fold_local_steps=4)
@@ -239,7 +254,8 @@ def test_the_local_fold_guard_keeps_the_change_away_from_the_folds():
     far = (..., slice(10, None), slice(0, 8))  # velocity cells (16 x 24 grid) of the corner opposite the noise
     torch.testing.assert_close(change[far], full[far], rtol=0, atol=1e-6)
     assert float(full[far].abs().max()) > 0.1  # the premise: there is a change to keep there
-    halved = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=4))
+    halving = RefinementSettings(**loose, fold_backtracks=4, fold_local_steps=0)
+    halved = refine_registration(net, moving, fixed, start, halving)
     assert _folds(halved.displacement) == 0
     assert float((change - full).abs().mean()) < float((halved.velocity_mean - start.velocity_mean - full).abs().mean())
 

@@ -152,15 +152,14 @@ def _folds(displacement: torch.Tensor) -> int:
     return int((jacobian_determinant(displacement) <= 0).sum())
 
 
+# a huge step, almost no prior, no local step: the folding case's refinement, guarded by halving alone
+LOOSE_HALVING = {"num_iterations": 30, "learning_rate": 2.0, "prior_lambda": 1e-6, "posterior_weight": 0.0}
+LOOSE_HALVING["fold_local_steps"] = 0
+
+
 def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds():
     net, moving, fixed, start = _folding_case()
-    loose = {
-        "num_iterations": 30,
-        "learning_rate": 2.0,
-        "prior_lambda": 1e-6,
-        "posterior_weight": 0.0,
-        "fold_local_steps": 0,
-    }
+    loose = LOOSE_HALVING
     unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
     assert _folds(unguarded.displacement) > 0  # the case folds without the guard, so the guard has work to do
     halving = RefinementSettings(**loose, fold_backtracks=4)  # the halving alone
@@ -184,13 +183,7 @@ def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds()
 
 def test_without_a_fold_free_fraction_the_networks_registration_is_returned_as_it_was():
     net, moving, fixed, start = _folding_case()
-    loose = {
-        "num_iterations": 30,
-        "learning_rate": 2.0,
-        "prior_lambda": 1e-6,
-        "posterior_weight": 0.0,
-        "fold_local_steps": 0,
-    }
+    loose = LOOSE_HALVING
     unguarded = refine_registration(net, moving, fixed, start, RefinementSettings(**loose, fold_backtracks=0))
     with torch.no_grad():  # the premise: half of the change still folds, so one backtrack cannot save it
         half = start.velocity_mean + 0.5 * (unguarded.velocity_mean - start.velocity_mean)

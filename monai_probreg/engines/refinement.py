@@ -44,6 +44,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
+from monai.networks.layers.factories import Pool
 from torch import Tensor
 
 from monai_probreg.blocks.integration import resize_displacement
@@ -73,8 +74,9 @@ class RefinementSettings:
         Dice and a rougher field; use 1 with "gaussian", whose values are about two orders of magnitude larger).
     lncc_kernel_size: side of LNCC's local window, network-grid voxels (odd; 9 = 18 mm at the shipped 2 mm grid).
     fold_backtracks: the fold guard. If the refined field folds (any |J| <= 0 on the output grid), the refinement's
-        change to the network's mean is halved, at most this many times; if it still folds, the network's mean is
-        kept. 0 = no guard (the refined mean as the optimiser left it).
+        change to the network's mean is halved (after the local tries of ``fold_local_steps``), at most this many
+        times; if it still folds, the network's mean is kept. With both 0 there is no guard (the refined mean as the
+        optimiser left it).
     fold_local_steps: the local fold guard, tried before the halving: the refinement's change is kept everywhere but
         around the folded voxels, where it gives way to the network's mean over 1, 2, 4, ... velocity cells (this many
         tries; 0 = none). The folds of a refined field are few and local (they come from upsampling the displacement
@@ -149,18 +151,16 @@ def local_blend(folds: Tensor, grid: Sequence[int], radius: int) -> Tensor:
     """Weights (B, 1, *grid) in [0, 1] of the network's mean for the local fold guard: 1 on every velocity-grid cell
     that holds a folded voxel of ``folds`` (B, 1, *S, any finer grid over the same extent) and within ``radius``
     cells of one, falling linearly (per axis) to 0 beyond ``3 * radius`` cells. Written by hand: no MONAI or torch block
-    blends two fields around a mask."""
+    blends two fields around a mask (the pooling layers are MONAI's ``Pool`` factory's)."""
     spatial_dims = folds.ndim - 2
-    pool = F.adaptive_max_pool3d if spatial_dims == 3 else F.adaptive_max_pool2d
-    core = pool(folds.float(), tuple(int(n) for n in grid))
-    max_pool = F.max_pool3d if spatial_dims == 3 else F.max_pool2d
-    avg_pool = F.avg_pool3d if spatial_dims == 3 else F.avg_pool2d
-    grown = max_pool(core, kernel_size=4 * radius + 1, stride=1, padding=2 * radius)  # the core dilated by 2 radius
-    return avg_pool(grown, kernel_size=2 * radius + 1, stride=1, padding=radius, count_include_pad=False)
+    core = Pool[Pool.ADAPTIVEMAX, spatial_dims](tuple(int(n) for n in grid))(folds.float())
+    grown = Pool[Pool.MAX, spatial_dims](kernel_size=4 * radius + 1, stride=1, padding=2 * radius)(core)  # dilated
+    ramp = Pool[Pool.AVG, spatial_dims](kernel_size=2 * radius + 1, stride=1, padding=radius, count_include_pad=False)
+    return ramp(grown)
 
 
 def _without_folds(
-    network: ProbRegNet, start: Tensor, refined: Tensor, size: Sequence[int], backtracks: int, local_steps: int = 0
+    network: ProbRegNet, start: Tensor, refined: Tensor, size: Sequence[int], backtracks: int, local_steps: int
 ) -> tuple[Tensor, Tensor] | None:
     """The fold guard: (mean, its displacement on ``size``) with no |J| <= 0 voxel, else None (keep the network's
     registration). First the refined mean itself; then, ``local_steps`` times, the change kept everywhere but around

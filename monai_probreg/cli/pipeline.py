@@ -343,15 +343,6 @@ def _quality(
     return features, model.quality.estimate(features, answer), answer
 
 
-def refinement_differences(fitted: dict, used: RefinementSettings) -> dict[str, list]:
-    """The refinement settings of a run that differ from those the quality model was fitted with: name -> [fit's
-    value, run's value] ({} when they match). ``fitted``: the quality model's ``refinement`` ({}: fitted on the
-    network's own registrations, i.e. no refinement). The estimate describes registrations made as the fit's were,
-    so a run with other settings (``--refine 0`` included) gets it with this record next to it."""
-    fit = {**RefinementSettings().as_dict(), **fitted}  # {} = RefinementSettings(): no refinement
-    return {name: [fit.get(name), value] for name, value in used.as_dict().items() if fit.get(name) != value}
-
-
 def _quality_summary(
     model: LoadedModel,
     quality: tuple[QualityFeatures, QualityEstimate, QualityFeatures | None] | None,
@@ -366,7 +357,7 @@ def _quality_summary(
         "warning_threshold": model.quality.threshold,
         "definition": model.quality.definition,
         "model": quality_path(model.model_file).name,
-        "refinement_differs_from_fit": refinement_differences(model.quality.refinement, refinement),
+        "refinement_differs_from_fit": refinement.differences(model.quality.refinement),
     }
 
 

@@ -88,6 +88,9 @@ class RefinementSettings:
         pairs (``benchmarks/refinement_levers.py``, docs/accuracy.md). The log-variance is then in the finer grid's
         units, so the velocity entropy is shifted (by 3 log 2 nats for 2 in 3-d) and the calibration, fitted on the
         network's grid, does not apply as it is.
+    image_grid_factor: the images of the loss live on a grid this many times finer than the network's (1: its
+        ``network_size``; 2: twice finer, at most the images' own grid). The velocity grid does not change; the LNCC
+        window (``lncc_kernel_size``) is in voxels of that finer grid.
     """
 
     num_iterations: int = 0
@@ -101,11 +104,13 @@ class RefinementSettings:
     fold_backtracks: int = 4
     fold_local_steps: int = 4
     velocity_grid_factor: int = 1
+    image_grid_factor: int = 1
 
     def __post_init__(self) -> None:
         for name in ("num_iterations", "fold_backtracks", "fold_local_steps"):
             _check_integer(name, getattr(self, name), minimum=0)
         _check_integer("velocity_grid_factor", self.velocity_grid_factor, minimum=1)
+        _check_integer("image_grid_factor", self.image_grid_factor, minimum=1)
         _check_integer("lncc_kernel_size", self.lncc_kernel_size, minimum=3)
         if self.lncc_kernel_size % 2 == 0:
             raise ValueError(f"lncc_kernel_size must be an odd integer >= 3; got {self.lncc_kernel_size!r}")
@@ -127,6 +132,15 @@ class RefinementSettings:
     def as_dict(self) -> dict[str, float | int | str]:
         """The settings by name, for summaries."""
         return asdict(self)
+
+    def differences(self, record: dict) -> dict[str, list]:
+        """These settings where they differ from ``record`` (another run's :meth:`as_dict`, e.g. the one a quality
+        model was fitted with): name -> [recorded value, this value]; {} when they match. An empty record stands for
+        no refinement (``RefinementSettings()``); a setting the record lacks is recorded as None, so it differs."""
+        recorded = record or RefinementSettings().as_dict()
+        return {
+            name: [recorded.get(name), value] for name, value in self.as_dict().items() if recorded.get(name) != value
+        }
 
 
 def _check_integer(name: str, value: object, minimum: int) -> None:
@@ -216,6 +230,8 @@ def refine_registration(
             f"output is for a batch of {output.velocity_mean.shape[0]}; got images of batch {moving.shape[0]}"
         )
     size = tuple(network.network_size or moving.shape[2:])
+    if settings.image_grid_factor > 1:
+        size = tuple(min(int(n) * settings.image_grid_factor, int(m)) for n, m in zip(size, moving.shape[2:]))
     loss_fn = ProbRegLoss(
         image_loss=settings.image_loss,
         image_sigma=settings.image_sigma,

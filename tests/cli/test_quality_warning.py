@@ -16,8 +16,6 @@ from types import SimpleNamespace
 import pytest
 from conftest import BUNDLE_DIR, FAST_AFFINE, FIXED_LPS, moved_phantom, run_cli, save_lps, tiny_bundle
 
-from monai_probreg.cli.pipeline import refinement_differences
-from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.uncertainty.quality import QualityModel, quality_path, save_quality_model
 from monai_probreg.uncertainty.quality_features import QualityFeatures
 
@@ -168,11 +166,3 @@ def test_with_refinement_the_estimate_reads_the_networks_registration(scene):
     # the hand-made quality model records no refinement (fitted on the network's own registrations)
     assert network["refinement_differs_from_fit"] == {}
     assert refined["refinement_differs_from_fit"] == {"num_iterations": [0, 3]}
-
-
-def test_refinement_differences_name_each_changed_setting():
-    fitted = RefinementSettings(num_iterations=10).as_dict()
-    assert refinement_differences(fitted, RefinementSettings(num_iterations=10)) == {}
-    changed = RefinementSettings(num_iterations=0, prior_lambda=3.0)
-    assert refinement_differences(fitted, changed) == {"num_iterations": [10, 0], "prior_lambda": [1.5, 3.0]}
-    assert refinement_differences({}, RefinementSettings()) == {}

@@ -81,6 +81,9 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
         ("fold_local_steps", -1),
         ("fold_local_steps", 2.0),
         ("fold_local_steps", True),
+        ("image_grid_factor", 0),
+        ("image_grid_factor", 2.0),
+        ("image_grid_factor", True),
     ],
 )
 def test_bad_setting_names_itself(name, value):
@@ -372,3 +375,34 @@ def test_a_finer_refinement_grid_starts_from_the_networks_field_and_finds_the_sh
 def test_a_log_variance_resize_names_a_bad_shape(shape, size):
     with pytest.raises(ValueError, match="expected|at least 2"):
         resize_log_var(torch.zeros(shape), size)
+
+
+def test_a_finer_image_grid_is_capped_at_the_images_and_finds_the_shift():
+    """image_grid_factor: the loss's images on a grid finer than the network's (network_size 16 x 32 here), at most
+    the images' own (32 x 64): a factor of 4 is capped there and gives exactly the factor 2's answer, which differs
+    from the network grid's and finds the known shift (pull-back, +SHIFT along the axis)."""
+    net = _identity_net(2, network_size=(16, 32))
+    moving, fixed = _pair((32, 64), axis=1)
+    start = register_pair(net, moving, fixed)
+    base = {"num_iterations": 60, "learning_rate": 0.1, "prior_lambda": 10.0, "posterior_weight": 0.0}
+    answers = {
+        f: refine_registration(net, moving, fixed, start, RefinementSettings(**base, image_grid_factor=f))
+        for f in (1, 2, 4)
+    }
+    assert torch.equal(answers[2].velocity_mean, answers[4].velocity_mean)
+    assert not torch.allclose(answers[1].velocity_mean, answers[2].velocity_mean)
+    inside = fixed[0, 0] > 0.3
+    assert answers[2].displacement[0, 1][inside].mean().item() == pytest.approx(SHIFT, abs=0.35)
+    assert answers[2].displacement[0, 0][inside].abs().mean().item() < 0.35
+
+
+def test_differences_name_each_setting_that_differs_from_a_record():
+    """RefinementSettings.differences: what summary.json reports against the quality model's fit."""
+    fitted = RefinementSettings(num_iterations=10).as_dict()
+    assert RefinementSettings(num_iterations=10).differences(fitted) == {}
+    changed = RefinementSettings(num_iterations=0, prior_lambda=3.0)
+    assert changed.differences(fitted) == {"num_iterations": [10, 0], "prior_lambda": [1.5, 3.0]}
+    assert RefinementSettings().differences({}) == {}  # an empty record: no refinement
+    assert RefinementSettings(num_iterations=3).differences({}) == {"num_iterations": [0, 3]}
+    older = {k: v for k, v in fitted.items() if k != "image_grid_factor"}  # a record made before a setting existed
+    assert RefinementSettings(num_iterations=10).differences(older) == {"image_grid_factor": [None, 1]}

@@ -72,7 +72,8 @@ class RefinementSettings:
         likelihood with ``image_sigma``, unused for "lncc").
     image_weight: multiplies the image term (20 for "lncc", chosen on training pairs: a larger weight bought no
         Dice and a rougher field; use 1 with "gaussian", whose values are about two orders of magnitude larger).
-    lncc_kernel_size: side of LNCC's local window, network-grid voxels (odd; 9 = 18 mm at the shipped 2 mm grid).
+    lncc_kernel_size: side of LNCC's local window, in voxels of the loss's grid (odd; 9 = 18 mm on the shipped
+        network's 2 mm grid, about 9 mm with ``image_grid_factor`` 2).
     fold_backtracks: the fold guard. If the refined field folds (any |J| <= 0 on the output grid), the refinement's
         change to the network's mean is halved (after the local tries of ``fold_local_steps``), at most this many
         times; if it still folds, the network's mean is kept. With both 0 there is no guard (the refined mean as the
@@ -90,7 +91,10 @@ class RefinementSettings:
         network's grid, does not apply as it is.
     image_grid_factor: the images of the loss live on a grid this many times finer than the network's (1: its
         ``network_size``; 2: twice finer, at most the images' own grid). The velocity grid does not change; the LNCC
-        window (``lncc_kernel_size``) is in voxels of that finer grid.
+        window (``lncc_kernel_size``) is in voxels of that finer grid. 2 scored higher than 1 on training pairs
+        (LPBA40 +0.005 Dice, synthetic heads +0.03) at about twice the whole command's time
+        (``benchmarks/refinement_levers.py``, docs/accuracy.md); the shipped configs keep 1, which their calibration
+        and quality model were fitted for.
     """
 
     num_iterations: int = 0

@@ -1,4 +1,5 @@
-"""Image likelihood terms: the paper's Gaussian ``1/(2 sigma^2) ||fixed - warped||^2`` and MONAI's LNCC.
+"""Image likelihood terms: the paper's Gaussian ``1/(2 sigma^2) ||fixed - warped||^2`` and MONAI's LNCC
+(:mod:`monai_probreg.losses.lncc`).
 
 ``-log N(fixed; warped, sigma^2 I) = 1/(2 sigma^2) ||fixed - warped||^2 + const`` (paper Eq. 2 and 5, K = 1 sample).
 Reduction ``"mean"`` divides the sum by the number of elements (B * C * N), ``"sum"`` keeps it.
@@ -6,8 +7,9 @@ Reduction ``"mean"`` divides the sum by the number of elements (B * C * N), ``"s
 
 from __future__ import annotations
 
-from monai.losses import LocalNormalizedCrossCorrelationLoss
 from torch import Tensor, nn
+
+from monai_probreg.losses.lncc import BoxLNCCLoss
 
 __all__ = ["IMAGE_LOSSES", "GaussianImageLoss", "gaussian_image_loss", "make_image_loss"]
 
@@ -55,11 +57,10 @@ IMAGE_LOSSES = ("gaussian", "lncc")  # the names make_image_loss accepts
 def make_image_loss(
     name: str, spatial_dims: int = 3, image_sigma: float = 0.04, lncc_kernel_size: int = 9, reduction: str = "mean"
 ) -> nn.Module:
-    """Build the likelihood term by name: ``"gaussian"`` (the paper's) or ``"lncc"`` (MONAI's local NCC, in [-1, 0])."""
+    """Build the likelihood term by name: ``"gaussian"`` (the paper's) or ``"lncc"`` (MONAI's local NCC with a
+    rectangular window, in [-1, 0]; its window sums by pooling, :class:`~monai_probreg.losses.lncc.BoxLNCCLoss`)."""
     if name == "gaussian":
         return GaussianImageLoss(image_sigma=image_sigma, reduction=reduction)
     if name == "lncc":
-        return LocalNormalizedCrossCorrelationLoss(
-            spatial_dims=spatial_dims, kernel_size=lncc_kernel_size, reduction=reduction
-        )
+        return BoxLNCCLoss(spatial_dims=spatial_dims, kernel_size=lncc_kernel_size, reduction=reduction)
     raise ValueError(f"image loss must be 'gaussian' or 'lncc'; got {name!r}")

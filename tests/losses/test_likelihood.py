@@ -9,6 +9,7 @@ import torch
 from monai.losses import LocalNormalizedCrossCorrelationLoss
 
 from monai_probreg import GaussianImageLoss, gaussian_image_loss, make_image_loss
+from monai_probreg.losses.lncc import BoxLNCCLoss
 
 SHAPES = {2: (2, 1, 9, 10), 3: (2, 1, 6, 7, 8)}
 
@@ -102,9 +103,9 @@ def test_make_image_loss_gaussian():
 
 
 @pytest.mark.parametrize("ndims", [2, 3])
-def test_make_image_loss_lncc_is_monai_and_minus_one_for_identical_images(ndims):
+def test_make_image_loss_lncc_is_monais_and_minus_one_for_identical_images(ndims):
     module = make_image_loss("lncc", spatial_dims=ndims, lncc_kernel_size=5)
-    assert isinstance(module, LocalNormalizedCrossCorrelationLoss)
+    assert isinstance(module, BoxLNCCLoss) and isinstance(module, LocalNormalizedCrossCorrelationLoss)
     gen = torch.Generator().manual_seed(0)
     shape = (2, 1) + (12,) * ndims
     image = torch.rand(shape, generator=gen, dtype=torch.float64)

@@ -1,0 +1,77 @@
+"""monai_probreg.losses.lncc: MONAI's rectangular-window LNCC with pooled window sums, the same values and gradients."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from monai.losses import LocalNormalizedCrossCorrelationLoss
+
+from monai_probreg.losses.lncc import BoxLNCCLoss, box_mean
+
+SHAPES = {1: (2, 3, 40), 2: (2, 1, 30, 41), 3: (1, 2, 11, 14, 17)}
+
+
+def _pair(shape, dtype=torch.float64, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    target = torch.rand(shape, generator=generator, dtype=dtype)
+    # partly related to the target, so the NCC is neither ~0 nor ~1 and its gradient is not flat
+    pred = 0.6 * target + 0.4 * torch.rand(shape, generator=generator, dtype=dtype)
+    return pred, target
+
+
+@pytest.mark.parametrize("spatial_dims", [1, 2, 3])
+@pytest.mark.parametrize("reduction", ["mean", "sum", "none"])
+@pytest.mark.parametrize("kernel_size", [3, 7])
+def test_values_and_gradients_are_monais(spatial_dims, reduction, kernel_size):
+    pred, target = _pair(SHAPES[spatial_dims])
+    pred.requires_grad_(True)
+    ours = BoxLNCCLoss(spatial_dims, kernel_size, reduction=reduction)(pred, target)
+    monai = LocalNormalizedCrossCorrelationLoss(spatial_dims, kernel_size, reduction=reduction)(pred, target)
+    assert ours.shape == monai.shape
+    torch.testing.assert_close(ours, monai, rtol=1e-10, atol=1e-12)
+    (g_ours,) = torch.autograd.grad(ours.sum(), pred)
+    (g_monai,) = torch.autograd.grad(monai.sum(), pred)
+    torch.testing.assert_close(g_ours, g_monai, rtol=1e-10, atol=1e-12)
+
+
+def test_smoothing_constants_are_monais():
+    pred, target = _pair(SHAPES[2])
+    target[..., :10, :10] = 0.5  # a flat patch: the variance floor smooth_dr decides there
+    args = {"spatial_dims": 2, "kernel_size": 5, "reduction": "none", "smooth_nr": 1e-3, "smooth_dr": 1e-2}
+    ours = BoxLNCCLoss(**args)(pred, target)
+    monai = LocalNormalizedCrossCorrelationLoss(**args)(pred, target)
+    torch.testing.assert_close(ours, monai, rtol=1e-10, atol=1e-12)
+
+
+def test_float32_matches_monai_to_rounding():
+    pred, target = _pair((1, 1, 24, 28, 20), dtype=torch.float32)
+    ours = BoxLNCCLoss(3, 9)(pred, target)
+    monai = LocalNormalizedCrossCorrelationLoss(3, 9)(pred, target)
+    assert ours.item() == pytest.approx(monai.item(), rel=1e-5)
+
+
+def test_box_mean_against_a_brute_force_window():
+    """Every voxel's mean over its 3 x 3 window, the outside counted as zeros, on a tiny asymmetric grid."""
+    x = torch.arange(20, dtype=torch.float64).reshape(1, 1, 4, 5) ** 1.5
+    padded = torch.nn.functional.pad(x, (1, 1, 1, 1))
+    expected = torch.empty_like(x)
+    for i in range(4):
+        for j in range(5):
+            expected[0, 0, i, j] = padded[0, 0, i : i + 3, j : j + 3].mean()
+    torch.testing.assert_close(box_mean(x, 3), expected)
+
+
+def test_gradcheck_float64():
+    pred, target = _pair((1, 1, 6, 7, 5))
+    loss = BoxLNCCLoss(3, 3)
+    assert torch.autograd.gradcheck(lambda p: loss(p, target), (pred.requires_grad_(True),))
+
+
+def test_bad_shapes_are_named():
+    loss = BoxLNCCLoss(3, 3)
+    with pytest.raises(ValueError, match="3 spatial dimensions"):
+        loss(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 8))
+    with pytest.raises(ValueError, match=r"target must have pred's shape \(1, 1, 8, 8, 8\)"):
+        loss(torch.rand(1, 1, 8, 8, 8), torch.rand(1, 1, 8, 8, 9))
+    with pytest.raises(ValueError, match="kernel_size must be odd"):
+        BoxLNCCLoss(3, 4)

@@ -95,6 +95,21 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------ ANTs
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``name=field:value,field:value`` -> (name, {field: value}) with int/float/str values."""
+    name, _, fields = text.partition("=")
+    out: dict = {}
+    for item in filter(None, fields.split(",")):
+        key, _, value = item.partition(":")
+        for cast in (int, float, str):
+            try:
+                out[key] = cast(value)
+                break
+            except ValueError:
+                continue
+    return name, out
+
+
 def ants_available() -> tuple[bool, str]:
     """Whether antspyx imports: ``(True, its version)``, or ``(False, "antspyx not importable (<the ImportError>)")``
     for the script to report (rows say ``skipped: ...``, with :data:`ANTS_INSTALL_HINT` where the script gives it).

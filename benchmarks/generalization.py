@@ -6,7 +6,9 @@ The model was trained on LPBA40's anatomy and intensities; users bring other sca
 - "network": the weights' posterior mean, no refinement (``--refine 0``);
 - "refined": the posterior mean refined per pair (``--refine-iterations`` steps, 10 by default: ``--refine 10``; the
   bundle's other refinement settings, :mod:`monai_probreg.engines.refinement`);
-- "ANTs SyN": ``ants.registration(fixed, moving, type_of_transform="SyN")``, antspyx defaults (``.[bench]``).
+- "ANTs SyN": ``ants.registration(fixed, moving, type_of_transform="SyN")``, antspyx defaults (``.[bench]``);
+- ``--refined-variants NAME=FIELD:VALUE,...``: more refined rows, each the default's refinement with
+  :class:`~monai_probreg.engines.refinement.RefinementSettings` fields replaced (e.g. ``image_grid_factor:2``).
 
 Parts (``--parts``):
 
@@ -48,6 +50,7 @@ from pathlib import Path
 import accuracy_table
 import numpy as np
 import torch
+from common import parse_variant
 from demo_recovery import ants_case, one_case
 
 from monai_probreg.cli.demo import DEMO_SAMPLES
@@ -59,6 +62,7 @@ from monai_probreg.data.augmentation import RandDiffeomorphicd
 from monai_probreg.data.label_synthesis import ASEG_LABELS
 from monai_probreg.data.synthetic import SyntheticSettings
 from monai_probreg.data.template import mni152_template_path
+from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.metrics.dice import label_dice
 from monai_probreg.spatial.volume_io import Volume, read_image, read_label
 from monai_probreg.utils.files import write_text
@@ -170,10 +174,10 @@ def _voxel_sha(*paths: Path) -> str:
 def part_demo(models: dict, options: dict, fixed, ants: AntsCache | None) -> dict:
     rows = {}
     for name, model in models.items():
-        for method, steps in options.items():
+        for method, refine in options.items():
             cases = {}
             for seed in DEMO_SEEDS:
-                opts = _options(model, steps, seed, samples=True)
+                opts = _options(model, refine, seed, samples=True)
                 cases[seed] = one_case(model, fixed, seed, SyntheticSettings(), opts)
             rows[f"{method} ({name})"] = _demo_row(cases)
             print(f"[demo] {method} ({name}): {rows[f'{method} ({name})']}", flush=True)
@@ -216,10 +220,10 @@ def part_native(models: dict, options: dict, native_dir: Path, ants: AntsCache |
     rows = {}
     with tempfile.TemporaryDirectory(prefix="generalization_native_") as tmp:
         for name, model in models.items():
-            for method, steps in options.items():
+            for method, refine in options.items():
                 out = Path(tmp) / f"{name}_{method}"
                 start = time.perf_counter()
-                summary = register_scan(model, fixed, scan, out, None, _options(model, steps, 0))
+                summary = register_scan(model, fixed, scan, out, None, _options(model, refine, 0))
                 seconds = time.perf_counter() - start
                 warped = read_image(out / "warped.nii.gz").array
                 rows[f"{method} ({name})"] = {
@@ -281,9 +285,9 @@ def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: A
                 target = read_label(fixed_label).array
                 fixed = prepare_fixed(fixed_image, fixed_label)
                 for name, model in models.items():
-                    for method, steps in options.items():
+                    for method, refine in options.items():
                         out = Path(tmp) / f"{pair}_{name}_{method}"
-                        summary = register_scan(model, fixed, moving, out, moving_label, _options(model, steps, seed))
+                        summary = register_scan(model, fixed, moving, out, moving_label, _options(model, refine, seed))
                         score = dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS)
                         _add(rows, f"{method} ({name})", pair, score, summary["jacobian"]["num_nonpositive"])
                 if ants is not None:
@@ -318,9 +322,15 @@ def _add(rows: dict, key: str, pair: str, score: float, folds: int) -> None:
 
 
 def part_lpba40(
-    model_files: list[Path | None], steps: int, dataset_dir: Path | None, threads: int, ants: AntsCache | None
+    model_files: list[Path | None],
+    steps: int,
+    dataset_dir: Path | None,
+    threads: int,
+    ants: AntsCache | None,
+    variants: dict[str, dict] | None = None,
 ) -> dict:
-    """``accuracy_table.py``'s validation -> S01 and pairs, per weights: network and default rows; ANTs SyN once."""
+    """``accuracy_table.py``'s validation -> S01 and pairs, per weights: network and default rows, and one refined row
+    per variant (its fields as ``refine_*`` overrides of evaluate.yaml); ANTs SyN once."""
     dataset = (dataset_dir or accuracy_table.DEFAULT_DATASET).resolve()
     if not dataset.is_dir():
         return {"skipped": f"LPBA40 not found at {dataset}"}
@@ -328,45 +338,45 @@ def part_lpba40(
     run_ants = ants is not None and ants_key not in ants.records
     rows = {}
     with tempfile.TemporaryDirectory(prefix="generalization_lpba40_") as tmp:
-        for n, model_file in enumerate(model_files):
-            methods = ["ours", "refined"] + (["ants"] if run_ants and n == 0 else [])
-            argv = [
-                "--threads",
-                str(threads),
-                "--out-dir",
-                tmp,
-                "--refine-iterations",
-                str(steps),
-                "--dataset-dir",
-                str(dataset),
-                "--methods",
-                *methods,
-            ]
+
+        def table(model_file: Path | None, methods: list[str], overrides: dict | None = None) -> dict:
+            argv = ["--threads", str(threads), "--out-dir", tmp, "--refine-iterations", str(steps)]
+            argv += ["--dataset-dir", str(dataset), "--methods", *methods]
             argv += ["--model-file", str(model_file)] if model_file else []
+            argv += [f"--override=refine_{key}={value}" for key, value in (overrides or {}).items()]
             accuracy_table.main(argv)
-            result = json.loads((Path(tmp) / "accuracy_table.json").read_text())
+            return json.loads((Path(tmp) / "accuracy_table.json").read_text())["methods"]
+
+        for n, model_file in enumerate(model_files):
             name = _name(model_file)
+            result = table(model_file, ["ours", "refined"] + (["ants"] if run_ants and n == 0 else []))
             for method, label in (
                 ("ours", f"network ({name})"),
                 ("refined", f"refined ({name})"),
                 ("ants", "ANTs SyN"),
             ):
-                row = result["methods"].get(method)
+                row = result.get(method)
                 if row and row.get("aggregate"):
-                    rows[label] = {
-                        "to_atlas": row["aggregate"]["atlas"]["mean_dice"]["mean"],
-                        "pairs": row["aggregate"]["pairs"]["mean_dice"]["mean"],
-                        "num_folding_per_pair": row["aggregate_all"]["num_folding"]["mean"],
-                    }
+                    rows[label] = _lpba40_row(row)
+            for variant, fields in (variants or {}).items():
+                rows[f"{variant} ({name})"] = _lpba40_row(table(model_file, ["refined"], fields)["refined"])
     if ants is not None:
         computed = rows.pop("ANTs SyN", None)
         rows["ANTs SyN"] = ants.get(ants_key, lambda: computed)
     return rows
 
 
+def _lpba40_row(row: dict) -> dict:
+    return {
+        "to_atlas": row["aggregate"]["atlas"]["mean_dice"]["mean"],
+        "pairs": row["aggregate"]["pairs"]["mean_dice"]["mean"],
+        "num_folding_per_pair": row["aggregate_all"]["num_folding"]["mean"],
+    }
+
+
 # ---------------------------------------------------------------------------------------------------- running
-def _options(model, steps: int, seed: int, samples: bool = False) -> RegistrationOptions:
-    """The command's options with ``steps`` refinement steps (the bundle's other refinement settings) and ``seed``;
+def _options(model, refine: dict, seed: int, samples: bool = False) -> RegistrationOptions:
+    """The command's options with the bundle's refinement settings, ``refine``'s fields replaced, and ``seed``;
     ``samples``: the demo's posterior samples (its coverage), else none and no maps (what is scored needs none)."""
     base = (
         RegistrationOptions(samples=DEMO_SAMPLES, seed=seed)
@@ -376,7 +386,7 @@ def _options(model, steps: int, seed: int, samples: bool = False) -> Registratio
     return dataclasses.replace(
         base,
         affine=dataclasses.replace(base.affine, seed=seed),
-        refinement=dataclasses.replace(model.refinement, num_iterations=steps),
+        refinement=dataclasses.replace(model.refinement, **refine),
     )
 
 
@@ -452,6 +462,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=accuracy_table.DEFAULT_REFINE_ITERATIONS,
         help="refinement steps of the refined rows (default: %(default)s)",
     )
+    ap.add_argument(
+        "--refined-variants",
+        nargs="+",
+        default=[],
+        metavar="NAME=FIELD:VALUE,...",
+        help="more refined rows, each the default's settings with RefinementSettings fields replaced, e.g. "
+        "'refined, 1 mm loss=image_grid_factor:2'",
+    )
     ap.add_argument("--label-maps", type=Path, default=None, help="folder with SynthSeg's training_seg_*.nii.gz")
     ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE)
     ap.add_argument("--dataset-dir", type=Path, default=None, help="LPBA40 (default: accuracy_table.py's)")
@@ -465,6 +483,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
+    options = {"network": {"num_iterations": 0}, "refined": {"num_iterations": args.refine_iterations}}
+    variants = dict(parse_variant(v) for v in args.refined_variants)
+    for variant, fields in variants.items():
+        if variant in options:
+            raise SystemExit(f"--refined-variants: {variant!r} is taken; name it otherwise")
+        try:
+            RefinementSettings(**fields)
+        except (TypeError, ValueError) as err:
+            raise SystemExit(f"--refined-variants {variant!r}: {err}") from None
+        options[variant] = {"num_iterations": args.refine_iterations, **fields}
     torch.set_num_threads(args.threads)
     os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)  # ANTs' too; read at ITK's first use
     if args.ants:
@@ -476,7 +504,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     ants = AntsCache(args.ants_cache) if args.ants else None
     model_files = args.model_files or [None]
     models = {_name(f): load_model(model_file=f) for f in model_files}
-    options = {"network": 0, "refined": args.refine_iterations}
     start = time.perf_counter()
     parts: dict[str, dict] = {}
     if "demo" in args.parts:
@@ -486,11 +513,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "synthetic" in args.parts:
         parts["synthetic"] = part_synthetic(models, options, args.label_maps, ants)
     if "lpba40" in args.parts:
-        parts["lpba40"] = part_lpba40(model_files, args.refine_iterations, args.dataset_dir, args.threads, ants)
+        parts["lpba40"] = part_lpba40(
+            model_files, args.refine_iterations, args.dataset_dir, args.threads, ants, variants
+        )
     result = {
         "parts": parts,
         "threads": args.threads,
         "refine_iterations": args.refine_iterations,
+        "refined_variants": variants,
         "model_files": {k: str(m.model_file) for k, m in models.items()},
         "ants": ANTS_CALL if args.ants else None,
         "synthetic": {

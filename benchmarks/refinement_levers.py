@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import parse_variant
 from generalization import dice, synthetic_head
 
 from monai_probreg.cli.model import load_model
@@ -52,21 +53,6 @@ VARIANTS = {
     "x30": {"num_iterations": 30},
     "2mm x10": {"num_iterations": 10, "velocity_grid_factor": 2},
 }
-
-
-def parse_variant(text: str) -> tuple[str, dict]:
-    """``name=field:value,field:value`` -> (name, {field: value}) with int/float/str values."""
-    name, _, fields = text.partition("=")
-    out: dict = {}
-    for item in filter(None, fields.split(",")):
-        key, _, value = item.partition(":")
-        for cast in (int, float, str):
-            try:
-                out[key] = cast(value)
-                break
-            except ValueError:
-                continue
-    return name, out
 
 
 def fmt(value: float | None) -> str:

@@ -74,3 +74,16 @@ def test_run_command_runs_the_cli_in_a_fresh_process_and_names_a_failure(tmp_pat
     missing = tmp_path / "missing.nii.gz"
     with pytest.raises(RuntimeError, match="monai_probreg.cli.main register --moving .*missing.nii.gz.* failed"):
         common.run_command("register", "--moving", str(missing), "--out", str(tmp_path / "out"))
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("fine=num_iterations:10,velocity_grid_factor:2", ("fine", {"num_iterations": 10, "velocity_grid_factor": 2})),
+        ("lam=prior_lambda:3.5", ("lam", {"prior_lambda": 3.5})),
+        ("g=image_loss:gaussian,image_weight:1", ("g", {"image_loss": "gaussian", "image_weight": 1})),
+        ("plain=", ("plain", {})),
+    ],
+)
+def test_a_variant_is_a_name_and_typed_fields(text, expected):
+    assert common.parse_variant(text) == expected

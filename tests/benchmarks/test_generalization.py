@@ -4,6 +4,7 @@ records kept across runs, and the script end to end on two tiny label maps (netw
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import nibabel as nib
 import numpy as np
@@ -98,13 +99,16 @@ def test_the_script_scores_the_synthetic_pairs_and_skips_what_is_missing(label_m
             str(out),
             "--refine-iterations",
             "2",
+            "--refined-variants",
+            "fine=image_grid_factor:2",
         ]
     )
     assert code == 0
     result = json.loads((out / "generalization.json").read_text())
     assert "skipped" in result["parts"]["native"]
     rows = result["parts"]["synthetic"]
-    assert set(rows) == {"network (shipped)", "refined (shipped)"}
+    assert set(rows) == {"network (shipped)", "refined (shipped)", "fine (shipped)"}
+    assert result["refined_variants"] == {"fine": {"image_grid_factor": 2}}
     pairs = {
         f"{a}_{s}_to_{b}_{s}"
         for s in generalization.SYNTH_SEEDS
@@ -119,3 +123,41 @@ def test_the_script_scores_the_synthetic_pairs_and_skips_what_is_missing(label_m
 def test_missing_label_maps_skip_the_part(tmp_path):
     rows = generalization.part_synthetic({}, {}, tmp_path, None)
     assert "skipped" in rows and "training_seg_11" in rows["skipped"]
+
+
+def test_a_refined_variant_may_not_take_a_rows_name(tmp_path):
+    with pytest.raises(SystemExit, match="'refined' is taken"):
+        generalization.main(["--parts", "synthetic", "--no-ants", "--refined-variants", "refined=num_iterations:3"])
+
+
+def test_the_lpba40_part_runs_each_variant_as_refine_overrides(tmp_path, monkeypatch):
+    """part_lpba40 hands accuracy_table.py the default rows once and each variant as a refined row whose fields are
+    evaluate.yaml overrides (refine_<field>=<value>); the rows are named after the variant."""
+    calls = []
+    row = {"aggregate": {t: {"mean_dice": {"mean": 0.5}} for t in ("atlas", "pairs")}}
+    row["aggregate_all"] = {"num_folding": {"mean": 0.0}}
+
+    def fake_main(argv):
+        calls.append(argv)
+        out = Path(argv[argv.index("--out-dir") + 1])
+        methods = argv[argv.index("--methods") + 1 :]
+        methods = methods[: next((i for i, a in enumerate(methods) if a.startswith("--")), len(methods))]
+        (out / "accuracy_table.json").write_text(json.dumps({"methods": {m: row for m in methods}}))
+        return 0
+
+    monkeypatch.setattr(generalization.accuracy_table, "main", fake_main)
+    variants = {"fine": {"image_grid_factor": 2, "num_iterations": 5}}
+    rows = generalization.part_lpba40([None], 10, tmp_path, 1, None, variants)
+    assert set(rows) == {"network (shipped)", "refined (shipped)", "fine (shipped)"}
+    default, fine = calls
+    assert not any(a.startswith("--override") for a in default)
+    assert fine[fine.index("--methods") + 1] == "refined"
+    assert {a for a in fine if a.startswith("--override")} == {
+        "--override=refine_image_grid_factor=2",
+        "--override=refine_num_iterations=5",
+    }
+
+
+def test_a_refined_variant_with_an_unknown_field_is_named(tmp_path):
+    with pytest.raises(SystemExit, match="'odd'.*grid_size"):
+        generalization.main(["--parts", "synthetic", "--no-ants", "--refined-variants", "odd=grid_size:3"])

@@ -6,24 +6,10 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 from bench_helpers import load_benchmark
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps
 
 levers = load_benchmark("refinement_levers")
-
-
-@pytest.mark.parametrize(
-    "text, expected",
-    [
-        ("fine=num_iterations:10,velocity_grid_factor:2", ("fine", {"num_iterations": 10, "velocity_grid_factor": 2})),
-        ("lam=prior_lambda:3.5", ("lam", {"prior_lambda": 3.5})),
-        ("g=image_loss:gaussian,image_weight:1", ("g", {"image_loss": "gaussian", "image_weight": 1})),
-        ("plain=", ("plain", {})),
-    ],
-)
-def test_a_variant_is_a_name_and_typed_fields(text, expected):
-    assert levers.parse_variant(text) == expected
 
 
 def test_only_training_label_maps_and_subjects_are_used():

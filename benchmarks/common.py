@@ -33,6 +33,7 @@ __all__ = [
     "ants_available",
     "ants_register",
     "run_command",
+    "parse_variant",
 ]
 
 REPO = Path(__file__).resolve().parents[1]

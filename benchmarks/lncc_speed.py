@@ -2,8 +2,10 @@
 
 Both losses get the same random images; each is timed forward and backward (the gradient with respect to the
 warped image, as in a refinement step), the median of ``--repeats`` runs after a warm-up, and their values and
-gradients are compared. Sizes: the shipped network's grid (80x96x80, ``refine_image_grid_factor: 1``) and twice finer
-(160x192x160, ``refine_image_grid_factor: 2``). The ratio is what to read: both run in the same process, alternately.
+gradients are compared. Sizes: the shipped network's grid (80x96x80, ``refine_image_grid_factor: 1``), twice finer
+(160x192x160, ``refine_image_grid_factor: 2``) and two between, where the two cross (``POOLED_FROM_VOXELS``: the loss
+pools from there on; here it is forced to pool at every size). The ratio is what to read: both run in the same
+process, alternately.
 
     python benchmarks/lncc_speed.py --threads 2
 
@@ -28,7 +30,12 @@ from monai_probreg.losses.lncc import BoxLNCCLoss
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
-SIZES = {"network grid": (80, 96, 80), "twice finer": (160, 192, 160)}
+SIZES = {
+    "network grid": (80, 96, 80),
+    "1.2x": (96, 112, 96),
+    "1.5x": (120, 144, 120),
+    "twice finer": (160, 192, 160),
+}
 KERNEL_SIZE = 9  # the configs' refine_lncc_kernel_size
 
 
@@ -46,7 +53,10 @@ def measure(size: tuple[int, ...], repeats: int) -> dict:
     generator = torch.Generator().manual_seed(0)
     target = torch.rand((1, 1, *size), generator=generator)
     pred = 0.6 * target + 0.4 * torch.rand((1, 1, *size), generator=generator)
-    losses = {"MONAI": LocalNormalizedCrossCorrelationLoss(3, KERNEL_SIZE), "pooled": BoxLNCCLoss(3, KERNEL_SIZE)}
+    losses = {
+        "MONAI": LocalNormalizedCrossCorrelationLoss(3, KERNEL_SIZE),
+        "pooled": BoxLNCCLoss(3, KERNEL_SIZE, pooled_from_voxels=0),
+    }
     times: dict[str, list[float]] = {name: [] for name in losses}
     gradients = {}
     for run in range(repeats + 1):  # run 0 warms up

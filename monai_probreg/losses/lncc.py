@@ -1,13 +1,17 @@
-"""MONAI's local normalised cross-correlation with a rectangular window, its window sums taken by pooling.
+"""MONAI's local normalised cross-correlation with a rectangular window, its window sums taken by pooling on large grids.
 
 ``BoxLNCCLoss`` is :class:`monai.losses.LocalNormalizedCrossCorrelationLoss` (``kernel_type="rectangular"``): the same
 formula, the same zero padding at the borders, the same ``smooth_nr`` / ``smooth_dr`` and reductions, so the same
 values (tested against MONAI's to float rounding, 1-d to 3-d, values and gradients). Only the five window sums differ
-in how they are computed: MONAI's ``separable_filtering`` convolves each one-channel tensor with a 1-d kernel per axis,
-which on a CPU runs about 4-5 times slower, forward and backward, than ``avg_pool`` along one axis at a time over the
-five tensors stacked (measured at 160 x 192 x 160, 2 threads: 6.1 s against 1.3 s). The test-time refinement
-(:mod:`monai_probreg.engines.refinement`) evaluates this loss and its gradient at every step, so its cost is the
-refinement's. Written by hand for that reason only: neither MONAI nor torch offers the pooled form.
+in how they are computed, and only on grids of at least ``POOLED_FROM_VOXELS``: there MONAI's
+``separable_filtering`` (a 1-d convolution per axis of each one-channel tensor) slows down much more than linearly on a
+CPU, and ``avg_pool`` along one axis at a time over the five tensors stacked is faster, forward and backward
+(``benchmarks/lncc_speed.py``, 1 thread: 2.3x at 160 x 192 x 160, 2.2x at 136 x 160 x 136, 1.1x at 120 x 144 x 120,
+0.8-1.1x at 96 x 112 x 96 in two runs; MONAI's is faster at the network's 80 x 96 x 80, 0.19 s against 0.28 s). Below
+it, MONAI's own ``forward`` runs. The test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates this loss and its
+gradient at every step, on a grid twice finer than the network's with ``image_grid_factor`` 2. Written by hand for that
+reason only: neither MONAI nor torch offers the pooled form. (A box filter by cumulative sums was tried: faster on
+small grids, but float32 cancellation put its gradient far from MONAI's on a real brain pair.)
 """
 
 from __future__ import annotations
@@ -17,7 +21,11 @@ import torch.nn.functional as F
 from monai.losses import LocalNormalizedCrossCorrelationLoss
 from torch import Tensor
 
-__all__ = ["BoxLNCCLoss", "box_mean"]
+__all__ = ["POOLED_FROM_VOXELS", "BoxLNCCLoss", "box_mean"]
+
+# spatial voxels from which the window sums are pooled (MONAI's separable convolution below): the crossover measured
+# by benchmarks/lncc_speed.py on a CPU lies between 96 x 112 x 96 (1.0M voxels, 0.8-1.1x) and 120 x 144 x 120 (2.1M, 1.1x)
+POOLED_FROM_VOXELS = 1_500_000
 
 _AVG_POOL = {1: F.avg_pool1d, 2: F.avg_pool2d, 3: F.avg_pool3d}
 
@@ -38,8 +46,9 @@ def box_mean(x: Tensor, kernel_size: int) -> Tensor:
 
 
 class BoxLNCCLoss(LocalNormalizedCrossCorrelationLoss):
-    """:class:`monai.losses.LocalNormalizedCrossCorrelationLoss` with a rectangular window, window sums by pooling
-    (module docstring). Arguments as MONAI's, less ``kernel_type``; ``forward(pred, target)`` (B, C, *S), in [-1, 0]."""
+    """:class:`monai.losses.LocalNormalizedCrossCorrelationLoss` with a rectangular window, window sums by pooling on
+    grids of ``pooled_from_voxels`` spatial voxels or more (module docstring; 0: always). Arguments as MONAI's, less
+    ``kernel_type``; ``forward(pred, target)`` (B, C, *S), in [-1, 0]."""
 
     def __init__(
         self,
@@ -48,14 +57,20 @@ class BoxLNCCLoss(LocalNormalizedCrossCorrelationLoss):
         reduction: str = "mean",
         smooth_nr: float = 0.0,
         smooth_dr: float = 1e-5,
+        pooled_from_voxels: int = POOLED_FROM_VOXELS,
     ) -> None:
         super().__init__(spatial_dims, kernel_size, "rectangular", reduction, smooth_nr, smooth_dr)
+        if isinstance(pooled_from_voxels, bool) or not isinstance(pooled_from_voxels, int) or pooled_from_voxels < 0:
+            raise ValueError(f"pooled_from_voxels must be an integer >= 0; got {pooled_from_voxels!r}")
+        self.pooled_from_voxels = pooled_from_voxels
 
     def forward(self, pred: Tensor, target: Tensor) -> Tensor:
         if pred.ndim - 2 != self.ndim:
             raise ValueError(f"expected pred with {self.ndim} spatial dimensions; got shape {tuple(pred.shape)}")
         if target.shape != pred.shape:
             raise ValueError(f"target must have pred's shape {tuple(pred.shape)}; got {tuple(target.shape)}")
+        if pred.shape[2:].numel() < self.pooled_from_voxels:
+            return super().forward(pred, target)
         channels = pred.shape[1]
         volume = float(self.kernel_size**self.ndim)
         stacked = torch.cat([target, pred, target * target, pred * pred, target * pred], dim=1)

@@ -1,4 +1,5 @@
-"""monai_probreg.losses.lncc: MONAI's rectangular-window LNCC with pooled window sums, the same values and gradients."""
+"""monai_probreg.losses.lncc: MONAI's rectangular-window LNCC with pooled window sums (forced with
+``pooled_from_voxels=0`` on these small grids), the same values and gradients; MONAI's own forward below the threshold."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ def _pair(shape, dtype=torch.float64, seed=0):
 def test_values_and_gradients_are_monais(spatial_dims, reduction, kernel_size):
     pred, target = _pair(SHAPES[spatial_dims])
     pred.requires_grad_(True)
-    ours = BoxLNCCLoss(spatial_dims, kernel_size, reduction=reduction)(pred, target)
+    ours = BoxLNCCLoss(spatial_dims, kernel_size, reduction=reduction, pooled_from_voxels=0)(pred, target)
     monai = LocalNormalizedCrossCorrelationLoss(spatial_dims, kernel_size, reduction=reduction)(pred, target)
     assert ours.shape == monai.shape
     torch.testing.assert_close(ours, monai, rtol=1e-10, atol=1e-12)
@@ -38,14 +39,14 @@ def test_smoothing_constants_are_monais():
     pred, target = _pair(SHAPES[2])
     target[..., :10, :10] = 0.5  # a flat patch: the variance floor smooth_dr decides there
     args = {"spatial_dims": 2, "kernel_size": 5, "reduction": "none", "smooth_nr": 1e-3, "smooth_dr": 1e-2}
-    ours = BoxLNCCLoss(**args)(pred, target)
+    ours = BoxLNCCLoss(**args, pooled_from_voxels=0)(pred, target)
     monai = LocalNormalizedCrossCorrelationLoss(**args)(pred, target)
     torch.testing.assert_close(ours, monai, rtol=1e-10, atol=1e-12)
 
 
 def test_float32_matches_monai_to_rounding():
     pred, target = _pair((1, 1, 24, 28, 20), dtype=torch.float32)
-    ours = BoxLNCCLoss(3, 9)(pred, target)
+    ours = BoxLNCCLoss(3, 9, pooled_from_voxels=0)(pred, target)
     monai = LocalNormalizedCrossCorrelationLoss(3, 9)(pred, target)
     assert ours.item() == pytest.approx(monai.item(), rel=1e-5)
 
@@ -63,7 +64,7 @@ def test_box_mean_against_a_brute_force_window():
 
 def test_gradcheck_float64():
     pred, target = _pair((1, 1, 6, 7, 5))
-    loss = BoxLNCCLoss(3, 3)
+    loss = BoxLNCCLoss(3, 3, pooled_from_voxels=0)
     assert torch.autograd.gradcheck(lambda p: loss(p, target), (pred.requires_grad_(True),))
 
 
@@ -75,3 +76,24 @@ def test_bad_shapes_are_named():
         loss(torch.rand(1, 1, 8, 8, 8), torch.rand(1, 1, 8, 8, 9))
     with pytest.raises(ValueError, match="kernel_size must be odd"):
         BoxLNCCLoss(3, 4)
+
+
+def test_the_window_sums_are_pooled_from_the_threshold_on(monkeypatch):
+    """Below ``pooled_from_voxels`` MONAI's forward runs (box_mean is never called), from it on the pooled one."""
+    import monai_probreg.losses.lncc as lncc
+
+    calls = []
+    monkeypatch.setattr(lncc, "box_mean", lambda x, k: calls.append(x.shape) or box_mean(x, k))
+    pred, target = _pair((1, 1, 6, 7, 5))  # 210 voxels
+    BoxLNCCLoss(3, 3, pooled_from_voxels=211)(pred, target)
+    assert calls == []
+    BoxLNCCLoss(3, 3, pooled_from_voxels=210)(pred, target)
+    assert len(calls) == 1
+    # benchmarks/lncc_speed.py's crossover: the network's grid stays MONAI's, a grid twice finer is pooled
+    assert 80 * 96 * 80 < lncc.POOLED_FROM_VOXELS <= 160 * 192 * 160
+
+
+@pytest.mark.parametrize("value", [-1, 1.5, True, None])
+def test_a_bad_threshold_is_named(value):
+    with pytest.raises(ValueError, match="pooled_from_voxels"):
+        BoxLNCCLoss(3, 3, pooled_from_voxels=value)

@@ -6,12 +6,12 @@ values (tested against MONAI's to float rounding, 1-d to 3-d, values and gradien
 in how they are computed, and only on grids of at least ``POOLED_FROM_VOXELS``: there MONAI's
 ``separable_filtering`` (a 1-d convolution per axis of each one-channel tensor) slows down much more than linearly on a
 CPU, and ``avg_pool`` along one axis at a time over the five tensors stacked is faster, forward and backward
-(``benchmarks/lncc_speed.py``, 1 thread: 2.3x at 160 x 192 x 160, 2.2x at 136 x 160 x 136, 1.1x at 120 x 144 x 120,
-0.8-1.1x at 96 x 112 x 96 in two runs; MONAI's is faster at the network's 80 x 96 x 80, 0.19 s against 0.28 s). Below
-it, MONAI's own ``forward`` runs. The test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates this loss and its
-gradient at every step, on a grid twice finer than the network's with ``image_grid_factor`` 2. Written by hand for that
-reason only: neither MONAI nor torch offers the pooled form. (A box filter by cumulative sums was tried: faster on
-small grids, but float32 cancellation put its gradient far from MONAI's on a real brain pair.)
+(``benchmarks/lncc_speed.py``, 1 thread: 2.3x at 160 x 192 x 160, 1.1x at 120 x 144 x 120, 0.8x at 96 x 112 x 96;
+MONAI's is faster at the network's 80 x 96 x 80, 0.19 s against 0.28 s). Below it, MONAI's own ``forward`` runs. The
+test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates this loss and its gradient at every step, on a
+grid twice finer than the network's with ``image_grid_factor`` 2. Written by hand for that reason only: neither MONAI
+nor torch offers the pooled form. (A box filter by cumulative sums was tried in a scratch check: faster on small
+grids, but float32 cancellation put its gradient far from MONAI's on a real brain pair.)
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from torch import Tensor
 __all__ = ["POOLED_FROM_VOXELS", "BoxLNCCLoss", "box_mean"]
 
 # spatial voxels from which the window sums are pooled (MONAI's separable convolution below): the crossover measured
-# by benchmarks/lncc_speed.py on a CPU lies between 96 x 112 x 96 (1.0M voxels, 0.8-1.1x) and 120 x 144 x 120 (2.1M, 1.1x)
+# by benchmarks/lncc_speed.py on a CPU lies between 96 x 112 x 96 (1.0M voxels, 0.8x) and 120 x 144 x 120 (2.1M, 1.1x)
 POOLED_FROM_VOXELS = 1_500_000
 
 _AVG_POOL = {1: F.avg_pool1d, 2: F.avg_pool2d, 3: F.avg_pool3d}

@@ -39,14 +39,12 @@ SIZES = {
 KERNEL_SIZE = 9  # the configs' refine_lncc_kernel_size
 
 
-def time_loss(loss: torch.nn.Module, pred: torch.Tensor, target: torch.Tensor) -> tuple[float, float, torch.Tensor]:
-    """(forward s, backward s, gradient) of one evaluation."""
+def time_loss(loss: torch.nn.Module, pred: torch.Tensor, target: torch.Tensor) -> tuple[float, torch.Tensor]:
+    """(forward + backward s, gradient) of one evaluation."""
     pred = pred.detach().requires_grad_(True)
     start = time.perf_counter()
-    value = loss(pred, target)
-    middle = time.perf_counter()
-    value.backward()
-    return middle - start, time.perf_counter() - middle, pred.grad
+    loss(pred, target).backward()
+    return time.perf_counter() - start, pred.grad
 
 
 def measure(size: tuple[int, ...], repeats: int) -> dict:
@@ -61,9 +59,9 @@ def measure(size: tuple[int, ...], repeats: int) -> dict:
     gradients = {}
     for run in range(repeats + 1):  # run 0 warms up
         for name, loss in losses.items():
-            forward, backward, gradients[name] = time_loss(loss, pred, target)
+            seconds, gradients[name] = time_loss(loss, pred, target)
             if run:
-                times[name].append(forward + backward)
+                times[name].append(seconds)
     values = {name: float(loss(pred, target)) for name, loss in losses.items()}
     median = {name: statistics.median(t) for name, t in times.items()}
     return {

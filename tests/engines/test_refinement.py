@@ -156,8 +156,13 @@ def _folds(displacement: torch.Tensor) -> int:
 
 
 # a huge step, almost no prior, no local step: the folding case's refinement, guarded by halving alone
-LOOSE_HALVING = {"num_iterations": 30, "learning_rate": 2.0, "prior_lambda": 1e-6, "posterior_weight": 0.0}
-LOOSE_HALVING["fold_local_steps"] = 0
+LOOSE_HALVING = {
+    "num_iterations": 30,
+    "learning_rate": 2.0,
+    "prior_lambda": 1e-6,
+    "posterior_weight": 0.0,
+    "fold_local_steps": 0,
+}
 
 
 def test_the_fold_guard_backs_off_towards_the_network_mean_until_nothing_folds():

@@ -28,6 +28,7 @@ Parts (``--parts``):
 
     python benchmarks/generalization.py --threads 2 --label-maps SynthSeg/data/training_label_maps
     python benchmarks/generalization.py --parts demo native --model-files bundle/models/model.pt runs/x/model.pt
+    python benchmarks/generalization.py --threads 1 --jobs 2 ...   # the parts in two processes, one table
 
 A part whose data is missing (LPBA40, the native scans, the label maps) is skipped with a line that says so.
 Prints one table and writes ``OUT_DIR/generalization.{json,png}``.
@@ -41,6 +42,7 @@ import hashlib
 import importlib.metadata
 import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -140,7 +142,9 @@ class AntsCache:
             "antspyx": _antspyx_version(),
         }
         self.records[key] = record
-        if self.path is not None:
+        if self.path is not None:  # merged with the file as it is now: --jobs runs several writers
+            on_disk = json.loads(self.path.read_text()) if self.path.is_file() else {}
+            self.records = {**on_disk, **self.records}
             write_text(self.path, json.dumps(self.records, indent=1) + "\n")
         return record
 
@@ -367,10 +371,15 @@ def part_lpba40(
 
 
 def _lpba40_row(row: dict) -> dict:
+    """accuracy_table.py's row: mean Dice (and its std over pairs), folds and seconds per pair (all pairs)."""
+    atlas, pairs = row["aggregate"]["atlas"]["mean_dice"], row["aggregate"]["pairs"]["mean_dice"]
     return {
-        "to_atlas": row["aggregate"]["atlas"]["mean_dice"]["mean"],
-        "pairs": row["aggregate"]["pairs"]["mean_dice"]["mean"],
+        "to_atlas": atlas["mean"],
+        "pairs": pairs["mean"],
         "num_folding_per_pair": row["aggregate_all"]["num_folding"]["mean"],
+        "to_atlas_std": atlas.get("std"),
+        "pairs_std": pairs.get("std"),
+        "seconds_per_pair": row["aggregate_all"].get("runtime_s", {}).get("mean"),
     }
 
 
@@ -452,6 +461,44 @@ def figure(result: dict, path: Path) -> Path:
     return path
 
 
+# rough relative run times of the parts (1 thread, two rows, ANTs records cached: 36 LPBA40 pairs against 3 demo
+# subjects, 4 synthetic pairs and 1 native scan through the whole command), to balance --jobs
+PART_COST = {"lpba40": 10, "demo": 4, "synthetic": 4, "native": 1}
+
+
+def part_groups(parts: Sequence[str], jobs: int) -> list[list[str]]:
+    """``parts`` in at most ``jobs`` groups of similar total :data:`PART_COST` (greedy, costliest part first), each
+    group in :data:`PARTS`' order."""
+    groups: list[list[str]] = [[] for _ in range(max(1, min(jobs, len(parts))))]
+    for part in sorted(parts, key=lambda p: -PART_COST[p]):
+        min(groups, key=lambda g: sum(PART_COST[p] for p in g)).append(part)
+    return [sorted(g, key=PARTS.index) for g in groups]
+
+
+def run_jobs(argv: Sequence[str], groups: list[list[str]]) -> dict:
+    """This script once per group of parts, side by side (``argv`` with ``--jobs 1 --parts GROUP`` and a temporary
+    ``--out-dir``: the last occurrence of an option wins); their results with the parts merged, ``seconds`` the
+    longest process's and ``jobs`` each group's seconds."""
+    with tempfile.TemporaryDirectory(prefix="generalization_jobs_") as tmp:
+        runs = []
+        for n, group in enumerate(groups):
+            out = Path(tmp) / str(n)
+            child = [sys.executable, str(Path(__file__).resolve()), *argv, "--jobs", "1", "--parts", *group]
+            runs.append((group, out, subprocess.Popen([*child, "--out-dir", str(out)])))
+        results = []
+        for group, out, process in runs:
+            if process.wait() != 0:
+                raise SystemExit(f"--jobs: the process of parts {group} failed (exit {process.returncode})")
+            results.append(json.loads((out / "generalization.json").read_text()))
+    merged = {**results[0], "parts": {}}
+    for result in results:
+        merged["parts"].update(result["parts"])
+    merged["parts"] = {p: merged["parts"][p] for p in PARTS if p in merged["parts"]}
+    merged["seconds"] = max(r["seconds"] for r in results)
+    merged["jobs"] = {" ".join(g): r["seconds"] for (g, _, _), r in zip(runs, results)}
+    return merged
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
@@ -481,8 +528,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="JSON file of ANTs SyN's records to reuse and extend (AntsCache; default: none, all run)",
     )
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="run the parts in this many processes side by side, each with --threads, merged into one table "
+        "(2 with --threads 1 on a 2-core machine: each part's methods still share one process)",
+    )
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        raise SystemExit(f"--jobs must be >= 1; got {args.jobs}")
     options = {"network": {"num_iterations": 0}, "refined": {"num_iterations": args.refine_iterations}}
     variants = dict(parse_variant(v) for v in args.refined_variants)
     for variant, fields in variants.items():
@@ -493,6 +550,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (TypeError, ValueError) as err:
             raise SystemExit(f"--refined-variants {variant!r}: {err}") from None
         options[variant] = {"num_iterations": args.refine_iterations, **fields}
+    groups = part_groups(args.parts, args.jobs)
+    if len(groups) > 1:
+        result = run_jobs(argv, groups)
+        return _write(result, args.out_dir)
     torch.set_num_threads(args.threads)
     os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)  # ANTs' too; read at ITK's first use
     if args.ants:
@@ -533,9 +594,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         "seconds": round(time.perf_counter() - start, 1),
         "versions": library_versions(),
     }
+    return _write(result, args.out_dir)
+
+
+def _write(result: dict, out_dir: Path) -> int:
     result["markdown"] = markdown(result)
-    path = write_text(args.out_dir / "generalization.json", json.dumps(result, indent=2) + "\n")
-    png = figure(result, args.out_dir / "generalization.png")
+    path = write_text(out_dir / "generalization.json", json.dumps(result, indent=2) + "\n")
+    png = figure(result, out_dir / "generalization.png")
     print(f"\n{result['markdown']}\n\nwrote {path} and {png}", flush=True)
     return 0
 

@@ -556,7 +556,12 @@ def main(argv=None) -> int:
     if args.write_calibration:
         fitted = fit(list(raw))
         record = save_calibration(
-            model_file, fitted.std_scale, list(raw), args.samples, bias_fraction=fitted.bias_fraction
+            model_file,
+            fitted.std_scale,
+            list(raw),
+            args.samples,
+            bias_fraction=fitted.bias_fraction,
+            refinement=refinement.as_dict() if refinement.enabled else None,
         )
         result["written_calibration"] = {
             "path": str(model_file),

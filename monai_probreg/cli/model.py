@@ -18,7 +18,7 @@ from torch import nn
 
 import monai_probreg
 from monai_probreg.engines.refinement import RefinementSettings
-from monai_probreg.uncertainty.calibration import calibration_for
+from monai_probreg.uncertainty.calibration import calibration_for, calibration_path, load_calibration
 from monai_probreg.uncertainty.quality import QualityModel, load_quality_model
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.provenance import file_sha256
@@ -48,6 +48,8 @@ class LoadedModel:
     refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement``
     weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
     quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
+    # the refinement settings the calibration was fitted around ({}: the network's mean, or not recorded); None: raw
+    calibration_refinement: dict | None = None
 
 
 def load_model(
@@ -101,6 +103,9 @@ def load_model(
         ) from None
     try:
         calibration = calibration_for(weights, calibrate)
+        calibrated_around = None
+        if calibrate and calibration_path(weights).is_file():
+            calibrated_around = load_calibration(weights).refinement
         quality_model = load_quality_model(weights) if calibrate and quality else None
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
@@ -114,4 +119,5 @@ def load_model(
         refinement=refinement,
         weights_sha256=file_sha256(weights),
         quality=quality_model,
+        calibration_refinement=calibrated_around,
     )

@@ -92,9 +92,9 @@ class RefinementSettings:
     image_grid_factor: the images of the loss live on a grid this many times finer than the network's (1: its
         ``network_size``; 2: twice finer, at most the images' own grid). The velocity grid does not change; the LNCC
         window (``lncc_kernel_size``) is in voxels of that finer grid. 2 scored higher than 1 on training pairs
-        (LPBA40 +0.005 Dice, synthetic heads +0.03) at about twice the whole command's time
-        (``benchmarks/refinement_levers.py``, docs/accuracy.md); the shipped configs keep 1, which their calibration
-        and quality model were fitted for.
+        (LPBA40 +0.005 Dice, synthetic heads +0.03) at about three times the refinement's time
+        (``benchmarks/refinement_levers.py``, docs/accuracy.md); the shipped configs use 2 (since bundle 0.18.0), which
+        their calibration and quality model are fitted for. The dataclass default stays 1, the cheaper form.
     """
 
     num_iterations: int = 0

@@ -5,10 +5,10 @@ formula, the same zero padding at the borders, the same ``smooth_nr`` / ``smooth
 values (tested against MONAI's to float rounding, 1-d to 3-d, values and gradients). Only the five window sums differ
 in how they are computed, and only on grids of at least ``POOLED_FROM_VOXELS``: there MONAI's
 ``separable_filtering`` (a 1-d convolution per axis of each one-channel tensor) slows down much more than linearly on a
-CPU, and ``avg_pool`` along one axis at a time over the five tensors stacked is faster, forward and backward
-(``benchmarks/lncc_speed.py``, 1 thread: 2.3x at 160 x 192 x 160, 1.1x at 120 x 144 x 120, 0.8x at 96 x 112 x 96;
-MONAI's is faster at the network's 80 x 96 x 80, 0.19 s against 0.28 s). Below it, MONAI's own ``forward`` runs. The
-test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates this loss and its gradient at every step, on a
+CPU, and ``avg_pool`` along one axis at a time over the stacked tensors (a fixed target's two sums outside autograd)
+is faster, forward and backward (``benchmarks/lncc_speed.py``, 1 thread: 3.1x at 160 x 192 x 160, 1.6x at
+120 x 144 x 120, 1.2x at 96 x 112 x 96; MONAI's is faster at the network's 80 x 96 x 80, 0.22 s against 0.28 s).
+Below it, MONAI's own ``forward`` runs. The test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates this loss and its gradient at every step, on a
 grid twice finer than the network's with ``image_grid_factor`` 2. Written by hand for that reason only: neither MONAI
 nor torch offers the pooled form. (A box filter by cumulative sums was tried in a scratch check: faster on small
 grids, but float32 cancellation put its gradient far from MONAI's on a real brain pair.)
@@ -24,8 +24,8 @@ from torch import Tensor
 __all__ = ["POOLED_FROM_VOXELS", "BoxLNCCLoss", "box_mean"]
 
 # spatial voxels from which the window sums are pooled (MONAI's separable convolution below): the crossover measured
-# by benchmarks/lncc_speed.py on a CPU lies between 96 x 112 x 96 (1.0M voxels, 0.8x) and 120 x 144 x 120 (2.1M, 1.1x)
-POOLED_FROM_VOXELS = 1_500_000
+# by benchmarks/lncc_speed.py on a CPU lies between 80 x 96 x 80 (0.61M voxels, 0.8x) and 96 x 112 x 96 (1.03M, 1.2x)
+POOLED_FROM_VOXELS = 800_000
 
 _AVG_POOL = {1: F.avg_pool1d, 2: F.avg_pool2d, 3: F.avg_pool3d}
 
@@ -73,12 +73,16 @@ class BoxLNCCLoss(LocalNormalizedCrossCorrelationLoss):
             return super().forward(pred, target)
         channels = pred.shape[1]
         volume = float(self.kernel_size**self.ndim)
-        stacked = torch.cat([target, pred, target * target, pred * pred, target * pred], dim=1)
-        sums = box_mean(stacked, self.kernel_size) * volume
-        t_sum, p_sum, t2_sum, p2_sum, tp_sum = sums.split(channels, dim=1)
+        # a fixed target (no gradient, the refinement's fixed image) is pooled outside autograd: its two window sums
+        # need no backward pass, about a fifth of the loss's time on a 160 x 192 x 160 grid (same values)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and target.requires_grad):
+            target_sums = box_mean(torch.cat([target, target * target], dim=1), self.kernel_size) * volume
+        pred_sums = box_mean(torch.cat([pred, pred * pred, target * pred], dim=1), self.kernel_size) * volume
+        t_sum, t2_sum = target_sums.split(channels, dim=1)
+        p_sum, p2_sum, tp_sum = pred_sums.split(channels, dim=1)
         t_avg, p_avg = t_sum / volume, p_sum / volume
         # MONAI's formula: squared NCC = cross^2 / (var_t var_p), the variances floored at smooth_dr
-        floor = torch.as_tensor(self.smooth_dr, dtype=sums.dtype, device=sums.device)
+        floor = torch.as_tensor(self.smooth_dr, dtype=pred_sums.dtype, device=pred_sums.device)
         cross = tp_sum - p_avg * t_sum
         t_var = torch.max(t2_sum - t_avg * t_sum, floor)
         p_var = torch.max(p2_sum - p_avg * p_sum, floor)

@@ -31,10 +31,10 @@ import json
 import math
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -88,6 +88,9 @@ class CalibrationRecord:
         "|mean velocity|)^2 minimise sum over levels of (coverage - level)^2 of the sampled displacements"
     )
     bias_fraction: float = 0.0
+    # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe
+    # that mean; {} = the network's own mean, or not recorded (sidecars written before bundle 0.18.0)
+    refinement: dict = field(default_factory=dict)
 
 
 def _check_scale(std_scale: float) -> None:
@@ -199,8 +202,11 @@ def save_calibration(
     num_samples: int = 0,
     levels: Sequence[float] = FIT_LEVELS,
     bias_fraction: float = 0.0,
+    refinement: Mapping[str, Any] | None = None,
 ) -> CalibrationRecord:
-    """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it."""
+    """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
+    ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
+    network's mean)."""
     _check_scale(std_scale)
     _check_bias_fraction(bias_fraction)
     record = CalibrationRecord(
@@ -211,6 +217,7 @@ def save_calibration(
         int(num_samples),
         [float(p) for p in levels],
         bias_fraction=float(bias_fraction),
+        refinement=dict(refinement or {}),
     )
     target = calibration_path(weights_file)
     write_text(target, json.dumps(asdict(record), indent=2))

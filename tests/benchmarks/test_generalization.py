@@ -120,6 +120,34 @@ def test_the_script_scores_the_synthetic_pairs_and_skips_what_is_missing(label_m
     assert (out / "generalization.png").is_file() and "| refined (shipped) |" in result["markdown"]
 
 
+def test_jobs_run_the_parts_side_by_side_into_one_table(label_maps, tmp_path):
+    """--jobs 2: one process per group of parts (this script again), merged: the same rows as one process gives."""
+    args = ["--no-ants", "--label-maps", str(label_maps), "--native-dir", str(tmp_path / "none"), "--threads", "1"]
+    args += ["--refine-iterations", "2", "--parts", "synthetic", "native"]
+    assert generalization.main([*args, "--out-dir", str(tmp_path / "one")]) == 0
+    assert generalization.main([*args, "--jobs", "2", "--out-dir", str(tmp_path / "two")]) == 0
+    one, two = (json.loads((tmp_path / d / "generalization.json").read_text()) for d in ("one", "two"))
+    assert list(two["parts"]) == ["native", "synthetic"]  # PARTS' order
+    assert two["parts"] == one["parts"]
+    assert set(two["jobs"]) == {"native", "synthetic"} and two["seconds"] == max(two["jobs"].values())
+    assert two["markdown"] == one["markdown"] and (tmp_path / "two" / "generalization.png").is_file()
+
+
+def test_part_groups_balance_the_parts_cost():
+    groups = generalization.part_groups(list(generalization.PARTS), 2)
+    assert groups == [["lpba40"], ["demo", "native", "synthetic"]]
+    assert generalization.part_groups(["demo", "native"], 4) == [["demo"], ["native"]]  # no empty group
+    assert generalization.part_groups(["native", "demo"], 1) == [["demo", "native"]]
+
+
+def test_the_ants_cache_keeps_what_another_process_wrote(tmp_path):
+    path = tmp_path / "ants.json"
+    first, second = generalization.AntsCache(path), generalization.AntsCache(path)
+    first.get("a", lambda: {"ncc": 0.1})
+    second.get("b", lambda: {"ncc": 0.2})  # read before "a" was written
+    assert set(json.loads(path.read_text())) == {"a", "b"}
+
+
 def test_missing_label_maps_skip_the_part(tmp_path):
     rows = generalization.part_synthetic({}, {}, tmp_path, None)
     assert "skipped" in rows and "training_seg_11" in rows["skipped"]
@@ -134,8 +162,8 @@ def test_the_lpba40_part_runs_each_variant_as_refine_overrides(tmp_path, monkeyp
     """part_lpba40 hands accuracy_table.py the default rows once and each variant as a refined row whose fields are
     evaluate.yaml overrides (refine_<field>=<value>); the rows are named after the variant."""
     calls = []
-    row = {"aggregate": {t: {"mean_dice": {"mean": 0.5}} for t in ("atlas", "pairs")}}
-    row["aggregate_all"] = {"num_folding": {"mean": 0.0}}
+    row = {"aggregate": {t: {"mean_dice": {"mean": 0.5, "std": 0.02}} for t in ("atlas", "pairs")}}
+    row["aggregate_all"] = {"num_folding": {"mean": 0.0}, "runtime_s": {"mean": 4.5}}
 
     def fake_main(argv):
         calls.append(argv)
@@ -149,6 +177,14 @@ def test_the_lpba40_part_runs_each_variant_as_refine_overrides(tmp_path, monkeyp
     variants = {"fine": {"image_grid_factor": 2, "num_iterations": 5}}
     rows = generalization.part_lpba40([None], 10, tmp_path, 1, None, variants)
     assert set(rows) == {"network (shipped)", "refined (shipped)", "fine (shipped)"}
+    assert rows["fine (shipped)"] == {
+        "to_atlas": 0.5,
+        "pairs": 0.5,
+        "num_folding_per_pair": 0.0,
+        "to_atlas_std": 0.02,
+        "pairs_std": 0.02,
+        "seconds_per_pair": 4.5,
+    }
     default, fine = calls
     assert not any(a.startswith("--override") for a in default)
     assert fine[fine.index("--methods") + 1] == "refined"

@@ -12,6 +12,7 @@ import torch
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
 
 from monai_probreg.cli.main import main
+from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.spatial.volume_io import read_image
 from monai_probreg.uncertainty.calibration import calibration_path, save_calibration
 
@@ -69,8 +70,21 @@ def _register(scene, name: str, *extra: str) -> tuple[int, dict, np.ndarray]:
 def test_calibrated_by_default_raw_on_request(scene):
     rc, summary, calibrated = _register(scene, "calibrated")
     assert rc == 0 and summary["model"]["posterior_std_scale"] == SCALE
+    # this sidecar records no refinement (the network's mean): the run's refinement settings are named against it
+    run = summary["model"]["refinement"]
+    expected = {k: [v, run[k]] for k, v in RefinementSettings().as_dict().items() if run[k] != v}
+    assert summary["model"]["calibration_refinement_differs_from_fit"] == expected
     rc, summary, raw = _register(scene, "raw", "--raw-uncertainty")
     assert rc == 0 and summary["model"]["posterior_std_scale"] == 1.0
+    assert summary["model"]["calibration_refinement_differs_from_fit"] is None
+    assert expected  # the configs refine by default
+    weights = scene[2]
+    save_calibration(weights, SCALE, ["synthetic"], 2, refinement=run)  # fitted around this very refinement
+    try:
+        rc, summary, _ = _register(scene, "calibrated_around_this")
+        assert rc == 0 and summary["model"]["calibration_refinement_differs_from_fit"] == {}
+    finally:
+        save_calibration(weights, SCALE, ["synthetic"], 2)
     # same seeded samples, std scaled by 4 in velocity: the displacement spread grows by about 4
     ratio = np.median(calibrated[raw > 0] / raw[raw > 0])
     assert 3.0 < ratio < 4.5

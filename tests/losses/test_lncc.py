@@ -35,6 +35,19 @@ def test_values_and_gradients_are_monais(spatial_dims, reduction, kernel_size):
     torch.testing.assert_close(g_ours, g_monai, rtol=1e-10, atol=1e-12)
 
 
+def test_a_target_that_needs_gradients_gets_monais():
+    """The fixed target is pooled outside autograd; a target that requires grad (both images learnt) is not."""
+    pred, target = _pair(SHAPES[3])
+    pred.requires_grad_(True)
+    target.requires_grad_(True)
+    ours = BoxLNCCLoss(3, 5, pooled_from_voxels=0)(pred, target)
+    monai = LocalNormalizedCrossCorrelationLoss(3, 5)(pred, target)
+    for g_ours, g_monai in zip(torch.autograd.grad(ours, (pred, target)), torch.autograd.grad(monai, (pred, target))):
+        torch.testing.assert_close(g_ours, g_monai, rtol=1e-10, atol=1e-12)
+    small = tuple(t.detach().requires_grad_(True) for t in _pair((1, 1, 5, 6, 4)))
+    assert torch.autograd.gradcheck(BoxLNCCLoss(3, 3, pooled_from_voxels=0), small)
+
+
 def test_smoothing_constants_are_monais():
     pred, target = _pair(SHAPES[2])
     target[..., :10, :10] = 0.5  # a flat patch: the variance floor smooth_dr decides there
@@ -88,7 +101,7 @@ def test_the_window_sums_are_pooled_from_the_threshold_on(monkeypatch):
     BoxLNCCLoss(3, 3, pooled_from_voxels=211)(pred, target)
     assert calls == []
     BoxLNCCLoss(3, 3, pooled_from_voxels=210)(pred, target)
-    assert len(calls) == 1
+    assert calls == [(1, 2, 6, 7, 5), (1, 3, 6, 7, 5)]  # the target's two sums, then the prediction's three
     # benchmarks/lncc_speed.py's crossover: the network's grid stays MONAI's, a grid twice finer is pooled
     assert 80 * 96 * 80 < lncc.POOLED_FROM_VOXELS <= 160 * 192 * 160
 

@@ -72,6 +72,13 @@ def test_sidecar_round_trip(weights):
     assert std_scale_for(weights) == 3.25
     assert std_scale_for(weights, calibrate=False) == 1.0
     assert not list(weights.parent.glob("*.tmp"))
+    assert record.refinement == {}  # the network's mean
+
+
+def test_the_sidecar_records_the_refinement_it_was_fitted_around(weights):
+    settings = {"num_iterations": 10, "image_grid_factor": 2}
+    record = save_calibration(weights, 0.5, bias_fraction=0.2, refinement=settings)
+    assert load_calibration(weights).refinement == settings == record.refinement
 
 
 def test_sidecar_refuses_other_weights(weights):
@@ -107,6 +114,12 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
     # the raw posterior is over-confident: it never sees the bias of the mean, which the second term adds
     # (docs/uncertainty.md; fitted on the refined mean, the default path, the std scale itself is below 1)
     assert record.std_scale > 0.0 and record.bias_fraction > 0.0
+    # fitted around the mean the configs give by default (the refined one, with these settings)
+    from monai.bundle import ConfigParser
+
+    parser = ConfigParser()
+    parser.read_config(str(weights.parents[1] / "configs" / "inference.yaml"))
+    assert parser.get_parsed_content("refinement").differences(record.refinement) == {}
 
 
 # --- the bias term: (bias_fraction |u|)^2 added to every component's variance ---------------------------------------

@@ -8,10 +8,11 @@ in how they are computed, and only on grids of at least ``POOLED_FROM_VOXELS``: 
 CPU, and ``avg_pool`` along one axis at a time over the stacked tensors (a fixed target's two sums outside autograd)
 is faster, forward and backward (``benchmarks/lncc_speed.py``, 1 thread: 3.1x at 160 x 192 x 160, 1.6x at
 120 x 144 x 120, 1.2x at 96 x 112 x 96; MONAI's is faster at the network's 80 x 96 x 80, 0.22 s against 0.28 s).
-Below it, MONAI's own ``forward`` runs. The test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates this loss and its gradient at every step, on a
-grid twice finer than the network's with ``image_grid_factor`` 2. Written by hand for that reason only: neither MONAI
-nor torch offers the pooled form. (A box filter by cumulative sums was tried in a scratch check: faster on small
-grids, but float32 cancellation put its gradient far from MONAI's on a real brain pair.)
+Below it, MONAI's own ``forward`` runs. The test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates
+this loss and its gradient at every step, on a grid twice finer than the network's with ``image_grid_factor`` 2.
+Written by hand for that reason only: neither MONAI nor torch offers the pooled form. (A box filter by cumulative
+sums was tried in a scratch check: faster on small grids, but float32 cancellation put its gradient far from MONAI's
+on a real brain pair.)
 """
 
 from __future__ import annotations

@@ -140,8 +140,11 @@ class RefinementSettings:
     def differences(self, record: dict) -> dict[str, list]:
         """These settings where they differ from ``record`` (another run's :meth:`as_dict`, e.g. the one a quality
         model was fitted with): name -> [recorded value, this value]; {} when they match. An empty record stands for
-        no refinement (``RefinementSettings()``); a setting the record lacks is recorded as None, so it differs."""
+        no refinement (``RefinementSettings()``); a setting the record lacks is recorded as None, so it differs. When
+        neither refines (0 iterations both), the other settings are unused: {}."""
         recorded = record or RefinementSettings().as_dict()
+        if not self.enabled and not recorded.get("num_iterations"):
+            return {}
         return {
             name: [recorded.get(name), value] for name, value in self.as_dict().items() if recorded.get(name) != value
         }

@@ -85,7 +85,9 @@ def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
     default = parser.get_parsed_content("inferer").refinement
-    assert default.enabled and default == RefinementSettings(num_iterations=parser["refine_iterations"])
+    # the shipped default path: 10 steps with the loss images twice finer, the library's other defaults
+    expected = RefinementSettings(num_iterations=parser["refine_iterations"], image_grid_factor=2)
+    assert default.enabled and default == expected and parser["refine_image_grid_factor"] == 2
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
     parser["refine_iterations"] = 0
@@ -97,8 +99,9 @@ def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     refinement = parser.get_parsed_content("inferer").refinement
     assert refinement.enabled and refinement.num_iterations == 20 and refinement.prior_lambda == 3.0
     assert (refinement.image_loss, refinement.image_weight, refinement.fold_backtracks) == ("gaussian", 1.0, 0)
-    parser["refine_fold_local_steps"] = 2
-    assert parser.get_parsed_content("inferer", lazy=False).refinement.fold_local_steps == 2
+    parser["refine_fold_local_steps"], parser["refine_image_grid_factor"] = 2, 1
+    refinement = parser.get_parsed_content("inferer", lazy=False).refinement
+    assert (refinement.fold_local_steps, refinement.image_grid_factor) == (2, 1)
 
 
 def test_inference_twice_writes_the_same_files(tmp_path, tiny_dataset, bundle):

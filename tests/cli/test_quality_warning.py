@@ -16,6 +16,7 @@ from types import SimpleNamespace
 import pytest
 from conftest import BUNDLE_DIR, FAST_AFFINE, FIXED_LPS, moved_phantom, run_cli, save_lps, tiny_bundle
 
+from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.uncertainty.quality import QualityModel, quality_path, save_quality_model
 from monai_probreg.uncertainty.quality_features import QualityFeatures
 
@@ -165,4 +166,6 @@ def test_with_refinement_the_estimate_reads_the_networks_registration(scene):
     assert refined["answer_features"]["displacement_mm"] != pytest.approx(refined["features"]["displacement_mm"])
     # the hand-made quality model records no refinement (fitted on the network's own registrations)
     assert network["refinement_differs_from_fit"] == {}
-    assert refined["refinement_differs_from_fit"] == {"num_iterations": [0, 3]}
+    run = json.loads((scene.root / "witness_3" / "summary.json").read_text())["model"]["refinement"]
+    expected = {k: [v, run[k]] for k, v in RefinementSettings().as_dict().items() if run[k] != v}
+    assert refined["refinement_differs_from_fit"] == expected and expected["num_iterations"] == [0, 3]

@@ -409,5 +409,11 @@ def test_differences_name_each_setting_that_differs_from_a_record():
     assert changed.differences(fitted) == {"num_iterations": [10, 0], "prior_lambda": [1.5, 3.0]}
     assert RefinementSettings().differences({}) == {}  # an empty record: no refinement
     assert RefinementSettings(num_iterations=3).differences({}) == {"num_iterations": [0, 3]}
+    # neither refines: the other settings are unused, so nothing differs
+    assert RefinementSettings(image_grid_factor=2).differences({}) == {}
+    assert RefinementSettings(num_iterations=3, image_grid_factor=2).differences({}) == {
+        "num_iterations": [0, 3],
+        "image_grid_factor": [1, 2],
+    }
     older = {k: v for k, v in fitted.items() if k != "image_grid_factor"}  # a record made before a setting existed
     assert RefinementSettings(num_iterations=10).differences(older) == {"image_grid_factor": [None, 1]}

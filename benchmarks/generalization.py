@@ -485,11 +485,11 @@ def run_jobs(argv: Sequence[str], groups: list[list[str]]) -> dict:
             out = Path(tmp) / str(n)
             child = [sys.executable, str(Path(__file__).resolve()), *argv, "--jobs", "1", "--parts", *group]
             runs.append((group, out, subprocess.Popen([*child, "--out-dir", str(out)])))
-        results = []
-        for group, out, process in runs:
-            if process.wait() != 0:
-                raise SystemExit(f"--jobs: the process of parts {group} failed (exit {process.returncode})")
-            results.append(json.loads((out / "generalization.json").read_text()))
+        codes = [process.wait() for _, _, process in runs]  # all of them, before the folder goes
+        failed = [f"{group} (exit {code})" for (group, _, _), code in zip(runs, codes) if code != 0]
+        if failed:
+            raise SystemExit(f"--jobs: the process of parts {', '.join(failed)} failed")
+        results = [json.loads((out / "generalization.json").read_text()) for _, out, _ in runs]
     merged = {**results[0], "parts": {}}
     for result in results:
         merged["parts"].update(result["parts"])

@@ -470,8 +470,9 @@ def part_groups(parts: Sequence[str], jobs: int) -> list[list[str]]:
     """``parts`` in at most ``jobs`` groups of similar total :data:`PART_COST` (greedy, costliest part first), each
     group in :data:`PARTS`' order."""
     groups: list[list[str]] = [[] for _ in range(max(1, min(jobs, len(parts))))]
-    for part in sorted(parts, key=lambda p: -PART_COST[p]):
-        min(groups, key=lambda g: sum(PART_COST[p] for p in g)).append(part)
+    cost = {p: PART_COST.get(p, 1) for p in parts}
+    for part in sorted(parts, key=lambda p: -cost[p]):
+        min(groups, key=lambda g: sum(cost[p] for p in g)).append(part)
     return [sorted(g, key=PARTS.index) for g in groups]
 
 
@@ -481,14 +482,20 @@ def run_jobs(argv: Sequence[str], groups: list[list[str]]) -> dict:
     longest process's and ``jobs`` each group's seconds."""
     with tempfile.TemporaryDirectory(prefix="generalization_jobs_") as tmp:
         runs = []
-        for n, group in enumerate(groups):
-            out = Path(tmp) / str(n)
-            child = [sys.executable, str(Path(__file__).resolve()), *argv, "--jobs", "1", "--parts", *group]
-            runs.append((group, out, subprocess.Popen([*child, "--out-dir", str(out)])))
-        codes = [process.wait() for _, _, process in runs]  # all of them, before the folder goes
-        failed = [f"{group} (exit {code})" for (group, _, _), code in zip(runs, codes) if code != 0]
+        try:
+            for n, group in enumerate(groups):
+                out = Path(tmp) / str(n)
+                child = [sys.executable, str(Path(__file__).resolve()), *argv, "--jobs", "1", "--parts", *group]
+                runs.append((group, out, subprocess.Popen([*child, "--out-dir", str(out)])))
+            codes = [process.wait() for _, _, process in runs]  # all of them, before the folder goes
+        finally:  # interrupted (or a later start failed): no process outlives this one
+            for _, _, process in runs:
+                if process.poll() is None:
+                    process.terminate()
+                    process.wait()
+        failed = [f"{' '.join(group)} (exit {code})" for (group, _, _), code in zip(runs, codes) if code != 0]
         if failed:
-            raise SystemExit(f"--jobs: the process of parts {', '.join(failed)} failed")
+            raise SystemExit(f"--jobs: the process of parts {'; '.join(failed)} failed")
         results = [json.loads((out / "generalization.json").read_text()) for _, out, _ in runs]
     merged = {**results[0], "parts": {}}
     for result in results:

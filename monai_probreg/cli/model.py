@@ -48,7 +48,7 @@ class LoadedModel:
     refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement``
     weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
     quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
-    # the refinement settings the calibration was fitted around ({}: the network's mean, or not recorded); None: raw
+    # the refinement settings the calibration was fitted around ({}: the network's mean); None: raw, or not recorded
     calibration_refinement: dict | None = None
 
 

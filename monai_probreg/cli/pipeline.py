@@ -652,7 +652,7 @@ def register_scan(
                 "posterior_std_scale": model.std_scale,
                 "posterior_bias_fraction": model.bias_fraction,
                 # this run's refinement settings where they differ from those the calibration was fitted around
-                # (the maps are calibrated for that mean); None: the raw posterior, no calibration
+                # (the maps are calibrated for that mean); None: the raw posterior, or a sidecar that does not say
                 "calibration_refinement_differs_from_fit": None
                 if model.calibration_refinement is None
                 else options.refinement.differences(model.calibration_refinement),

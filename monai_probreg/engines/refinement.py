@@ -92,9 +92,10 @@ class RefinementSettings:
     image_grid_factor: the images of the loss live on a grid this many times finer than the network's (1: its
         ``network_size``; 2: twice finer, at most the images' own grid). The velocity grid does not change; the LNCC
         window (``lncc_kernel_size``) is in voxels of that finer grid. 2 scored higher than 1 on training pairs
-        (LPBA40 +0.005 Dice, synthetic heads +0.03) at about three times the refinement's time
-        (``benchmarks/refinement_levers.py``, docs/accuracy.md); the shipped configs use 2 (since bundle 0.18.0), which
-        their calibration and quality model are fitted for. The dataclass default stays 1, the cheaper form.
+        (LPBA40 +0.005 Dice, synthetic heads +0.03) at 5-6 times the refinement's time, 2-3 times the whole
+        command's (``benchmarks/refinement_levers.py``, docs/accuracy.md); the shipped configs use 2 (since bundle
+        0.18.0), which their calibration and quality model are fitted for. The dataclass default stays 1, the cheaper
+        form.
     """
 
     num_iterations: int = 0
@@ -141,7 +142,8 @@ class RefinementSettings:
         """These settings where they differ from ``record`` (another run's :meth:`as_dict`, e.g. the one a quality
         model was fitted with): name -> [recorded value, this value]; {} when they match. An empty record stands for
         no refinement (``RefinementSettings()``); a setting the record lacks is recorded as None, so it differs. When
-        neither refines (0 iterations both), the other settings are unused: {}."""
+        neither refines (0 iterations both), the other settings are unused: {}; when one of them refines, every setting
+        that differs is named (what the refining side would change)."""
         recorded = record or RefinementSettings().as_dict()
         if not self.enabled and not recorded.get("num_iterations"):
             return {}

@@ -89,8 +89,8 @@ class CalibrationRecord:
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe
-    # that mean; {} = the network's own mean, or not recorded (sidecars written before bundle 0.18.0)
-    refinement: dict = field(default_factory=dict)
+    # that mean; {} = the network's own mean; None = not recorded (sidecars written before bundle 0.18.0)
+    refinement: dict | None = None
 
 
 def _check_scale(std_scale: float) -> None:
@@ -246,6 +246,11 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
         _check_bias_fraction(record.bias_fraction)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: {err}") from None
+    if record.refinement is not None and not isinstance(record.refinement, dict):
+        raise ValueError(
+            f"{path}: refinement must be a mapping of refinement settings or absent; got "
+            f"{type(record.refinement).__name__}"
+        )
     return record
 
 

@@ -134,10 +134,10 @@ def test_jobs_run_the_parts_side_by_side_into_one_table(label_maps, tmp_path):
 
 
 def test_a_failed_job_is_named_after_every_job_ended(tmp_path):
-    """--jobs: the processes whose parts failed (here: a variant with an unknown field) are named once all have ended."""
+    """--jobs: the processes whose parts failed (an unknown variant field) are named once all of them have ended."""
     argv = ["--no-ants", "--refined-variants", "odd=grid_size:3"]
-    with pytest.raises(SystemExit, match=r"parts \['lpba40'\] \(exit 1\), \['native'\] \(exit 1\) failed"):
-        generalization.run_jobs(argv, [["lpba40"], ["native"]])
+    with pytest.raises(SystemExit, match=r"parts lpba40 \(exit 1\); demo native \(exit 1\) failed"):
+        generalization.run_jobs(argv, [["lpba40"], ["demo", "native"]])
 
 
 def test_part_groups_balance_the_parts_cost():

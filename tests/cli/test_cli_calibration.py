@@ -12,7 +12,6 @@ import torch
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
 
 from monai_probreg.cli.main import main
-from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.spatial.volume_io import read_image
 from monai_probreg.uncertainty.calibration import calibration_path, save_calibration
 
@@ -70,19 +69,22 @@ def _register(scene, name: str, *extra: str) -> tuple[int, dict, np.ndarray]:
 def test_calibrated_by_default_raw_on_request(scene):
     rc, summary, calibrated = _register(scene, "calibrated")
     assert rc == 0 and summary["model"]["posterior_std_scale"] == SCALE
-    # this sidecar records no refinement (the network's mean): the run's refinement settings are named against it
-    run = summary["model"]["refinement"]
-    expected = {k: [v, run[k]] for k, v in RefinementSettings().as_dict().items() if run[k] != v}
-    assert summary["model"]["calibration_refinement_differs_from_fit"] == expected
+    # this sidecar was fitted around the network's mean ({}); the run refines as the configs do by default
+    assert summary["model"]["calibration_refinement_differs_from_fit"] == {
+        "num_iterations": [0, 10],
+        "image_grid_factor": [1, 2],
+    }
     rc, summary, raw = _register(scene, "raw", "--raw-uncertainty")
     assert rc == 0 and summary["model"]["posterior_std_scale"] == 1.0
     assert summary["model"]["calibration_refinement_differs_from_fit"] is None
-    assert expected  # the configs refine by default
     weights = scene[2]
-    save_calibration(weights, SCALE, ["synthetic"], 2, refinement=run)  # fitted around this very refinement
+    fitted = summary["model"]["refinement"]  # the configs' default refinement
+    save_calibration(weights, SCALE, ["synthetic"], 2, refinement=fitted)
     try:
         rc, summary, _ = _register(scene, "calibrated_around_this")
         assert rc == 0 and summary["model"]["calibration_refinement_differs_from_fit"] == {}
+        rc, summary, _ = _register(scene, "network_alone", "--refine", "0")
+        assert rc == 0 and summary["model"]["calibration_refinement_differs_from_fit"] == {"num_iterations": [10, 0]}
     finally:
         save_calibration(weights, SCALE, ["synthetic"], 2)
     # same seeded samples, std scaled by 4 in velocity: the displacement spread grows by about 4

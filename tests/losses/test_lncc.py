@@ -95,15 +95,18 @@ def test_the_window_sums_are_pooled_from_the_threshold_on(monkeypatch):
     """Below ``pooled_from_voxels`` MONAI's forward runs (box_mean is never called), from it on the pooled one."""
     import monai_probreg.losses.lncc as lncc
 
-    calls = []
-    monkeypatch.setattr(lncc, "box_mean", lambda x, k: calls.append(x.shape) or box_mean(x, k))
+    calls, grads = [], []
+    monkeypatch.setattr(
+        lncc, "box_mean", lambda x, k: calls.append(x.shape) or grads.append(x.requires_grad) or box_mean(x, k)
+    )
     pred, target = _pair((1, 1, 6, 7, 5))  # 210 voxels
     BoxLNCCLoss(3, 3, pooled_from_voxels=211)(pred, target)
     assert calls == []
-    BoxLNCCLoss(3, 3, pooled_from_voxels=210)(pred, target)
+    BoxLNCCLoss(3, 3, pooled_from_voxels=210)(pred.requires_grad_(True), target)
     assert calls == [(1, 2, 6, 7, 5), (1, 3, 6, 7, 5)]  # the target's two sums, then the prediction's three
-    # benchmarks/lncc_speed.py's crossover: the network's grid stays MONAI's, a grid twice finer is pooled
-    assert 80 * 96 * 80 < lncc.POOLED_FROM_VOXELS <= 160 * 192 * 160
+    assert grads == [False, True]  # a fixed target's sums are built outside autograd
+    # benchmarks/lncc_speed.py's crossover: the network's grid stays MONAI's, from 96 x 112 x 96 on it is pooled
+    assert 80 * 96 * 80 < lncc.POOLED_FROM_VOXELS <= 96 * 112 * 96
 
 
 @pytest.mark.parametrize("value", [-1, 1.5, True, None])

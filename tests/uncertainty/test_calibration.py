@@ -81,6 +81,24 @@ def test_the_sidecar_records_the_refinement_it_was_fitted_around(weights):
     assert load_calibration(weights).refinement == settings == record.refinement
 
 
+def test_a_sidecar_from_before_the_refinement_record_loads_as_not_recorded(weights):
+    save_calibration(weights, 0.5, bias_fraction=0.2)
+    path = calibration_path(weights)
+    data = json.loads(path.read_text())
+    del data["refinement"]  # as bundles before 0.18.0 wrote them
+    path.write_text(json.dumps(data))
+    assert load_calibration(weights).refinement is None  # unknown, not "the network's mean" ({})
+
+
+@pytest.mark.parametrize("value", [[10, 2], "lncc", 3])
+def test_a_refinement_record_that_is_not_a_mapping_is_named(weights, value):
+    save_calibration(weights, 0.5)
+    path = calibration_path(weights)
+    path.write_text(json.dumps({**json.loads(path.read_text()), "refinement": value}))
+    with pytest.raises(ValueError, match="model.calibration.json: refinement must be a mapping"):
+        load_calibration(weights)
+
+
 def test_sidecar_refuses_other_weights(weights):
     save_calibration(weights, 2.0)
     torch.save({"w": torch.zeros(4)}, weights)  # retrained

@@ -18,7 +18,7 @@ from torch import nn
 
 import monai_probreg
 from monai_probreg.engines.refinement import RefinementSettings
-from monai_probreg.uncertainty.calibration import calibration_for, calibration_path, load_calibration
+from monai_probreg.uncertainty.calibration import calibration_record_for
 from monai_probreg.uncertainty.quality import QualityModel, load_quality_model
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.provenance import file_sha256
@@ -102,10 +102,7 @@ def load_model(
             f"--model-file {str(weights)!r}: does not fit the network of {str(config)!r} ({first_line(err)})"
         ) from None
     try:
-        calibration = calibration_for(weights, calibrate)
-        calibrated_around = None
-        if calibrate and calibration_path(weights).is_file():
-            calibrated_around = load_calibration(weights).refinement
+        record = calibration_record_for(weights, calibrate)  # the sidecar read and checked once
         quality_model = load_quality_model(weights) if calibrate and quality else None
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
@@ -115,9 +112,10 @@ def load_model(
         torch.device(device),
         weights,
         config,
-        *calibration,
+        1.0 if record is None else record.std_scale,
+        0.0 if record is None else record.bias_fraction,
         refinement=refinement,
         weights_sha256=file_sha256(weights),
         quality=quality_model,
-        calibration_refinement=calibrated_around,
+        calibration_refinement=None if record is None else record.refinement,
     )

@@ -53,6 +53,7 @@ __all__ = [
     "fit_calibration",
     "fit_std_scale",
     "calibration_path",
+    "calibration_record_for",
     "save_calibration",
     "load_calibration",
     "calibration_for",
@@ -254,21 +255,27 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
     return record
 
 
-def calibration_for(weights_file: str | os.PathLike, calibrate: bool = True) -> Calibration:
-    """The calibration to use with ``weights_file``: its sidecar's, or the raw posterior's (1, 0) when ``calibrate``
-    is false or, with a warning, when the weights have no calibration."""
+def calibration_record_for(weights_file: str | os.PathLike, calibrate: bool = True) -> CalibrationRecord | None:
+    """The sidecar of ``weights_file`` to use (read and checked once), or None for the raw posterior: when
+    ``calibrate`` is false or, with a warning, when the weights have no calibration."""
     if not calibrate:
-        return Calibration(1.0, 0.0)
+        return None
     try:
-        record = load_calibration(weights_file)
+        return load_calibration(weights_file)
     except FileNotFoundError:
         warnings.warn(
             f"{weights_file} has no calibration ({calibration_path(weights_file).name}); "
             "uncertainty maps are the raw, uncalibrated posterior",
-            stacklevel=2,
+            stacklevel=3,
         )
-        return Calibration(1.0, 0.0)
-    return Calibration(record.std_scale, record.bias_fraction)
+        return None
+
+
+def calibration_for(weights_file: str | os.PathLike, calibrate: bool = True) -> Calibration:
+    """The calibration to use with ``weights_file``: its sidecar's, or the raw posterior's (1, 0) when ``calibrate``
+    is false or, with a warning, when the weights have no calibration."""
+    record = calibration_record_for(weights_file, calibrate)
+    return Calibration(1.0, 0.0) if record is None else Calibration(record.std_scale, record.bias_fraction)
 
 
 def std_scale_for(weights_file: str | os.PathLike, calibrate: bool = True) -> float:

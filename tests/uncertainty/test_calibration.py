@@ -81,6 +81,16 @@ def test_the_sidecar_records_the_refinement_it_was_fitted_around(weights):
     assert load_calibration(weights).refinement == settings == record.refinement
 
 
+def test_the_record_to_use_is_read_once_and_none_means_raw(weights):
+    from monai_probreg.uncertainty.calibration import calibration_record_for
+
+    with pytest.warns(UserWarning, match="has no calibration"):
+        assert calibration_record_for(weights) is None
+    record = save_calibration(weights, 0.5, bias_fraction=0.2, refinement={"num_iterations": 10})
+    assert calibration_record_for(weights) == record
+    assert calibration_record_for(weights, calibrate=False) is None
+
+
 def test_a_sidecar_from_before_the_refinement_record_loads_as_not_recorded(weights):
     save_calibration(weights, 0.5, bias_fraction=0.2)
     path = calibration_path(weights)

@@ -62,7 +62,7 @@ from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.calibration import auroc, spearman
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.metrics.scores import score_pair
-from monai_probreg.uncertainty.calibration import calibration_for
+from monai_probreg.uncertainty.calibration import Calibration, calibration_for
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.quality import QualityModel, failed, fit_quality_model, save_quality_model
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
@@ -168,9 +168,11 @@ def command_cases(
     identity_dice: dict[str, float],
     seed: int,
     refine: int | None = None,
+    entropy_calibration: Calibration | None = None,
 ) -> list[dict]:
     """Each subject through the whole command onto the atlas, its header as it is and turned (module docstring), with
-    inference.yaml's refinement (``refine`` steps when given), as ``monai-probreg register`` runs it."""
+    inference.yaml's refinement (``refine`` steps when given), as ``monai-probreg register`` runs it.
+    ``entropy_calibration``: the posterior calibration of the entropy feature (None: the weights' sidecar's)."""
     from monai_probreg.cli.model import load_model  # the command line's own loading, calibration and brain mask
     from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 
@@ -188,6 +190,7 @@ def command_cases(
         0.5,
         [0.0] * n,
         0.0,
+        entropy_calibration={} if entropy_calibration is None else entropy_calibration._asdict(),
     )
     model = dataclasses.replace(load_model(bundle_root, model_file, quality=False), quality=neutral)
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
@@ -469,6 +472,13 @@ def main(argv=None) -> int:
         stored = json.loads(args.records.read_text())
         train_records, val_records = stored["train_records"], stored["val_records"]
         refinement_record = stored.get("refinement")
+        if "entropy_calibration" not in stored:  # a guess would pair the features with another calibration, silently
+            raise SystemExit(
+                f"{args.records}: the records do not say which posterior calibration their entropy feature was "
+                'computed with; add "entropy_calibration": {"std_scale": ..., "bias_fraction": ...} (that of the '
+                "calibration sidecar when they were made)"
+            )
+        calibration = Calibration(**stored["entropy_calibration"])
     else:
         network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
         calibration = calibration_for(model_file)
@@ -506,6 +516,7 @@ def main(argv=None) -> int:
                 {
                     "model_file": str(model_file),
                     "refinement": refinement_record,
+                    "entropy_calibration": calibration._asdict(),
                     "train_records": train_records,
                     "val_records": val_records,
                 }
@@ -527,7 +538,9 @@ def main(argv=None) -> int:
         }
         for records, seed in ((train_records, args.seed), (val_records, args.seed + 100_000)):
             ids = sorted({r["moving"] for r in records} - native_ids)
-            records += command_cases(args.dataset_dir, ids, bundle_root, model_file, identity, seed, args.refine)
+            records += command_cases(
+                args.dataset_dir, ids, bundle_root, model_file, identity, seed, args.refine, calibration
+            )
     fitted_on = sorted({r["moving"] for r in train_records})
     model = fit_quality_model(
         _features(train_records),
@@ -535,6 +548,7 @@ def main(argv=None) -> int:
         [r["failed"] for r in train_records],
         fitted_on=fitted_on,
         refinement=refinement_record if refinement_record and refinement_record.get("num_iterations") else None,
+        entropy_calibration=calibration,
     )
     train_result, result = score(model, train_records), score(model, val_records)
     table = markdown(result, model.threshold)
@@ -557,6 +571,7 @@ def main(argv=None) -> int:
             {
                 "model_file": str(model_file),
                 "refinement": refinement_record,
+                "entropy_calibration": calibration._asdict(),
                 "validation": result,
                 "training_fit": train_result,
                 "markdown": table,

@@ -29,6 +29,11 @@
    matching on the displacement errors of part 1 (re-sampled at the fitted pair and refitted, ``FIT_ITERATIONS``). Cross-fitted: the subjects are split in ``--folds`` folds; each fold is scored with the
    scale fitted on the others, with fresh samples drawn from the calibrated posterior. Raw (scale 1) rows use
    the same subjects. ``--write-calibration`` fits on all subjects and writes the sidecar next to the weights.
+4. The subject probe (``--subject-probe N``, :mod:`calibration_subjects`): N training subjects' scans are each the
+   template of one synthetic subject made as ``monai-probreg demo`` makes its own, registered back by the command's
+   path (affine stage, network, refinement) and scored in mm in the posterior's frame. Fitted together with the probe
+   of part 1, each probe's coverage matched on its own (``fit_calibration``'s ``groups``); its templates are split
+   into the same number of folds and scored held out the same way (the "subject probe" rows).
 
     python benchmarks/uncertainty_calibration.py --write-calibration   # table, JSON and two PNGs in results/
 """
@@ -46,6 +51,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from calibration_subjects import SUBJECT_SEED, subject_case, subject_errors
 from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, bundle_parser
 from monai.data import Dataset
 from monai.networks.layers import GaussianFilter
@@ -54,6 +60,7 @@ from uncertainty_figures import figure4, reliability_diagram
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.sampling import sample_velocity
 from monai_probreg.blocks.warp import warp_image, warp_labels
+from monai_probreg.cli.model import load_model
 from monai_probreg.data.dataset import index_dataset, labelled_pairs
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.calibration import (
@@ -87,6 +94,8 @@ FIT_ITERATIONS = 3  # at most this many re-samplings at the fitted pair and refi
 # smaller scale and a larger bias fraction: Spearman +0.02, label AUROC -0.004, README)
 FIT_TOLERANCE = 0.02  # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
 SEED_STRIDE = 100  # subject n's deformation r is drawn with seed + SEED_STRIDE * n + r (r < SEED_STRIDE)
+SUBJECT_PROBE_TEMPLATES = 6  # training subjects whose synthetic subjects make the subject probe (0: none)
+POPULATION, SUBJECTS = 0, 1  # the fit's groups: each probe's coverage is matched on its own (fit_calibration)
 
 
 def random_deformation(
@@ -322,6 +331,14 @@ def main(argv=None) -> int:
         default="atlas",
         help="the image that is deformed and registered back (see the module docstring)",
     )
+    ap.add_argument(
+        "--subject-probe",
+        type=int,
+        default=SUBJECT_PROBE_TEMPLATES,
+        metavar="N",
+        help="templates of the subject probe, the first N training subjects (calibration_subjects.py; fitted "
+        "together with --probe, each matched on its own; 0 = none)",
+    )
     ap.add_argument("--folds", type=int, default=2, help="cross-fitting folds over the subjects")
     ap.add_argument(
         "--fit-iterations",
@@ -410,22 +427,65 @@ def main(argv=None) -> int:
     raw_calibration = Calibration(1.0, 0.0)
     raw = {sid: [case_errors(network, c, raw_calibration, args.samples) for c in cs] for sid, cs in cases.items()}
 
-    def fit(sids: list[str]) -> Calibration:
-        """Coverage-matching (scale, bias fraction) on ``sids``: fitted on the raw samples, then re-sampled at the
-        current pair and refitted. Independent velocity noise reaches the displacement damped by a factor kappa
+    # the subject probe (calibration_subjects.py): synthetic subjects of training scans through the command's path
+    if args.subject_probe < 0:
+        raise SystemExit(f"--subject-probe must be >= 0 templates; got {args.subject_probe}")
+    templates = [i for i in index.ids if i not in subjects][: args.subject_probe]
+    command_model = load_model(args.bundle_root, model_file, calibrate=False, quality=False) if templates else None
+    subject_cases = {
+        tid: subject_case(tid, index.images[tid], SUBJECT_SEED + n, VOXELS_PER_CASE, command_model.divisor)
+        for n, tid in enumerate(templates)
+    }
+    subject_folds = {tid: n % args.folds for n, tid in enumerate(subject_cases)}
+
+    def subject_run(tid: str, calibration: Calibration) -> tuple[np.ndarray, ...]:
+        return subject_errors(command_model, subject_cases[tid], calibration, args.samples, refinement)
+
+    subject_raw = {}
+    for n, tid in enumerate(subject_cases):
+        subject_raw[tid] = subject_run(tid, raw_calibration)
+        print(
+            f"[subject probe {n + 1}/{len(subject_cases)}] {tid}: raw coverage 95% "
+            f"{interval_coverage(*subject_raw[tid][:2], 0.95):.3f}, median error "
+            f"{np.median(np.abs(subject_raw[tid][1])):.2f} mm per component",
+            flush=True,
+        )
+
+    def errors_at(sids: list[str], tids: list[str], calibration: Calibration | None) -> tuple[np.ndarray, ...]:
+        """(std, error, norm, group) pooled over the population cases of ``sids`` and the subject cases of
+        ``tids``, sampled at ``calibration`` (None: the raw samples already drawn)."""
+        parts = [
+            (*e, np.full(e[0].shape, POPULATION))
+            for s in sids
+            for e in (
+                raw[s]
+                if calibration is None
+                else [case_errors(network, c, calibration, args.samples) for c in cases[s]]
+            )
+        ]
+        parts += [
+            (*e, np.full(e[0].shape, SUBJECTS))
+            for e in (subject_raw[t] if calibration is None else subject_run(t, calibration) for t in tids)
+        ]
+        return _pool(parts)
+
+    def fit(sids: list[str], tids: list[str]) -> Calibration:
+        """Coverage-matching (scale, bias fraction) on the population cases of ``sids`` and the subject-probe cases
+        of ``tids``, each probe matched on its own: fitted on the raw samples, then re-sampled at the current pair
+        and refitted. Independent velocity noise reaches the displacement damped by a factor kappa
         (interpolation and integration average neighbours; kappa = sampled raw displacement variance / raw velocity
         variance on the image grid), so a refit (c, a) of samples drawn at (s, b) means a variance of about
         c^2 kappa (s^2 sigma^2 + b^2 |mu|^2) + a^2 |u|^2 (u ~ mu once integrated): the new pair is
         (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
-        pooled = _pool([e for s in sids for e in raw[s]])
+        population_std = _pool([e for s in sids for e in raw[s]])[0]
         velocity_std = np.concatenate([c["velocity_std"].numpy() for s in sids for c in cases[s]], axis=1)
-        kappa = float(np.mean(pooled[0] ** 2) / np.mean(velocity_std**2))
-        first = fit_calibration(*pooled)
+        kappa = float(np.mean(population_std**2) / np.mean(velocity_std**2))
+        std, error, norm, groups = errors_at(sids, tids, None)
+        first = fit_calibration(std, error, norm, groups=groups)
         current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa))
         for iteration in range(1, args.fit_iterations + 1):
-            refit = fit_calibration(
-                *_pool([case_errors(network, c, current, args.samples) for s in sids for c in cases[s]])
-            )
+            std, error, norm, groups = errors_at(sids, tids, current)
+            refit = fit_calibration(std, error, norm, groups=groups)
             if abs(refit.std_scale - 1) < FIT_TOLERANCE and refit.bias_fraction < FIT_TOLERANCE:
                 break  # the samples at the current pair already cover as nominal as the fit can make them
             current = Calibration(
@@ -433,14 +493,18 @@ def main(argv=None) -> int:
                 math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction / math.sqrt(kappa)),
             )
         print(
-            f"  fit on {', '.join(sids)}: kappa {kappa:.3f}, refit {iteration} ({refit.std_scale:.3f}, "
+            f"  fit on {', '.join(sids + [t + ' (subject probe)' for t in tids])}: kappa {kappa:.3f}, "
+            f"refit {iteration} ({refit.std_scale:.3f}, "
             f"{refit.bias_fraction:.3f}) -> std_scale {current.std_scale:.3f}, bias_fraction "
             f"{current.bias_fraction:.3f}",
             flush=True,
         )
         return current
 
-    scales = {f: fit([s for s in raw if folds[s] != f]) for f in range(args.folds)}
+    scales = {
+        f: fit([s for s in raw if folds[s] != f], [t for t in subject_cases if subject_folds[t] != f])
+        for f in range(args.folds)
+    }
     print(
         "held-out calibrations per fold (std_scale, bias_fraction): "
         + ", ".join(f"({v.std_scale:.3f}, {v.bias_fraction:.2f})" for v in scales.values()),
@@ -490,18 +554,27 @@ def main(argv=None) -> int:
             "label_entropy_auroc": float(np.mean(row["auroc"])),
             "recovered_fraction": recovered_fraction(error, np.concatenate(list(truth.values()), axis=1)),
         }
+    subject_summary = {}
+    if subject_cases:  # each template scored at the calibration fitted without it (its fold's)
+        held_out = {t: subject_run(t, scales[subject_folds[t]]) for t in subject_cases}
+        for name, errors in (("raw", subject_raw), ("calibrated", held_out)):
+            std, error, _ = _pool(list(errors.values()))
+            subject_summary[name] = displacement_metrics(std, error)
+            subject_summary[name]["per_template"] = {t: interval_coverage(e[0], e[1], 0.95) for t, e in errors.items()}
     table = [
         "| posterior | coverage 68% | coverage 95% | Spearman per component (ceiling) | Spearman of vectors "
-        "(ceiling) | UCE (voxels) | RMS error / RMS std (voxels) | label-entropy AUROC |",
+        "(ceiling) | UCE (voxels; subject probe: mm) | RMS error / RMS std (voxels; subject probe: mm) | "
+        "label-entropy AUROC |",
         "|---|---|---|---|---|---|---|---|",
     ]
     # (recovered_fraction, in the JSON: how much of the true displacement the mean registration recovers)
-    for name, m in summary.items():
+    named = {**summary, **{f"{n} (subject probe, mm)": m for n, m in subject_summary.items()}}
+    for name, m in named.items():
         table.append(
             f"| {name} | {m['coverage_68']:.3f} | {m['coverage_95']:.3f} | {m['spearman_std_abs_error']:.3f} "
             f"({m['spearman_ceiling']:.2f}) | {m['spearman_vector']:.3f} ({m['spearman_vector_ceiling']:.2f}) | "
             f"{m['uce_voxels']:.3f} | {m['rms_error_voxels']:.2f} / {m['rms_std_voxels']:.2f} | "
-            f"{m['label_entropy_auroc']:.3f} |"
+            + (f"{m['label_entropy_auroc']:.3f} |" if "label_entropy_auroc" in m else "- |")
         )
     markdown = "\n".join(table)
     args.out_dir.mkdir(parents=True, exist_ok=True)
@@ -534,6 +607,12 @@ def main(argv=None) -> int:
         "settings": {
             "refinement": refinement.as_dict(),
             "probe": args.probe,
+            "subject_probe": {
+                "templates": list(subject_cases),
+                "seeds": [c.seed for c in subject_cases.values()],
+                "folds": subject_folds,
+                "units": "mm on each template's grid",
+            },
             "deformations": args.deformations,
             "reference": args.reference,
             "samples": args.samples,
@@ -548,17 +627,18 @@ def main(argv=None) -> int:
             "label_region": "voxels where the propagated or the manual label is non-background",
         },
         "summary": summary,
+        "subject_probe_summary": subject_summary,
         "per_subject": per_subject,
         "translation_probe_recovered": probe,
         "markdown": markdown,
         "wall_time_s": time.time() - start_time,
     }
     if args.write_calibration:
-        fitted = fit(list(raw))
+        fitted = fit(list(raw), list(subject_cases))
         record = save_calibration(
             model_file,
             fitted.std_scale,
-            list(raw),
+            list(raw) + [f"{t} (subject probe, seed {c.seed})" for t, c in subject_cases.items()],
             args.samples,
             bias_fraction=fitted.bias_fraction,
             refinement=refinement.as_dict() if refinement.enabled else None,
@@ -570,7 +650,7 @@ def main(argv=None) -> int:
         }
         print(
             f"wrote the calibration of {model_file.name}: std_scale {fitted.std_scale:.3f}, bias_fraction "
-            f"{fitted.bias_fraction:.2f} (all {len(raw)} subjects)"
+            f"{fitted.bias_fraction:.2f} (all {len(raw)} subjects, {len(subject_cases)} subject-probe templates)"
         )
     json_path = write_text(args.out_dir / "uncertainty_calibration.json", json.dumps(result, indent=2) + "\n")
     print(

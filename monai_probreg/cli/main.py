@@ -31,7 +31,7 @@ field of view and intensity range; they should be skull-stripped T1-weighted bra
   monai-probreg demo --out demo          # a synthetic subject with a known answer: is the install right?
   monai-probreg register --moving sub01.nii.gz --fixed atlas.nii.gz --out results/sub01
   monai-probreg register --moving sub01.nii.gz --moving-label sub01_seg.nii.gz \\
-      --fixed atlas.nii.gz --fixed-label atlas_seg.nii.gz --samples 10 --out results/sub01
+      --fixed atlas.nii.gz --fixed-label atlas_seg.nii.gz --samples 16 --out results/sub01
   monai-probreg register-batch --moving scans/ --fixed atlas.nii.gz --out results/
 
 Outputs (see DIR/README.txt): warped.nii.gz (moving on the fixed grid), warp.nii.gz and inverse_warp.nii.gz (ITK/ANTs
@@ -256,7 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
         "and print how well the known transform was recovered: the displacement error in mm "
         "inside the brain before and after, and the coverage of the calibrated 95% interval. "
         "Outputs in DIR as register's, plus subject.nii.gz and true_warp.nii.gz; the scores in "
-        'DIR/summary.json["demo"]. --samples defaults to 8 here.\n\n' + DESCRIPTION,
+        'DIR/summary.json["demo"]. --samples defaults to 16 here (as many as the shipped calibration was '
+        "fitted with).\n\n" + DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_common(demo)

@@ -63,8 +63,10 @@ def load_model(
     """The trained network: settings from ``configs/inference.yaml``'s ``network_def`` (and ``divisor``), weights
     from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable.
     ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw. The quality
-    estimate (``<weights stem>.quality.json``) is fitted on the calibrated posterior, so it is used only with it;
-    ``quality=False`` leaves it out (``benchmarks/failure_detection.py`` while it fits a new one)."""
+    estimate (``<weights stem>.quality.json``) computes its entropy feature with the calibration of its own fit, which
+    its sidecar records (since bundle 0.19.0), so it works with the raw posterior too; a sidecar that does not record
+    it was fitted on the calibrated posterior, and is used only with it. ``quality=False`` leaves it out
+    (``benchmarks/failure_detection.py`` while it fits a new one)."""
     root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
     config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"
     if not config.is_file():
@@ -103,9 +105,11 @@ def load_model(
         ) from None
     try:
         record = calibration_record_for(weights, calibrate)  # the sidecar read and checked once
-        quality_model = load_quality_model(weights) if calibrate and quality else None
+        quality_model = load_quality_model(weights) if quality else None
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
+    if quality_model is not None and not calibrate and not quality_model.entropy_calibration:
+        quality_model = None  # its entropy feature needs the calibration in use, and the raw posterior is not it
     return LoadedModel(
         network,
         divisor,

@@ -72,6 +72,7 @@ from monai_probreg.spatial.physical import (
 )
 from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
+from monai_probreg.uncertainty.calibration import Calibration
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
@@ -217,8 +218,8 @@ def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
 
 
 class _Witness(NamedTuple):
-    """The network's registration before refinement, on the model grid: what the quality estimate reads
-    (:mod:`monai_probreg.uncertainty.quality`, "Whose features")."""
+    """A registration on the model grid as the quality estimate reads it: the network's own before refinement (what
+    its models read, :mod:`monai_probreg.uncertainty.quality`, "Whose features"), or the refined answer."""
 
     warped: np.ndarray
     displacement: np.ndarray
@@ -236,6 +237,8 @@ class _ModelMaps:
     entropy: np.ndarray | None  # velocity entropy, filled in by _run_model (with the samples when there are any)
     warped: np.ndarray
     network: RegistrationOutput | None = None  # the network's own registration when refined (the quality reads it)
+    # the answer's velocity (mean, log-variance), kept for the quality estimate's entropy (None without a quality model)
+    posterior: tuple[torch.Tensor, torch.Tensor] | None = None
     std: np.ndarray | None = None
     variance: np.ndarray | None = None  # (3, *S) mm^2 per model-grid axis, with the samples
 
@@ -271,9 +274,11 @@ def _run_model(
             None,
             _numpy(output.warped[0, 0]),
             network=network_output,
+            posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
         )
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
-            maps.entropy = _entropy(model, output, shape)
+            in_use = Calibration(model.std_scale, model.bias_fraction)
+            maps.entropy = _entropy(model, output.velocity_mean, output.velocity_log_var, shape, in_use)
     if samples:
         with _timed(timings, "samples", report):
             sampled = posterior_maps(
@@ -292,25 +297,38 @@ def _run_model(
     return maps
 
 
-def _witness(model: LoadedModel, output: RegistrationOutput, shape: tuple[int, ...]) -> _Witness:
-    """The network's registration (before refinement) as the quality estimate reads it; calibrated entropy."""
+def _feature_entropy(model: LoadedModel, maps: _ModelMaps, posterior: tuple[torch.Tensor, torch.Tensor]) -> np.ndarray:
+    """The velocity entropy of ``posterior`` (mean, log-variance) as the quality estimate reads it: under the quality
+    model's own calibration (:meth:`~monai_probreg.uncertainty.quality.QualityModel.feature_calibration`); the maps'
+    entropy itself when ``posterior`` is the answer's and that calibration is the one in use (computed once)."""
+    calibration = model.quality.feature_calibration(model.std_scale, model.bias_fraction)
+    if posterior is maps.posterior and calibration == Calibration(model.std_scale, model.bias_fraction):
+        return maps.entropy
+    return _entropy(model, *posterior, tuple(maps.warped.shape), calibration)
+
+
+def _witness(model: LoadedModel, output: RegistrationOutput, maps: _ModelMaps) -> _Witness:
+    """The network's registration ``output`` (before refinement) as the quality estimate reads it."""
     return _Witness(
         _numpy(output.warped[0, 0]),
         _numpy(output.displacement[0]),
         _numpy(jacobian_determinant(output.displacement)[0]),
-        _entropy(model, output, shape),
+        _feature_entropy(model, maps, (output.velocity_mean, output.velocity_log_var)),
     )
 
 
-def _entropy(model: LoadedModel, output: RegistrationOutput, shape: tuple[int, ...]) -> np.ndarray:
-    """The calibrated velocity entropy of ``output`` on ``shape`` (std_scale 1, bias 0 = raw)."""
+def _entropy(
+    model: LoadedModel, mean: torch.Tensor, log_var: torch.Tensor, shape: tuple[int, ...], calibration: Calibration
+) -> np.ndarray:
+    """The velocity entropy of the posterior (``mean``, ``log_var``) on ``shape`` under ``calibration`` (std_scale 1,
+    bias 0 = raw)."""
     posterior = posterior_maps(
         model.network,
-        output.velocity_mean,
-        output.velocity_log_var,
+        mean,
+        log_var,
         shape,
-        std_scale=model.std_scale,
-        bias_fraction=model.bias_fraction,
+        std_scale=calibration.std_scale,
+        bias_fraction=calibration.bias_fraction,
     )
     return _numpy(posterior.velocity_entropy)
 
@@ -325,7 +343,7 @@ def _quality(
         return None
     t = torch.from_numpy
 
-    def features_of(m: _ModelMaps | _Witness) -> QualityFeatures:
+    def features_of(m: _Witness) -> QualityFeatures:
         return quality_features(
             t(moving_input),
             t(fixed.model_input),
@@ -336,10 +354,13 @@ def _quality(
             jacobian=t(m.jacobian),
         )
 
-    answer = features_of(maps)
-    if maps.network is None:
+    # the answer the user gets; its entropy as the estimate reads it (the same rule for both feature sets)
+    answer = features_of(
+        _Witness(maps.warped, maps.displacement, maps.jacobian, _feature_entropy(model, maps, maps.posterior))
+    )
+    if maps.network is None:  # not refined: the answer is the network's own registration
         return answer, model.quality.estimate(answer), None
-    features = features_of(_witness(model, maps.network, tuple(maps.warped.shape)))
+    features = features_of(_witness(model, maps.network, maps))
     return features, model.quality.estimate(features, answer), answer
 
 

@@ -2,7 +2,8 @@
 
 ``RegistrationWriter`` (inference.yaml) and ``RegistrationScorer`` (evaluate.yaml) call it per subject: it computes
 the label-free features of the registration (:mod:`monai_probreg.uncertainty.quality_features`) from the batch
-(``moving``/``fixed``: the network inputs) and the network's output, on the calibrated posterior (when the workflow
+(``moving``/``fixed``: the network inputs) and the network's output, the entropy under the calibration recorded with
+the quality model (``QualityModel.feature_calibration``; when the workflow
 refines the mean, the features of the network's own registration, computed again here without refinement, and those
 of the refined answer for the local-NCC drop rule: :mod:`monai_probreg.uncertainty.quality`, "Whose features"),
 applies the
@@ -39,8 +40,10 @@ class QualityCheck:
     Args:
         network: the registration network (its ``velocity_to_displacement`` is not needed: the entropy alone).
         model_file: the weights; their ``<stem>.quality.json`` is loaded (None: no estimate).
-        std_scale, bias_fraction: the posterior calibration in use (the quality model is fitted on it).
-        calibrate: False (raw posterior): no estimate, since the model was fitted on the calibrated one.
+        std_scale, bias_fraction: the posterior calibration in use (the entropy feature takes the quality model's
+            own when its sidecar records one: ``QualityModel.feature_calibration``).
+        calibrate: False (raw posterior): an estimate only from a quality model that records its entropy's calibration
+            (one that does not takes the calibration in use for it, and the raw posterior is not what it was fitted on).
         quality_model: a model to use instead of the sidecar (tests).
         refinement: the workflow's refinement of the mean; when enabled, the estimate reads the network's own
             registration (one more forward pass per subject) and the refined one for the local-NCC drop rule.
@@ -58,12 +61,13 @@ class QualityCheck:
     ) -> None:
         self.network, self.std_scale, self.bias_fraction = network, float(std_scale), float(bias_fraction)
         self.refined = refinement is not None and refinement.enabled
-        self.model = (
-            quality_model if quality_model is not None else (load_quality_model(model_file) if calibrate else None)
-        )
-        if self.model is None:
-            why = "raw posterior (calibrate: false)" if not calibrate else f"no {quality_path(model_file).name}"
-            _LOG.info(f"no quality estimate for {model_file}: {why}")
+        self.model = quality_model if quality_model is not None else load_quality_model(model_file)
+        if self.model is not None and not calibrate and not self.model.entropy_calibration:
+            self.model = None
+            _LOG.info(f"no quality estimate for {model_file}: raw posterior (calibrate: false), and a quality model "
+                      "that does not record the calibration of its entropy feature")  # fmt: skip
+        elif self.model is None:
+            _LOG.info(f"no quality estimate for {model_file}: no {quality_path(model_file).name}")
 
     @property
     def enabled(self) -> bool:
@@ -95,13 +99,14 @@ class QualityCheck:
 
     def _features(self, moving, fixed, pair: RegistrationOutput, spacing) -> QualityFeatures:
         shape = pair.displacement.shape[2:]
+        calibration = self.model.feature_calibration(self.std_scale, self.bias_fraction)
         entropy = posterior_maps(
             self.network,
             pair.velocity_mean[:1],
             pair.velocity_log_var[:1],
             shape,
-            std_scale=self.std_scale,
-            bias_fraction=self.bias_fraction,
+            std_scale=calibration.std_scale,
+            bias_fraction=calibration.bias_fraction,
         ).velocity_entropy
         with torch.inference_mode():
             return quality_features(

@@ -49,6 +49,7 @@ __all__ = [
     "Calibration",
     "CalibrationRecord",
     "calibrate_log_var",
+    "check_calibration",
     "bias_variance",
     "fit_calibration",
     "fit_std_scale",
@@ -86,12 +87,18 @@ class CalibrationRecord:
     levels: list[float] = field(default_factory=lambda: list(FIT_LEVELS))
     method: str = (
         "coverage matching: (std_scale, bias_fraction) of sigma^2 = std_scale^2 sigma^2 + (bias_fraction "
-        "|mean velocity|)^2 minimise sum over levels of (coverage - level)^2 of the sampled displacements"
+        "|mean velocity|)^2 minimise the sum over levels and probes of (coverage - level)^2 of the sampled displacements"
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe
     # that mean; {} = the network's own mean; None = not recorded (sidecars written before bundle 0.18.0)
     refinement: dict | None = None
+
+
+def check_calibration(std_scale: float, bias_fraction: float) -> None:
+    """ValueError unless ``std_scale`` > 0 and ``bias_fraction`` >= 0, both finite."""
+    _check_scale(std_scale)
+    _check_bias_fraction(bias_fraction)
 
 
 def _check_scale(std_scale: float) -> None:
@@ -135,16 +142,24 @@ def _array(x: Tensor | np.ndarray) -> np.ndarray:
     return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, np.float64)
 
 
-def _fit_scale(s: np.ndarray, e: np.ndarray, b: np.ndarray, z: np.ndarray, levels: np.ndarray) -> tuple[float, float]:
+def _fit_scale(
+    s: np.ndarray, e: np.ndarray, b: np.ndarray, z: np.ndarray, levels: np.ndarray, groups: np.ndarray
+) -> tuple[float, float]:
     """(scale, cost) for one bias variance ``b``: ``|e| <= z_p sqrt(scale^2 s^2 + b)`` <=> ``r_p <= scale^2`` with
     ``r_p = (e^2 / z_p^2 - b) / s^2``, so each level's coverage is a sorted search and each level alone has an exact
-    solution; the scale is searched between those."""
-    r = np.sort((e[None, :] ** 2 / z[:, None] ** 2 - b[None, :]) / s[None, :] ** 2, axis=1)  # (levels, N)
-    per_level = np.sqrt(np.maximum([np.quantile(r_p, p) for r_p, p in zip(r, levels)], _MIN_SCALE**2))
+    solution per group; the scale is searched between those. The cost sums (coverage - level)^2 over the levels and
+    the groups (``groups``: one small integer per entry)."""
+    r = (e[None, :] ** 2 / z[:, None] ** 2 - b[None, :]) / s[None, :] ** 2  # (levels, N)
+    per_group = [np.sort(r[:, groups == g], axis=1) for g in np.unique(groups)]
+    per_level = np.sqrt(
+        np.maximum([np.quantile(r_p, p) for r_g in per_group for r_p, p in zip(r_g, levels)], _MIN_SCALE**2)
+    )
     low, high = per_level.min(), per_level.max()
     candidates = np.geomspace(low, high, _GRID_POINTS) if high > low else np.array([low])
-    coverage = np.stack([np.searchsorted(r_p, candidates**2, side="right") for r_p in r], 1) / e.size
-    cost = ((coverage - levels[None, :]) ** 2).sum(axis=1)
+    cost = np.zeros(len(candidates))
+    for r_g in per_group:
+        coverage = np.stack([np.searchsorted(r_p, candidates**2, side="right") for r_p in r_g], 1) / r_g.shape[1]
+        cost += ((coverage - levels[None, :]) ** 2).sum(axis=1)
     best = int(np.argmin(cost))
     return float(candidates[best]), float(cost[best])
 
@@ -155,12 +170,15 @@ def fit_calibration(
     displacement_norm: Tensor | np.ndarray,
     levels: Sequence[float] = FIT_LEVELS,
     bias_fractions: Sequence[float] = BIAS_FRACTIONS,
+    groups: Tensor | np.ndarray | None = None,
 ) -> Calibration:
     """(scale s, bias fraction a) for which the intervals ``|error| <= z_p sqrt(s^2 std^2 + a^2 n^2)`` cover closest
     to p over ``levels`` (least squares in coverage; a searched over ``bias_fractions``, s for each a).
 
     ``std`` > 0, ``error`` and ``displacement_norm`` n = |mean displacement| (>= 0): same shape, any shape, one
-    entry per voxel and component. ``s`` multiplies the std the samples were drawn with."""
+    entry per voxel and component. ``s`` multiplies the std the samples were drawn with. ``groups`` (same shape,
+    integers; None: one group): entries from different probes, each group's coverage matched on its own (the cost
+    sums over groups, so a large group does not drown a small one)."""
     s, e, n = _array(std).reshape(-1), _array(error).reshape(-1), _array(displacement_norm).reshape(-1)
     if not (s.shape == e.shape == n.shape) or s.size == 0:
         raise ValueError(
@@ -171,6 +189,9 @@ def fit_calibration(
         np.isfinite(s).all() and np.isfinite(e).all() and (s > 0).all() and np.isfinite(n).all() and (n >= 0).all()
     ):
         raise ValueError("std must be positive and finite, error finite, displacement_norm finite and >= 0")
+    g = np.zeros(s.size, np.int64) if groups is None else np.asarray(groups).reshape(-1)
+    if g.shape != s.shape or not np.issubdtype(g.dtype, np.integer):
+        raise ValueError(f"groups must be integers of the shape of std {_array(std).shape}; got {np.shape(groups)}")
     if not levels or not bias_fractions:
         raise ValueError(f"levels and bias_fractions must not be empty; got {list(levels)} and {list(bias_fractions)}")
     for a in bias_fractions:
@@ -178,10 +199,17 @@ def fit_calibration(
     z, p = np.array([gaussian_interval_z(level) for level in levels]), np.asarray(levels, np.float64)
     bias_fraction = float(bias_fractions[0])
     if len(bias_fractions) > 1:  # the search on a fixed random subset (millions of entries: seconds, not minutes)
-        pick = np.random.default_rng(0).permutation(s.size)[:_SEARCH_POINTS]
-        costs = [_fit_scale(s[pick], e[pick], (a * n[pick]) ** 2, z, p)[1] for a in bias_fractions]
+        pick = _search_subset(g)
+        costs = [_fit_scale(s[pick], e[pick], (a * n[pick]) ** 2, z, p, g[pick])[1] for a in bias_fractions]
         bias_fraction = float(bias_fractions[int(np.argmin(costs))])
-    return Calibration(_fit_scale(s, e, (bias_fraction * n) ** 2, z, p)[0], bias_fraction)  # the scale on all
+    return Calibration(_fit_scale(s, e, (bias_fraction * n) ** 2, z, p, g)[0], bias_fraction)  # the scale on all
+
+
+def _search_subset(groups: np.ndarray) -> np.ndarray:
+    """A fixed random subset of at most ``_SEARCH_POINTS`` entries, shared equally by the groups."""
+    rng, labels = np.random.default_rng(0), np.unique(groups)
+    per_group = _SEARCH_POINTS // len(labels)
+    return np.concatenate([rng.permutation(np.flatnonzero(groups == g))[:per_group] for g in labels])
 
 
 def fit_std_scale(std: Tensor | np.ndarray, error: Tensor | np.ndarray, levels: Sequence[float] = FIT_LEVELS) -> float:

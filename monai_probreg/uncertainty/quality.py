@@ -32,8 +32,10 @@ by ``benchmarks/failure_detection.py`` on *training* subjects only (normal pairs
 orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast), through both paths
 that compute the features (the bundle's, on the dataset grid, and the whole command's, affine stage and model grid
 included, with headers as they are and turned), and stored next to the
-weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration (the entropy feature is
-the calibrated one). Written by hand: ten lines of closed-form ridge and Newton's method, where scikit-learn would be
+weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration. The entropy feature is a
+calibrated one, and the sidecar keeps the calibration it was computed with at the fit (``entropy_calibration``):
+every estimate computes it with that one, so a refitted posterior calibration (what the uncertainty maps show) leaves
+the estimate as it was validated; a sidecar without it (before bundle 0.19.0) reads the calibration in use. Written by hand: ten lines of closed-form ridge and Newton's method, where scikit-learn would be
 a dependency for two linear models.
 """
 
@@ -49,6 +51,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from monai_probreg.uncertainty.calibration import Calibration, check_calibration
 from monai_probreg.uncertainty.quality_features import QualityFeatures
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256
@@ -128,6 +131,8 @@ class QualityModel:
     weights_sha256: str = ""
     fitted_on: list[str] = field(default_factory=list)
     refinement: dict = field(default_factory=dict)  # the fit's outcomes: RefinementSettings.as_dict() ({}: network)
+    # the posterior calibration {"std_scale", "bias_fraction"} of the fit's entropy feature ({}: the one in use)
+    entropy_calibration: dict = field(default_factory=dict)
     definition: str = f"failed = Dice < Dice before the deformable step, or Dice < no registration + {FAILURE_MARGIN}"
 
     def __post_init__(self) -> None:
@@ -147,6 +152,20 @@ class QualityModel:
             raise ValueError(f"threshold must be in (0, 1); got {self.threshold}")
         if not 0.0 <= self.lncc_drop_margin < 1.0:
             raise ValueError(f"lncc_drop_margin must be in [0, 1); got {self.lncc_drop_margin}")
+        if self.entropy_calibration:
+            if set(self.entropy_calibration) != set(Calibration._fields):
+                raise ValueError(
+                    f"entropy_calibration must be {{}} or have the keys {list(Calibration._fields)}; got "
+                    f"{sorted(self.entropy_calibration)}"
+                )
+            check_calibration(**self.entropy_calibration)
+
+    def feature_calibration(self, std_scale: float, bias_fraction: float) -> Calibration:
+        """The calibration the entropy feature is computed with: the fit's, or (a sidecar that does not record it)
+        the one in use, ``std_scale`` and ``bias_fraction``."""
+        if self.entropy_calibration:
+            return Calibration(**{k: float(v) for k, v in self.entropy_calibration.items()})
+        return Calibration(float(std_scale), float(bias_fraction))
 
     def _standardise(self, features: Sequence[QualityFeatures]) -> np.ndarray:
         x = np.asarray([list(f) for f in features], dtype=np.float64).reshape(len(features), len(self.mean))
@@ -195,10 +214,12 @@ def fit_quality_model(
     threshold: float = DEFAULT_THRESHOLD,
     fitted_on: Sequence[str] = (),
     refinement: dict | None = None,
+    entropy_calibration: Calibration | None = None,
 ) -> QualityModel:
     """Fit both models on registrations with known outcome (training subjects only): ``features`` of the network's
     registrations, ``dice`` and ``failures`` of the registrations users get (refined with ``refinement``, a
-    ``RefinementSettings.as_dict()``, or the network's own: None)."""
+    ``RefinementSettings.as_dict()``, or the network's own: None). ``entropy_calibration``: the posterior
+    calibration the features' entropy was computed with (recorded, and used by every estimate); None: not recorded."""
     x = np.asarray([list(f) for f in features], dtype=np.float64)
     y = np.asarray(dice, dtype=np.float64)
     t = np.asarray(failures, dtype=np.float64)
@@ -238,6 +259,7 @@ def fit_quality_model(
         dice_range=[float(y.min()), float(y.max())],
         fitted_on=list(fitted_on),
         refinement=dict(refinement or {}),
+        entropy_calibration={} if entropy_calibration is None else Calibration(*entropy_calibration)._asdict(),
     )
 
 

@@ -145,3 +145,26 @@ def test_robustness_refine_adds_a_refined_row_per_model(tmp_path):
     assert len(result["records"]) == 4 and all(0 <= r["net + refine 2"] <= 1 for r in result["records"])
     with pytest.raises(SystemExit, match="--refine must be >= 0"):
         robustness.main(["--refine", "-1"])
+
+
+def test_command_cases_compute_the_entropy_with_the_calibration_given(tmp_path):
+    """The records' entropy feature is computed with the calibration the quality model will record (the tiny bundle
+    has none: raw); halving the std lowers it by exactly 3 log 2 nats and changes no other feature."""
+    from monai_probreg.uncertainty.calibration import Calibration
+
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    common = (dataset, ["T01"], bundle, None, {"T01": 0.5})
+    plain = detection.command_cases(*common, seed=3, refine=0)
+    halved = detection.command_cases(*common, seed=3, refine=0, entropy_calibration=Calibration(0.5, 0.0))
+    for a, b in zip(plain, halved):
+        assert b["features"]["entropy"] == pytest.approx(a["features"]["entropy"] - 3 * math.log(2), abs=1e-4)
+        others = {k: v for k, v in b["features"].items() if k != "entropy"}
+        assert others == pytest.approx({k: v for k, v in a["features"].items() if k != "entropy"}, abs=1e-6)
+
+
+def test_records_that_do_not_name_their_calibration_are_refused(tmp_path):
+    records = tmp_path / "records.json"
+    records.write_text(json.dumps({"refinement": {}, "train_records": [], "val_records": []}))
+    with pytest.raises(SystemExit, match="entropy_calibration"):
+        detection.main(["--records", str(records), "--out-dir", str(tmp_path / "out")])

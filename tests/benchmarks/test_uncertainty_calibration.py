@@ -177,6 +177,14 @@ def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path
     assert 0 <= written.bias_fraction == report["written_calibration"]["bias_fraction"] <= 1
     assert written.refinement == {}  # --refine 0: fitted around the network's own mean
     assert "Spearman of vectors (ceiling)" in report["markdown"]
+    # the subject probe (default: the first training subjects; the tiny dataset has one, T03), fitted and held out
+    probe = report["settings"]["subject_probe"]
+    assert probe["templates"] == ["T03"] and probe["seeds"] == [bench.SUBJECT_SEED]
+    assert "T03 (subject probe, seed 1000)" in written.fitted_on and {"T01", "T02"} <= set(written.fitted_on)
+    for row in ("raw", "calibrated"):
+        m = report["subject_probe_summary"][row]
+        assert 0 <= m["coverage_68"] <= m["coverage_95"] <= 1 and set(m["per_template"]) == {"T03"}
+    assert "calibrated (subject probe, mm)" in report["markdown"]
 
 
 @pytest.mark.parametrize("deformations", [0, bench.SEED_STRIDE + 1])

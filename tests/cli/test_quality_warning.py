@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
@@ -23,7 +24,7 @@ from monai_probreg.uncertainty.quality_features import QualityFeatures
 N = len(QualityFeatures._fields)
 
 
-def _quality_model(failure_intercept: float) -> QualityModel:
+def _quality_model(failure_intercept: float, entropy_calibration: dict | None = None) -> QualityModel:
     return QualityModel(
         list(QualityFeatures._fields),
         [-1e9] * N,
@@ -34,6 +35,7 @@ def _quality_model(failure_intercept: float) -> QualityModel:
         0.61,
         [0.0] * N,
         failure_intercept,
+        entropy_calibration=entropy_calibration or {},
     )
 
 
@@ -53,8 +55,8 @@ def scene(tmp_path_factory) -> SimpleNamespace:
     return s
 
 
-def _register(scene, out, failure_intercept: float, *extra: str):
-    save_quality_model(_quality_model(failure_intercept), scene.weights)
+def _register(scene, out, failure_intercept: float, *extra: str, entropy_calibration: dict | None = None):
+    save_quality_model(_quality_model(failure_intercept, entropy_calibration), scene.weights)
     try:
         return run_cli("register", "--moving", str(scene.moving), "--out", str(out), *scene.common, *extra)
     finally:
@@ -169,3 +171,46 @@ def test_with_refinement_the_estimate_reads_the_networks_registration(scene):
     run = json.loads((scene.root / "witness_3" / "summary.json").read_text())["model"]["refinement"]
     expected = {k: [v, run[k]] for k, v in RefinementSettings().as_dict().items() if run[k] != v}
     assert refined["refinement_differs_from_fit"] == expected and expected["num_iterations"] == [0, 3]
+
+
+@pytest.mark.parametrize("steps", ["0", "3"])
+def test_the_entropy_feature_takes_the_quality_models_own_calibration(scene, steps):
+    """A quality model that records the calibration of its fit's entropy gets the entropy under it, not under the
+    calibration in use (the tiny bundle's is raw): scaling every velocity std by 0.5 lowers the mean velocity entropy
+    by exactly 3 log 2 nats (three components), and leaves every other feature and the uncertainty maps as they were."""
+    results = {}
+    for name, calibration in (("in_use", None), ("halved", {"std_scale": 0.5, "bias_fraction": 0.0})):
+        out = scene.root / f"entropy_{name}_{steps}"
+        result = _register(scene, out, -20.0, "--refine", steps, "--no-qc", entropy_calibration=calibration)
+        assert result.rc == 0, result.err
+        results[name] = json.loads((out / "summary.json").read_text())
+    in_use, halved = (results[n]["quality"]["features"] for n in ("in_use", "halved"))
+    assert halved["entropy"] == pytest.approx(in_use["entropy"] - 3 * math.log(2), abs=1e-4)
+    assert {k: v for k, v in halved.items() if k != "entropy"} == pytest.approx(
+        {k: v for k, v in in_use.items() if k != "entropy"}, abs=1e-6
+    )
+    assert results["halved"]["uncertainty"] == results["in_use"]["uncertainty"]
+    if steps != "0":  # the refined answer's features follow the same rule (summary.json matches the bundle's record)
+        answers = [results[n]["quality"]["answer_features"]["entropy"] for n in ("in_use", "halved")]
+        assert answers[1] == pytest.approx(answers[0] - 3 * math.log(2), abs=1e-4)
+
+
+def test_the_raw_posterior_keeps_an_estimate_that_records_its_calibration(scene):
+    """--raw-uncertainty: a quality model that records its entropy's calibration still estimates, with that
+    calibration (halved std: 3 log 2 nats below the raw entropy); one that does not was fitted on the calibrated
+    posterior and is left out."""
+    summaries = {}
+    for name, extra, recorded in (
+        ("raw_recorded", ["--raw-uncertainty"], {"std_scale": 0.5, "bias_fraction": 0.0}),
+        ("raw_unrecorded", ["--raw-uncertainty"], None),
+        ("in_use", [], None),  # the tiny bundle has no calibration sidecar: the calibration in use is the raw one
+    ):
+        out = scene.root / name
+        result = _register(scene, out, 20.0, *extra, "--refine", "0", "--no-qc", entropy_calibration=recorded)
+        assert result.rc == 0, result.err
+        summaries[name] = json.loads((out / "summary.json").read_text())
+    assert summaries["raw_unrecorded"]["quality"] is None and summaries["raw_unrecorded"]["warning"] is None
+    recorded = summaries["raw_recorded"]
+    assert recorded["warning"]  # this hand-made model always warns
+    entropy = summaries["in_use"]["quality"]["features"]["entropy"]
+    assert recorded["quality"]["features"]["entropy"] == pytest.approx(entropy - 3 * math.log(2), abs=1e-4)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -30,6 +31,9 @@ def test_weights_without_a_quality_model_give_no_estimate(tmp_path):
     check = QualityCheck(torch.nn.Identity(), weights)
     assert not check.enabled and check("A", None, {}) is None
     assert not QualityCheck(torch.nn.Identity(), weights, calibrate=False).enabled
+    recorded = dataclasses.replace(_neutral_model(), entropy_calibration={"std_scale": 1.0, "bias_fraction": 0.0})
+    assert QualityCheck(torch.nn.Identity(), weights, calibrate=False, quality_model=recorded).enabled
+    assert not QualityCheck(torch.nn.Identity(), weights, calibrate=False, quality_model=_neutral_model()).enabled
 
 
 def _neutral_model() -> QualityModel:
@@ -65,3 +69,22 @@ def test_a_refined_workflow_reads_the_networks_own_registration():
     assert refined["answer_features"]["displacement_mm"] != pytest.approx(plain["features"]["displacement_mm"])
     off = QualityCheck(net, weights, quality_model=_neutral_model(), refinement=RefinementSettings())
     assert off("A", network_pair, targets)["answer_features"] is None  # 0 steps: the network's answer itself
+
+
+def test_the_entropy_feature_takes_the_quality_models_own_calibration():
+    """A quality model that records its fit's calibration gets the entropy under it, whatever the workflow's
+    std_scale / bias_fraction; one that does not gets the workflow's (here: halving the std lowers the mean velocity
+    entropy by 3 log 2 nats, three components)."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    net = ProbRegNet(network_size=(16, 16, 16), enc_channels=(4, 8, 8, 8), dec_channels=(8, 8, 8, 8, 4)).eval()
+    moving, fixed = _pair_inputs()
+    pair, targets = register_pair(net, moving, fixed), {"moving": moving, "fixed": fixed}
+    recorded = dataclasses.replace(_neutral_model(), entropy_calibration={"std_scale": 1.0, "bias_fraction": 0.0})
+
+    def entropy(model: QualityModel, std_scale: float) -> float:
+        return QualityCheck(net, "unused.pt", std_scale, quality_model=model)("A", pair, targets)["features"]["entropy"]
+
+    assert entropy(recorded, 0.5) == pytest.approx(entropy(recorded, 1.0), abs=1e-6)
+    assert entropy(_neutral_model(), 0.5) == pytest.approx(entropy(_neutral_model(), 1.0) - 3 * math.log(2), abs=1e-4)

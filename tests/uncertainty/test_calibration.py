@@ -9,6 +9,7 @@ import torch
 
 from monai_probreg.metrics.calibration import interval_coverage
 from monai_probreg.uncertainty.calibration import (
+    FIT_LEVELS,
     bias_variance,
     calibrate_log_var,
     calibration_for,
@@ -139,15 +140,20 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
 
     weights = Path(__file__).resolve().parents[2] / "bundle" / "models" / "model.pt"
     record = load_calibration(weights)  # raises when the SHA-256 does not match the weights
-    # the raw posterior is over-confident: it never sees the bias of the mean, which the second term adds
-    # (docs/uncertainty.md; fitted on the refined mean, the default path, the std scale itself is below 1)
-    assert record.std_scale > 0.0 and record.bias_fraction > 0.0
+    # the raw posterior is over-confident on the two probes together: the fit widens it (docs/uncertainty.md; since
+    # bundle 0.19.0 the subject probe's errors, not proportional to the displacement, leave the bias term at 0)
+    assert record.std_scale > 1.0 and record.bias_fraction >= 0.0
+    assert any("subject probe" in name for name in record.fitted_on)
     # fitted around the mean the configs give by default (the refined one, with these settings)
     from monai.bundle import ConfigParser
+
+    from monai_probreg.cli.demo import DEMO_SAMPLES
 
     parser = ConfigParser()
     parser.read_config(str(weights.parents[1] / "configs" / "inference.yaml"))
     assert parser.get_parsed_content("refinement").differences(record.refinement) == {}
+    # and sampled as it was fitted: a std from fewer samples is noisier and covers less
+    assert DEMO_SAMPLES == parser.get_parsed_content("num_samples") == record.num_samples
 
 
 # --- the bias term: (bias_fraction |u|)^2 added to every component's variance ---------------------------------------
@@ -234,3 +240,46 @@ def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
         load_calibration(weights)
     with pytest.raises(ValueError, match="bias_fraction"):
         save_calibration(weights, 2.0, bias_fraction=-1.0)
+
+
+# --- groups: several probes, each one's coverage matched on its own -------------------------------------------------
+
+
+def _grouped_toy():
+    """Group 0: 200k errors of scale 1; group 1: 10k errors of scale 3 (std 1 everywhere)."""
+    rng = np.random.default_rng(3)
+    sizes, scales = (200_000, 10_000), (1.0, 3.0)
+    error = np.concatenate([rng.standard_normal(n) * s for n, s in zip(sizes, scales)])
+    groups = np.repeat([0, 1], sizes)
+    return np.ones(error.size), error, np.zeros(error.size), groups
+
+
+def _grouped_cost(scale: float, std, error, groups, levels=FIT_LEVELS) -> float:
+    """The brute-force cost: sum over groups and levels of (coverage - level)^2."""
+    return sum(
+        (interval_coverage(scale * std[groups == g], error[groups == g], p) - p) ** 2
+        for g in np.unique(groups)
+        for p in levels
+    )
+
+
+def test_grouped_fit_minimises_the_summed_cost_of_the_groups():
+    std, error, norm, groups = _grouped_toy()
+    fitted = fit_calibration(std, error, norm, bias_fractions=(0.0,), groups=groups)
+    grid = np.geomspace(0.5, 5.0, 400)
+    brute = min(_grouped_cost(s, std, error, groups) for s in grid)
+    assert _grouped_cost(fitted.std_scale, std, error, groups) <= brute + 1e-6
+    # the small group is not drowned: one pool would fit close to the large group's scale
+    pooled = fit_calibration(std, error, norm, bias_fractions=(0.0,))
+    assert pooled.std_scale < 1.3 < 1.6 < fitted.std_scale < 3.0
+
+
+def test_one_group_is_no_group():
+    std, error, norm = _biased_toy(2.0, 0.2, n=250_000)  # more than the bias fraction's search subset
+    assert fit_calibration(std, error, norm, groups=np.full(std.shape, 7)) == fit_calibration(std, error, norm)
+
+
+@pytest.mark.parametrize("groups", [np.zeros(3, np.int64), np.zeros(4)])
+def test_fit_calibration_rejects_bad_groups(groups):
+    with pytest.raises(ValueError, match="groups must be integers"):
+        fit_calibration(np.ones(4), np.ones(4), np.ones(4), groups=groups)

@@ -148,6 +148,10 @@ def _model(**changes) -> dict:
         ({"lncc_drop_margin": -0.001}, "lncc_drop_margin"),
         ({"lncc_drop_margin": 1.0}, "lncc_drop_margin"),
         ({"dice_range": [0.8, 0.2]}, "dice_range"),
+        ({"entropy_calibration": {"std_scale": 0.5}}, "entropy_calibration must be"),
+        ({"entropy_calibration": {"std_scale": 0.5, "bias_fraction": 0.1, "x": 1}}, "entropy_calibration must be"),
+        ({"entropy_calibration": {"std_scale": 0.0, "bias_fraction": 0.1}}, "std_scale must be"),
+        ({"entropy_calibration": {"std_scale": 0.5, "bias_fraction": -0.1}}, "bias_fraction must be"),
     ],
 )
 def test_bad_model_values_are_refused(changes, match):
@@ -193,6 +197,8 @@ def test_the_shipped_default_weights_carry_their_own_quality_model():
     model = load_quality_model(weights)  # raises when the SHA-256 does not match the weights
     assert model is not None and len(model.fitted_on) >= 2
     assert not {"S11", "S14", "S16", "S21", "S28", "S29"} & set(model.fitted_on)  # never a validation subject
+    # the calibration its entropy feature was fitted with, whatever calibration the maps use now
+    assert set(model.entropy_calibration) == {"std_scale", "bias_fraction"}
     # fitted on the outcome of the path the configs run by default (the refined one, with these settings)
     parser = ConfigParser()
     parser.read_config(str(weights.parents[1] / "configs" / "inference.yaml"))
@@ -232,3 +238,18 @@ def test_the_record_names_both_feature_sets():
     assert record["features"]["ncc_after"] == pytest.approx(network.ncc_after)
     assert record["answer_features"]["ncc_after"] == pytest.approx(answer.ncc_after)
     assert quality_record(network, model.estimate(network))["answer_features"] is None
+
+
+def test_the_entropy_feature_keeps_the_fits_calibration():
+    """A sidecar that records its entropy's calibration gives it whatever calibration is in use; one without (before
+    0.19.0) reads the calibration in use; fit_quality_model records the one it is given, and it survives a round trip."""
+    from monai_probreg.uncertainty.calibration import Calibration
+
+    features, dice, failures = _training_set()
+    unrecorded = fit_quality_model(features, dice, failures)
+    assert unrecorded.entropy_calibration == {}
+    assert unrecorded.feature_calibration(0.7, 0.3) == Calibration(0.7, 0.3)
+    recorded = fit_quality_model(features, dice, failures, entropy_calibration=Calibration(0.49, 0.24))
+    assert recorded.entropy_calibration == {"std_scale": 0.49, "bias_fraction": 0.24}
+    assert recorded.feature_calibration(0.7, 0.3) == Calibration(0.49, 0.24)
+    assert QualityModel(**json.loads(json.dumps(dataclasses.asdict(recorded)))) == recorded

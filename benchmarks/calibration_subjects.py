@@ -90,7 +90,10 @@ def subject_errors(
     with tempfile.TemporaryDirectory() as tmp:  # the outputs themselves are not needed
         register_scan(model, case.fixed, case.subject.image, Path(tmp) / "out", options=options, check=keep)
     registered = kept[0]
-    flat = lambda a: a.reshape(-1, 3)[case.voxels].astype(np.float64)  # noqa: E731 - (*S, 3) -> (N, 3)
+
+    def flat(field: np.ndarray) -> np.ndarray:  # (*S, 3) -> (N, 3) at the case's voxels
+        return field.reshape(-1, 3)[case.voxels].astype(np.float64)
+
     points, truth, warp = flat(case.fixed.points), flat(case.subject.true_warp), flat(registered.warp)
     linear, offset = registered.affine[:3, :3], registered.affine[:3, 3]
     axes = np.asarray(registered.variance_axes, np.float64)

@@ -470,9 +470,8 @@ def part_groups(parts: Sequence[str], jobs: int) -> list[list[str]]:
     """``parts`` in at most ``jobs`` groups of similar total :data:`PART_COST` (greedy, costliest part first), each
     group in :data:`PARTS`' order."""
     groups: list[list[str]] = [[] for _ in range(max(1, min(jobs, len(parts))))]
-    cost = {p: PART_COST.get(p, 1) for p in parts}
-    for part in sorted(parts, key=lambda p: -cost[p]):
-        min(groups, key=lambda g: sum(cost[p] for p in g)).append(part)
+    for part in sorted(parts, key=lambda p: -PART_COST[p]):
+        min(groups, key=lambda g: sum(PART_COST[p] for p in g)).append(part)
     return [sorted(g, key=PARTS.index) for g in groups]
 
 

@@ -19,7 +19,7 @@ from torch import nn
 import monai_probreg
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.uncertainty.calibration import calibration_record_for
-from monai_probreg.uncertainty.quality import QualityModel, load_quality_model
+from monai_probreg.uncertainty.quality import QualityModel, load_quality_model, quality_model_for
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.provenance import file_sha256
 from monai_probreg.weights.loading import load_weights
@@ -105,11 +105,9 @@ def load_model(
         ) from None
     try:
         record = calibration_record_for(weights, calibrate)  # the sidecar read and checked once
-        quality_model = load_quality_model(weights) if quality else None
+        quality_model = quality_model_for(load_quality_model(weights), calibrate) if quality else None
     except ValueError as err:  # a sidecar of other weights, or corrupt
         raise InputError(f"--model-file {str(weights)!r}: {err}") from None
-    if quality_model is not None and not calibrate and not quality_model.entropy_calibration:
-        quality_model = None  # its entropy feature needs the calibration in use, and the raw posterior is not it
     return LoadedModel(
         network,
         divisor,

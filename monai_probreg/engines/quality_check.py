@@ -25,7 +25,13 @@ from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
-from monai_probreg.uncertainty.quality import QualityModel, load_quality_model, quality_path, quality_record
+from monai_probreg.uncertainty.quality import (
+    QualityModel,
+    load_quality_model,
+    quality_model_for,
+    quality_path,
+    quality_record,
+)
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.tensors import plain_tensor
 
@@ -61,13 +67,11 @@ class QualityCheck:
     ) -> None:
         self.network, self.std_scale, self.bias_fraction = network, float(std_scale), float(bias_fraction)
         self.refined = refinement is not None and refinement.enabled
-        self.model = quality_model if quality_model is not None else load_quality_model(model_file)
-        if self.model is not None and not calibrate and not self.model.entropy_calibration:
-            self.model = None
-            _LOG.info(f"no quality estimate for {model_file}: raw posterior (calibrate: false), and a quality model "
-                      "that does not record the calibration of its entropy feature")  # fmt: skip
-        elif self.model is None:
-            _LOG.info(f"no quality estimate for {model_file}: no {quality_path(model_file).name}")
+        given = quality_model if quality_model is not None else load_quality_model(model_file)
+        self.model = quality_model_for(given, calibrate)
+        if self.model is None:
+            why = f"no {quality_path(model_file).name}" if given is None else "raw posterior (calibrate: false)"
+            _LOG.info(f"no quality estimate for {model_file}: {why}")
 
     @property
     def enabled(self) -> bool:

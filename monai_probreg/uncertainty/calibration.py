@@ -87,7 +87,8 @@ class CalibrationRecord:
     levels: list[float] = field(default_factory=lambda: list(FIT_LEVELS))
     method: str = (
         "coverage matching: (std_scale, bias_fraction) of sigma^2 = std_scale^2 sigma^2 + (bias_fraction "
-        "|mean velocity|)^2 minimise the sum over levels and probes of (coverage - level)^2 of the sampled displacements"
+        "|mean velocity|)^2 minimise the sum over levels and probes of (coverage - level)^2 of the sampled "
+        "displacements"
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe
@@ -117,8 +118,7 @@ def calibrate_log_var(
     """log sigma^2 of the calibrated posterior: ``log(std_scale^2 exp(log_var) + (bias_fraction |mean|)^2)``, i.e.
     ``log_var + 2 log(std_scale)`` without the bias term. ``log_var`` any shape; with ``bias_fraction`` > 0,
     ``mean`` (B, D, *V) the posterior mean velocity, same shape as ``log_var``."""
-    _check_scale(std_scale)
-    _check_bias_fraction(bias_fraction)
+    check_calibration(std_scale, bias_fraction)
     if bias_fraction == 0:
         return log_var + 2.0 * math.log(std_scale)
     if mean is None or mean.shape != log_var.shape:
@@ -236,8 +236,7 @@ def save_calibration(
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
     ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
     network's mean)."""
-    _check_scale(std_scale)
-    _check_bias_fraction(bias_fraction)
+    check_calibration(std_scale, bias_fraction)
     record = CalibrationRecord(
         float(std_scale),
         Path(weights_file).name,
@@ -271,8 +270,7 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
             "or use std_scale 1 (raw)"
         )
     try:
-        _check_scale(record.std_scale)
-        _check_bias_fraction(record.bias_fraction)
+        check_calibration(record.std_scale, record.bias_fraction)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: {err}") from None
     if record.refinement is not None and not isinstance(record.refinement, dict):

@@ -35,8 +35,9 @@ included, with headers as they are and turned), and stored next to the
 weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration. The entropy feature is a
 calibrated one, and the sidecar keeps the calibration it was computed with at the fit (``entropy_calibration``):
 every estimate computes it with that one, so a refitted posterior calibration (what the uncertainty maps show) leaves
-the estimate as it was validated; a sidecar without it (before bundle 0.19.0) reads the calibration in use. Written by hand: ten lines of closed-form ridge and Newton's method, where scikit-learn would be
-a dependency for two linear models.
+the estimate as it was validated; a sidecar without it (before bundle 0.19.0) reads the calibration in use, and is
+not used under the raw posterior (:func:`quality_model_for`). Written by hand: ten lines of closed-form ridge and
+Newton's method, where scikit-learn would be a dependency for two linear models.
 """
 
 from __future__ import annotations
@@ -261,6 +262,15 @@ def fit_quality_model(
         refinement=dict(refinement or {}),
         entropy_calibration={} if entropy_calibration is None else Calibration(*entropy_calibration)._asdict(),
     )
+
+
+def quality_model_for(model: QualityModel | None, calibrate: bool) -> QualityModel | None:
+    """``model`` where it can be used with the posterior in use (``calibrate``: the weights' calibration; False: the raw
+    posterior), else None: a model that does not record its entropy's calibration reads the calibration in use, and
+    it was fitted on a calibrated one."""
+    if model is not None and not calibrate and not model.entropy_calibration:
+        return None
+    return model
 
 
 def quality_path(weights_file: str | os.PathLike) -> Path:

@@ -168,3 +168,30 @@ def test_records_that_do_not_name_their_calibration_are_refused(tmp_path):
     records.write_text(json.dumps({"refinement": {}, "train_records": [], "val_records": []}))
     with pytest.raises(SystemExit, match="entropy_calibration"):
         detection.main(["--records", str(records), "--out-dir", str(tmp_path / "out")])
+
+
+def test_the_shipped_quality_model_records_the_calibration_its_records_were_made_with():
+    """The shipped sidecar's entropy_calibration is the one the committed records' entropy feature was computed with:
+    S12 -> atlas is registered again (the network's own registration, what the feature reads) and its entropy
+    recomputed under it (real data: skipped without LPBA40; 0.842 stored; (0.5, 0.2) gives 0.483, the 0.19.0 maps'
+    calibration 2.031)."""
+    from bench_helpers import REPO
+    from common import DEFAULT_DATASET, bundle_parser
+
+    from monai_probreg.uncertainty.calibration import Calibration
+    from monai_probreg.uncertainty.quality import load_quality_model
+    from monai_probreg.weights.loading import load_weights
+
+    if not DEFAULT_DATASET.is_dir():
+        pytest.skip(f"LPBA40 not found at {DEFAULT_DATASET}")
+    weights = REPO / "bundle" / "models" / "model.pt"
+    records = json.loads((REPO / "benchmarks" / "results" / "failure_detection.json").read_text())
+    model = load_quality_model(weights)
+    assert records["entropy_calibration"] == model.entropy_calibration
+    case = {"moving": "S12", "fixed": "atlas", "perturbation": "none", "seed": 0}
+    stored = next(r for r in records["train_records"] if all(r[k] == v for k, v in case.items()))
+    evaluate = bundle_parser(REPO / "bundle", ["evaluate.yaml"], {"dataset_dir": str(DEFAULT_DATASET)})
+    network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), weights, "cpu")
+    scans = detection.load_scans(DEFAULT_DATASET, ["S12"], int(evaluate.get_parsed_content("divisor")))
+    again = detection.run_case(network, Calibration(**model.entropy_calibration), scans, case)
+    assert again["features"]["entropy"] == pytest.approx(stored["features"]["entropy"], abs=0.01)  # bf16 or fp32

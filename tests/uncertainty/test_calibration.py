@@ -277,6 +277,10 @@ def test_grouped_fit_minimises_the_summed_cost_of_the_groups():
 def test_one_group_is_no_group():
     std, error, norm = _biased_toy(2.0, 0.2, n=250_000)  # more than the bias fraction's search subset
     assert fit_calibration(std, error, norm, groups=np.full(std.shape, 7)) == fit_calibration(std, error, norm)
+    # two groups drawn from the same errors fit as one (each group's coverage is over its own entries)
+    halves = np.random.default_rng(2).integers(0, 2, std.size)
+    split = fit_calibration(std, error, norm, groups=halves)
+    assert split.std_scale == pytest.approx(2.0, rel=0.05) and split.bias_fraction == pytest.approx(0.2, abs=0.02)
 
 
 @pytest.mark.parametrize("groups", [np.zeros(3, np.int64), np.zeros(4)])

@@ -33,6 +33,10 @@ pairs, and per perturbation: Dice before and after, the share that failed and th
 
     python benchmarks/failure_detection.py --threads 2 --fit    # fits and writes <weights>.quality.json too
     python benchmarks/failure_detection.py --records benchmarks/results/failure_detection.json --fit  # refit only
+
+The registrations take one to two hours. Each one is logged as it ends (``OUT_DIR/failure_detection.partial.json``,
+written atomically); ``--resume`` reuses the logged ones and registers only the rest, so a run stopped part-way goes on
+where it stopped. A log made under other settings (weights, refinement, calibration, subjects, seed) is refused.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ import json
 import math
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +72,7 @@ from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.quality import QualityModel, failed, fit_quality_model, save_quality_model
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.files import write_text
+from monai_probreg.utils.provenance import file_sha256
 from monai_probreg.utils.tensors import plain_tensor
 from monai_probreg.weights.loading import load_weights
 
@@ -75,6 +81,45 @@ HEADER_TURNS = (0, 90, 180)  # degrees about the S axis through the scan's centr
 COMMAND = "command"  # the whole-command cases' perturbation name; turned ones add "_turn<degrees>"
 COMMAND_NAMES = tuple(f"{COMMAND}_turn{d}" if d else COMMAND for d in HEADER_TURNS)
 TRAIN_PARTNERS = 2  # normal training registrations per subject besides the atlas
+PARTIAL_LOG = "failure_detection.partial.json"  # the registrations done so far, in OUT_DIR (--resume)
+
+
+class RecordLog:
+    """The registrations done so far, one record per case, rewritten (atomically) after each new one at ``path``.
+
+    ``header``: what makes a record (JSON values: weights' SHA-256, refinement, entropy calibration, subjects, seed).
+    ``resume``: reuse the records of ``path`` when it exists; one made under another header is refused, naming the
+    fields that differ (records of other settings are never mixed in). Without ``resume`` the log starts empty and
+    replaces ``path`` at its first record. ``path`` None: nothing is kept (every case is registered)."""
+
+    def __init__(self, path: Path | None, header: dict[str, Any], resume: bool = False) -> None:
+        self.path, self.header, self.records = path, json.loads(json.dumps(header)), {}
+        if resume and path is not None and path.is_file():
+            stored = json.loads(path.read_text())
+            recorded = stored.get("header", {})
+            differ = {k: [recorded.get(k), v] for k, v in self.header.items() if recorded.get(k) != v}
+            if differ:
+                raise SystemExit(
+                    f"{path}: logged under other settings, not resumed (name: [logged, now]): {differ}; "
+                    "run without --resume to start again"
+                )
+            self.records = dict(stored["records"])
+        self.reused = len(self.records)
+
+    @staticmethod
+    def key(kind: str, case: dict[str, Any]) -> str:
+        """``kind`` (train, val, command) and the case's moving, fixed, perturbation and seed."""
+        return json.dumps([kind, *(case[k] for k in ("moving", "fixed", "perturbation", "seed"))])
+
+    def get(self, kind: str, case: dict[str, Any]) -> dict | None:
+        return self.records.get(self.key(kind, case))
+
+    def put(self, kind: str, case: dict[str, Any], record: dict) -> dict:
+        self.records[self.key(kind, case)] = record
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            write_text(self.path, json.dumps({"header": self.header, "records": self.records}) + "\n")
+        return record
 
 
 def load_scans(dataset_dir: Path, ids: list[str], divisor: int) -> dict[str, dict]:
@@ -169,10 +214,12 @@ def command_cases(
     seed: int,
     refine: int | None = None,
     entropy_calibration: Calibration | None = None,
+    log: RecordLog | None = None,
 ) -> list[dict]:
     """Each subject through the whole command onto the atlas, its header as it is and turned (module docstring), with
     inference.yaml's refinement (``refine`` steps when given), as ``monai-probreg register`` runs it.
-    ``entropy_calibration``: the posterior calibration of the entropy feature (None: the weights' sidecar's)."""
+    ``entropy_calibration``: the posterior calibration of the entropy feature (None: the weights' sidecar's).
+    ``log``: the cases it holds are taken from it, the others registered and added to it."""
     from monai_probreg.cli.model import load_model  # the command line's own loading, calibration and brain mask
     from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 
@@ -200,6 +247,11 @@ def command_cases(
     with tempfile.TemporaryDirectory(prefix="failure_command_") as tmp:
         for sid in ids:
             for degrees, name in zip(HEADER_TURNS, COMMAND_NAMES):
+                case = {"moving": sid, "fixed": ATLAS_ID, "perturbation": name, "seed": seed}
+                logged = log.get(COMMAND, case) if log is not None else None
+                if logged is not None:
+                    records.append(logged)
+                    continue
                 scan, labels = turned_inputs(index.images[sid], index.labels[sid], degrees, Path(tmp))
                 summary = register_scan(
                     model,
@@ -210,25 +262,38 @@ def command_cases(
                     RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed, refinement=refinement),
                 )
                 dice, before = summary["dice"]["mean"], summary["dice"]["mean_affine_only"]
-                records.append(
-                    {
-                        "moving": sid,
-                        "fixed": ATLAS_ID,
-                        "perturbation": name,
-                        "seed": seed,
-                        "dice": dice,
-                        "dice_identity": identity_dice[sid],
-                        "dice_before": before,
-                        "failed": failed(dice, before, identity_dice[sid]),
-                        "features": summary["quality"]["features"],
-                        "answer_features": summary["quality"]["answer_features"],
-                    }
-                )
+                record = {
+                    **case,
+                    "dice": dice,
+                    "dice_identity": identity_dice[sid],
+                    "dice_before": before,
+                    "failed": failed(dice, before, identity_dice[sid]),
+                    "features": summary["quality"]["features"],
+                    "answer_features": summary["quality"]["answer_features"],
+                }
+                records.append(record if log is None else log.put(COMMAND, case, record))
                 print(
                     f"[command] {sid} header turned {degrees} deg: Dice {before:.3f} (affine) -> {dice:.3f}"
-                    f"{' FAILED' if records[-1]['failed'] else ''}",
+                    f"{' FAILED' if record['failed'] else ''}",
                     flush=True,
                 )
+    return records
+
+
+def logged_cases(kind: str, cases: list[dict], run: Callable[[dict], dict], log: RecordLog) -> list[dict]:
+    """``run(case)`` for each case, in order, but those ``log`` holds (taken from it); each new record is logged."""
+    records = []
+    for n, case in enumerate(cases):
+        r = log.get(kind, case)
+        if r is None:
+            r = log.put(kind, case, run(case))
+            print(
+                f"[{kind} {n + 1}/{len(cases)}] {r['moving']} -> {r['fixed']} ({r['perturbation']}): Dice "
+                f"{r['dice_identity']:.3f} -> {r['dice']:.3f}{' FAILED' if r['failed'] else ''}  "
+                f"ncc {r['features']['ncc_before']:.2f} -> {r['features']['ncc_after']:.2f}",
+                flush=True,
+            )
+        records.append(r)
     return records
 
 
@@ -436,6 +501,11 @@ def main(argv=None) -> int:
     ap.add_argument("--subjects", nargs="+", default=None, help="validation subjects (default: val_ids of train.yaml)")
     ap.add_argument("--records", type=Path, default=None, help="reuse the registrations of an earlier run's JSON")
     ap.add_argument("--fit", action="store_true", help="write the fitted model next to the weights")
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help=f"reuse the registrations logged in OUT_DIR/{PARTIAL_LOG} by a run stopped part-way (module docstring)",
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
@@ -479,6 +549,7 @@ def main(argv=None) -> int:
                 "calibration sidecar when they were made)"
             )
         calibration = Calibration(**stored["entropy_calibration"])
+        log = None  # the whole-command cases (records without them) are registered anew
     else:
         network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
         calibration = calibration_for(model_file)
@@ -495,19 +566,27 @@ def main(argv=None) -> int:
         index = index_dataset(args.dataset_dir)
         train_ids = [i for i in index.ids if i not in val_ids][: args.train_subjects]
         scans = load_scans(args.dataset_dir, train_ids + val_ids, int(evaluate.get_parsed_content("divisor")))
+        log = RecordLog(
+            args.out_dir / PARTIAL_LOG,
+            {
+                "weights_sha256": file_sha256(model_file),
+                "refinement": refinement_record,
+                "entropy_calibration": calibration._asdict(),
+                "train_ids": train_ids,
+                "val_ids": val_ids,
+                "seed": args.seed,
+                "command_refine": args.refine,
+            },
+            resume=args.resume,
+        )
+        if log.reused:
+            print(f"resumed: {log.reused} registrations from {log.path}", flush=True)
         records = {}
         for split, ids, seed in (("train", train_ids, args.seed), ("val", val_ids, args.seed + 100_000)):
             cases = cases_for(ids, seed, training=split == "train")
-            records[split] = []
-            for n, case in enumerate(cases):
-                r = run_case(network, calibration, scans, case, refinement)
-                records[split].append(r)
-                print(
-                    f"[{split} {n + 1}/{len(cases)}] {r['moving']} -> {r['fixed']} ({r['perturbation']}): Dice "
-                    f"{r['dice_identity']:.3f} -> {r['dice']:.3f}{' FAILED' if r['failed'] else ''}  "
-                    f"ncc {r['features']['ncc_before']:.2f} -> {r['features']['ncc_after']:.2f}",
-                    flush=True,
-                )
+            records[split] = logged_cases(
+                split, cases, lambda case: run_case(network, calibration, scans, case, refinement), log
+            )
         train_records, val_records = records["train"], records["val"]
         args.out_dir.mkdir(parents=True, exist_ok=True)  # the registrations first: a refit needs only these
         write_text(
@@ -539,7 +618,7 @@ def main(argv=None) -> int:
         for records, seed in ((train_records, args.seed), (val_records, args.seed + 100_000)):
             ids = sorted({r["moving"] for r in records} - native_ids)
             records += command_cases(
-                args.dataset_dir, ids, bundle_root, model_file, identity, seed, args.refine, calibration
+                args.dataset_dir, ids, bundle_root, model_file, identity, seed, args.refine, calibration, log
             )
     fitted_on = sorted({r["moving"] for r in train_records})
     model = fit_quality_model(

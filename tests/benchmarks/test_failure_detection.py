@@ -195,3 +195,63 @@ def test_the_shipped_quality_model_records_the_calibration_its_records_were_made
     scans = detection.load_scans(DEFAULT_DATASET, ["S12"], int(evaluate.get_parsed_content("divisor")))
     again = detection.run_case(network, Calibration(**model.entropy_calibration), scans, case)
     assert again["features"]["entropy"] == pytest.approx(stored["features"]["entropy"], abs=0.01)  # bf16 or fp32
+
+
+HEADER = {"weights_sha256": "ab", "refinement": {"num_iterations": 10}, "seed": 0, "train_ids": ["S12"]}
+CASES = [{"moving": "S12", "fixed": "atlas", "perturbation": p, "seed": i} for i, p in enumerate(("none", "blank"))]
+
+
+def _record(case: dict) -> dict:
+    return {
+        **case,
+        "dice": 0.7,
+        "dice_identity": 0.5,
+        "failed": False,
+        "features": {"ncc_before": 0.1, "ncc_after": 0.9},
+    }
+
+
+def test_a_resumed_log_registers_only_the_cases_it_lacks(tmp_path):
+    path = tmp_path / "out" / detection.PARTIAL_LOG
+    first = detection.RecordLog(path, HEADER)
+    detection.logged_cases("train", CASES[:1], _record, first)  # stopped after one registration
+    assert json.loads(path.read_text())["header"] == HEADER
+    resumed = detection.RecordLog(path, HEADER, resume=True)
+    assert resumed.reused == 1
+    ran = []
+    records = detection.logged_cases("train", CASES, lambda case: ran.append(case) or _record(case), resumed)
+    assert ran == CASES[1:] and records == [_record(c) for c in CASES]
+    # another split with the same cases is not the same registration
+    assert detection.RecordLog(path, HEADER, resume=True).get("val", CASES[0]) is None
+
+
+def test_a_log_of_other_settings_is_refused_and_without_resume_replaced(tmp_path):
+    path = tmp_path / detection.PARTIAL_LOG
+    detection.logged_cases("train", CASES, _record, detection.RecordLog(path, HEADER))
+    other = {**HEADER, "refinement": {"num_iterations": 0}}
+    with pytest.raises(SystemExit, match=r"refinement.*num_iterations.*10.*num_iterations.*0"):
+        detection.RecordLog(path, other, resume=True)
+    fresh = detection.RecordLog(path, other)  # no --resume: starts empty, replaces the old log at its first record
+    assert fresh.reused == 0 and fresh.get("train", CASES[0]) is None
+    detection.logged_cases("train", CASES[:1], _record, fresh)
+    assert json.loads(path.read_text())["header"]["refinement"] == {"num_iterations": 0}
+    assert len(json.loads(path.read_text())["records"]) == 1
+
+
+def test_command_cases_take_logged_registrations_from_the_log(tmp_path, monkeypatch):
+    import monai_probreg.cli.pipeline as pipeline
+
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    path = tmp_path / "out" / detection.PARTIAL_LOG
+    common = (dataset, ["T01"], bundle, None, {"T01": 0.5})
+    first = detection.command_cases(*common, seed=3, refine=0, log=detection.RecordLog(path, HEADER))
+
+    def no_registration(*args, **kwargs):
+        raise AssertionError("a logged case was registered again")
+
+    monkeypatch.setattr(pipeline, "register_scan", no_registration)
+    again = detection.command_cases(*common, seed=3, refine=0, log=detection.RecordLog(path, HEADER, resume=True))
+    assert again == first and len(again) == len(detection.COMMAND_NAMES)
+    with pytest.raises(AssertionError, match="registered again"):  # another seed is another case
+        detection.command_cases(*common, seed=4, refine=0, log=detection.RecordLog(path, HEADER, resume=True))

@@ -575,7 +575,10 @@ def main(argv=None) -> int:
                 "train_ids": train_ids,
                 "val_ids": val_ids,
                 "seed": args.seed,
-                "command_refine": args.refine,
+                "command_refine": args.refine,  # the whole-command cases: inference.yaml's refinement, or N steps of it
+                "command_refinement": bundle_parser(bundle_root, ["inference.yaml"])
+                .get_parsed_content("refinement")
+                .as_dict(),
             },
             resume=args.resume,
         )

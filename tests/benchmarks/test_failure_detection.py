@@ -255,3 +255,14 @@ def test_command_cases_take_logged_registrations_from_the_log(tmp_path, monkeypa
     assert again == first and len(again) == len(detection.COMMAND_NAMES)
     with pytest.raises(AssertionError, match="registered again"):  # another seed is another case
         detection.command_cases(*common, seed=4, refine=0, log=detection.RecordLog(path, HEADER, resume=True))
+
+
+def test_command_cases_refuse_a_refinement_changed_since_the_run_started(tmp_path):
+    """The whole-command cases load the model (inference.yaml) when they start, late in a run: if the configs changed
+    since the run's log was begun, their records would be of other settings than the rest."""
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    started = {**HEADER, "command_refinement": {"num_iterations": 99}}
+    log = detection.RecordLog(tmp_path / detection.PARTIAL_LOG, started)
+    with pytest.raises(SystemExit, match=r"num_iterations.*99"):
+        detection.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3, log=log)

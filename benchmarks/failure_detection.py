@@ -243,9 +243,9 @@ def command_cases(
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
     # None: the command's default path (the config's refinement)
     refinement = None if refine is None else dataclasses.replace(model.refinement, num_iterations=refine)
-    logged = None if log is None else log.header.get("command_refinement")
-    if logged is not None and logged != model.refinement.as_dict():  # inference.yaml changed since the run started
-        differ = {k: [logged.get(k), v] for k, v in model.refinement.as_dict().items() if logged.get(k) != v}
+    started = None if log is None else log.header.get("command_refinement")
+    differ = {} if started is None else model.refinement.differences(started)
+    if differ:  # inference.yaml changed since the run started
         raise SystemExit(
             f"inference.yaml's refinement is not the one this run started with (name: [at the start, now]): {differ}"
         )

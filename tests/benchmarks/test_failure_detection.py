@@ -173,8 +173,8 @@ def test_records_that_do_not_name_their_calibration_are_refused(tmp_path):
 def test_the_shipped_quality_model_records_the_calibration_its_records_were_made_with():
     """The shipped sidecar's entropy_calibration is the one the committed records' entropy feature was computed with:
     S12 -> atlas is registered again (the network's own registration, what the feature reads) and its entropy
-    recomputed under it (real data: skipped without LPBA40; 0.842 stored; (0.5, 0.2) gives 0.483, the 0.19.0 maps'
-    calibration 2.031)."""
+    recomputed under it (real data: skipped without LPBA40; 1.453 stored, under bundle 0.20.0's calibration, std_scale
+    1.477; bundle 0.18.0's (0.491, 0.237) gives 0.842, 0.19.0's (1.791, 0) 2.031)."""
     from bench_helpers import REPO
     from common import DEFAULT_DATASET, bundle_parser
 

@@ -85,8 +85,11 @@ def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
     default = parser.get_parsed_content("inferer").refinement
-    # the shipped default path: 10 steps with the loss images twice finer, the library's other defaults
-    expected = RefinementSettings(num_iterations=parser["refine_iterations"], image_grid_factor=2)
+    # the shipped default path: 10 steps of 0.3 with a quarter of the pull (bundle 0.20.0), the loss images twice
+    # finer, the library's other defaults
+    expected = RefinementSettings(
+        num_iterations=parser["refine_iterations"], learning_rate=0.3, posterior_weight=0.25, image_grid_factor=2
+    )
     assert default.enabled and default == expected and parser["refine_image_grid_factor"] == 2
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))

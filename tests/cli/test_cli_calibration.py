@@ -72,6 +72,8 @@ def test_calibrated_by_default_raw_on_request(scene):
     # this sidecar was fitted around the network's mean ({}); the run refines as the configs do by default
     assert summary["model"]["calibration_refinement_differs_from_fit"] == {
         "num_iterations": [0, 10],
+        "learning_rate": [0.1, 0.06],  # the shipped 0.3 on the tiny bundle's 16^3 grid (conftest.tiny_bundle)
+        "posterior_weight": [1.0, 0.25],
         "image_grid_factor": [1, 2],
     }
     rc, summary, raw = _register(scene, "raw", "--raw-uncertainty")

@@ -189,10 +189,10 @@ def tiny_bundle(root: Path, bundle_dir: Path, network_size: Sequence[int] = (16,
     text = config.read_text()
     assert "network_size: [80, 96, 80]" in text
     text = text.replace("network_size: [80, 96, 80]", f"network_size: {list(network_size)}")
-    # the refinement's step is in velocity-grid voxels: on a grid min(network_size) / 80 as fine, the shipped step
-    # would be that much larger in mm, so it is scaled to stay the shipped step in mm
+    # the refinement's step is in velocity-grid voxels: on a grid min(network_size) / min(80, 96, 80) as fine as the
+    # shipped one, the shipped step would be that much larger in mm, so it is scaled to stay the shipped step in mm
     step = re.search(r"^refine_learning_rate: ([0-9.]+)", text, re.MULTILINE)
-    scaled = float(step.group(1)) * min(network_size) / 80
+    scaled = float(step.group(1)) * min(network_size) / min(80, 96, 80)
     config.write_text(text.replace(step.group(0), f"refine_learning_rate: {scaled:.6g}"))
     return root
 

@@ -22,8 +22,8 @@ pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def test_evaluate_scores_every_labelled_subject(tmp_path, tiny_dataset, bundle, capsys):
-    # the network alone (refine_iterations 0): the default refinement moves even the random model's field (its pull
-    # towards the untrained mean is a quarter of its posterior std); refinement in the evaluator: the next test
+    # the network alone (refine_iterations 0): the default refinement moves even the random model's field (its pull,
+    # 0.25 in units of the untrained posterior's std of about a voxel, is weak); refinement in the evaluator: next test
     wf = infer_workflow("evaluate.yaml", bundle, tiny_dataset, tmp_path / "out", refine_iterations=0)
     assert wf.check_properties() == []  # InferProperties (+ MetaProperties when metadata.json exists), optional IDs
     wf.run()

@@ -8,7 +8,11 @@ finer, 2 mm, the paper's velocity grid). Each variant registers the same pairs t
 
 - LPBA40 training subjects (pairs of ``--lpba40-pairs``): Dice over the 56 structures;
 - synthetic heads rendered from SynthSeg label maps 01-10 (the maps ``train_synth.yaml`` trains on; 11-12 are the
-  generalisation benchmark's, 13-20 are left alone): Dice over FreeSurfer's aseg structures.
+  generalisation benchmark's, 13-20 are left alone): Dice over FreeSurfer's aseg structures;
+- the identity cases: one training scan and one training head each registered onto an exact copy of itself, where
+  the right answer is no displacement at all: the median length of ``warp.nii.gz``'s displacement inside the labels
+  (mm), what a variant invents where there is nothing to register (a larger step won the pairs in bundle 0.20.0 and
+  lost here: docs/accuracy.md).
 
     python benchmarks/refinement_levers.py --threads 1 --label-maps SynthSeg/data/training_label_maps
 
@@ -26,6 +30,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import itk
 import numpy as np
 import torch
 from common import parse_variant
@@ -44,6 +49,9 @@ DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
 LPBA40_PAIRS = ("S12:S13", "S15:S17", "S18:S19")  # moving:fixed, training subjects (train.yaml's val_ids excluded)
 SYNTH_PAIRS = ("training_seg_01:training_seg_02", "training_seg_03:training_seg_04")
 SYNTH_SEED = 0  # the random deformation and contrast of each synthetic head (generalization.synthetic_head)
+IDENTITY_SCANS = ("S12",)  # training subjects registered onto an exact copy of themselves
+IDENTITY_MAPS = ("training_seg_01",)  # training label maps whose head is registered onto an exact copy of itself
+IDENTITY = "identity"  # the name prefix of those cases
 # name -> RefinementSettings fields replaced in the bundle's settings
 VARIANTS = {
     "network": {"num_iterations": 0},
@@ -59,10 +67,25 @@ def fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.4f}"
 
 
+def invented_displacement_mm(warp_path: Path, mask: np.ndarray) -> float:
+    """Median length (mm) of the displacement ``D(p)`` of ``warp_path`` (the command's ``warp.nii.gz``, LPS mm on the
+    fixed grid) over the voxels where ``mask`` (the fixed grid's shape, index order) is true."""
+    # ITK's array is (z, y, x, 3): back to index order (x, y, z), the order of read_label's arrays
+    warp = itk.array_from_image(itk.imread(str(warp_path))).transpose(2, 1, 0, 3)
+    if warp.shape[:3] != mask.shape:
+        raise ValueError(f"{warp_path}: expected a field of shape {mask.shape} (the mask's); got {warp.shape[:3]}")
+    return float(np.median(np.linalg.norm(warp[mask], axis=-1)))
+
+
 def cases(dataset: Path, label_maps: Path | None, tmp: Path) -> list[tuple[str, Path, Path, Path, Path, list[int]]]:
-    """(name, moving, moving_label, fixed, fixed_label, labels) of every pair whose data is here."""
+    """(name, moving, moving_label, fixed, fixed_label, labels) of every pair whose data is here, the identity cases
+    (moving and fixed the same files) named ``IDENTITY ...``."""
     out = []
     if dataset.is_dir():
+        for sid in IDENTITY_SCANS:
+            paths = [dataset / kind / f"{sid}.nii.gz" for kind in ("images", "labels")]
+            if all(p.is_file() for p in paths):
+                out.append((f"{IDENTITY} lpba40 {sid}", *paths, *paths, []))
         for pair in LPBA40_PAIRS:
             m, f = pair.split(":")
             # moving image, moving labels, fixed image, fixed labels
@@ -71,6 +94,10 @@ def cases(dataset: Path, label_maps: Path | None, tmp: Path) -> list[tuple[str, 
                 labels = [int(v) for v in np.unique(read_label(paths[3]).array) if v > 0]
                 out.append((f"lpba40 {m}->{f}", *paths, labels))
     if label_maps is not None:
+        for name in IDENTITY_MAPS:
+            if (label_maps / f"{name}.nii.gz").is_file():
+                head = synthetic_head(label_maps / f"{name}.nii.gz", SYNTH_SEED, tmp)
+                out.append((f"{IDENTITY} synth {name[-2:]}", *head, *head, []))
         for pair in SYNTH_PAIRS:
             m, f = pair.split(":")
             if all((label_maps / f"{n}.nii.gz").is_file() for n in (m, f)):
@@ -96,7 +123,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown variants {unknown}: expected one of {list(VARIANTS)} or name=field:value,...")
     variants = dict(parse_variant(v) if "=" in v else (v, VARIANTS[v]) for v in args.variants)
-    rows: dict[str, dict] = {name: {"per_pair": {}, "num_folding": 0, "refine_s": []} for name in variants}
+    rows: dict[str, dict] = {
+        name: {"per_pair": {}, "identity_mm": {}, "num_folding": 0, "refine_s": []} for name in variants
+    }
     with tempfile.TemporaryDirectory(prefix="refinement_levers_") as tmp:
         for name, moving, moving_label, fixed_image, fixed_label, labels in cases(
             args.dataset_dir, args.label_maps, Path(tmp)
@@ -109,23 +138,29 @@ def main(argv: Sequence[str] | None = None) -> int:
                 out = Path(tmp) / f"{name}_{variant}".replace(" ", "_").replace(">", "")
                 start = time.perf_counter()
                 summary = register_scan(model, fixed, moving, out, moving_label, options)
-                score = dice(read_label(out / "warped_label.nii.gz").array, target, labels)
                 row = rows[variant]
-                row["per_pair"][name] = score
+                if name.startswith(IDENTITY):
+                    score = row["identity_mm"][name] = invented_displacement_mm(out / "warp.nii.gz", target > 0)
+                    what = "invented mm"
+                else:
+                    score = row["per_pair"][name] = dice(read_label(out / "warped_label.nii.gz").array, target, labels)
+                    what = "dice"
                 row["num_folding"] += int(summary["jacobian"]["num_nonpositive"])
                 row["refine_s"].append(summary["timings_s"].get("refine", 0.0))
-                print(f"{name:24s} {variant:12s} dice {score:.4f} ({time.perf_counter() - start:.1f} s)", flush=True)
-    lines = ["| variant | settings | LPBA40 Dice | synthetic Dice | folds | refine s |", "|---|---|---|---|---|---|"]
+                print(f"{name:24s} {variant:12s} {what} {score:.4f} ({time.perf_counter() - start:.1f} s)", flush=True)
+    lines = ["| variant | settings | LPBA40 Dice | synthetic Dice | identity: invented mm | folds | refine s |"]
+    lines.append("|---|---|---|---|---|---|---|")
     for variant, row in rows.items():
         scores = row["per_pair"]
         lp = [v for k, v in scores.items() if k.startswith("lpba40")]
         sy = [v for k, v in scores.items() if k.startswith("synth")]
         row["lpba40"] = float(np.mean(lp)) if lp else None
         row["synthetic"] = float(np.mean(sy)) if sy else None
+        row["identity"] = float(np.mean(list(row["identity_mm"].values()))) if row["identity_mm"] else None
         row["refine_s"] = float(np.mean(row["refine_s"])) if row["refine_s"] else None
         lines.append(
             f"| {variant} | {variants[variant]} | {fmt(row['lpba40'])} | {fmt(row['synthetic'])} | "
-            f"{row['num_folding']} | {fmt(row['refine_s'])} |"
+            f"{fmt(row['identity'])} | {row['num_folding']} | {fmt(row['refine_s'])} |"
         )
     result = {"variants": variants, "rows": rows, "threads": args.threads, "versions": library_versions()}
     result["markdown"] = "\n".join(lines)

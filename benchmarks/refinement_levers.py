@@ -94,15 +94,20 @@ def cases(dataset: Path, label_maps: Path | None, tmp: Path) -> list[tuple[str, 
                 labels = [int(v) for v in np.unique(read_label(paths[3]).array) if v > 0]
                 out.append((f"lpba40 {m}->{f}", *paths, labels))
     if label_maps is not None:
+        heads: dict[str, tuple[Path, Path]] = {}  # each map's head is rendered once, however many cases use it
+
+        def head(name: str) -> tuple[Path, Path]:
+            if name not in heads:
+                heads[name] = synthetic_head(label_maps / f"{name}.nii.gz", SYNTH_SEED, tmp)
+            return heads[name]
+
         for name in IDENTITY_MAPS:
             if (label_maps / f"{name}.nii.gz").is_file():
-                head = synthetic_head(label_maps / f"{name}.nii.gz", SYNTH_SEED, tmp)
-                out.append((f"{IDENTITY} synth {name[-2:]}", *head, *head, []))
+                out.append((f"{IDENTITY} synth {name[-2:]}", *head(name), *head(name), []))
         for pair in SYNTH_PAIRS:
             m, f = pair.split(":")
             if all((label_maps / f"{n}.nii.gz").is_file() for n in (m, f)):
-                moving = synthetic_head(label_maps / f"{m}.nii.gz", SYNTH_SEED, tmp)
-                fixed = synthetic_head(label_maps / f"{f}.nii.gz", SYNTH_SEED, tmp)
+                moving, fixed = head(m), head(f)
                 out.append((f"synth {m[-2:]}->{f[-2:]}", *moving, *fixed, list(ASEG_LABELS)))
                 out.append((f"synth {f[-2:]}->{m[-2:]}", *fixed, *moving, list(ASEG_LABELS)))
     return out

@@ -182,17 +182,21 @@ def moved_scan(
     return moved, moved_labels, index_to_lps
 
 
+SHIPPED_NETWORK_SIZE = (80, 96, 80)  # inference.yaml's network_size (the grid the shipped weights run on)
+
+
 def tiny_bundle(root: Path, bundle_dir: Path, network_size: Sequence[int] = (16, 16, 16)) -> Path:
     """:func:`bundle_with_random_model` whose inference.yaml runs the UNet at ``network_size`` (fast tests)."""
     bundle_with_random_model(root, bundle_dir)
     config = root / "configs" / "inference.yaml"
     text = config.read_text()
-    assert "network_size: [80, 96, 80]" in text
-    text = text.replace("network_size: [80, 96, 80]", f"network_size: {list(network_size)}")
-    # the refinement's step is in velocity-grid voxels: on a grid min(network_size) / min(80, 96, 80) as fine as the
-    # shipped one, the shipped step would be that much larger in mm, so it is scaled to stay the shipped step in mm
+    shipped = f"network_size: {list(SHIPPED_NETWORK_SIZE)}"
+    assert shipped in text
+    text = text.replace(shipped, f"network_size: {list(network_size)}")
+    # the refinement's step is in velocity-grid voxels: on a grid min(network_size) / min(SHIPPED_NETWORK_SIZE) as fine
+    # as the shipped one, the shipped step would be that much larger in mm, so it is scaled to stay the shipped step
     step = re.search(r"^refine_learning_rate: ([0-9.]+)", text, re.MULTILINE)
-    scaled = float(step.group(1)) * min(network_size) / min(80, 96, 80)
+    scaled = float(step.group(1)) * min(network_size) / min(SHIPPED_NETWORK_SIZE)
     config.write_text(text.replace(step.group(0), f"refine_learning_rate: {scaled:.6g}"))
     return root
 

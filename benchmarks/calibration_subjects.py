@@ -70,7 +70,11 @@ def subject_errors(
     with its posterior calibrated by ``calibration`` (``refinement``: the model's own when None), ``samples``
     posterior samples (seeded by the case)."""
     model = dataclasses.replace(
-        model, std_scale=calibration.std_scale, bias_fraction=calibration.bias_fraction, quality=None
+        model,
+        std_scale=calibration.std_scale,
+        bias_fraction=calibration.bias_fraction,
+        interval_dof=calibration.interval_dof,
+        quality=None,
     )
     options = RegistrationOptions(
         samples=samples,

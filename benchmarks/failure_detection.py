@@ -69,7 +69,13 @@ from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.metrics.scores import score_pair
 from monai_probreg.uncertainty.calibration import Calibration, calibration_for
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
-from monai_probreg.uncertainty.quality import QualityModel, failed, fit_quality_model, save_quality_model
+from monai_probreg.uncertainty.quality import (
+    QualityModel,
+    entropy_calibration_record,
+    failed,
+    fit_quality_model,
+    save_quality_model,
+)
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256
@@ -237,7 +243,7 @@ def command_cases(
         0.5,
         [0.0] * n,
         0.0,
-        entropy_calibration={} if entropy_calibration is None else entropy_calibration._asdict(),
+        entropy_calibration={} if entropy_calibration is None else entropy_calibration_record(entropy_calibration),
     )
     model = dataclasses.replace(load_model(bundle_root, model_file, quality=False), quality=neutral)
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
@@ -577,7 +583,7 @@ def main(argv=None) -> int:
             {
                 "weights_sha256": file_sha256(model_file),
                 "refinement": refinement_record,
-                "entropy_calibration": calibration._asdict(),
+                "entropy_calibration": entropy_calibration_record(calibration),
                 "train_ids": train_ids,
                 "val_ids": val_ids,
                 "seed": args.seed,
@@ -604,7 +610,7 @@ def main(argv=None) -> int:
                 {
                     "model_file": str(model_file),
                     "refinement": refinement_record,
-                    "entropy_calibration": calibration._asdict(),
+                    "entropy_calibration": entropy_calibration_record(calibration),
                     "train_records": train_records,
                     "val_records": val_records,
                 }
@@ -659,7 +665,7 @@ def main(argv=None) -> int:
             {
                 "model_file": str(model_file),
                 "refinement": refinement_record,
-                "entropy_calibration": calibration._asdict(),
+                "entropy_calibration": entropy_calibration_record(calibration),
                 "validation": result,
                 "training_fit": train_result,
                 "markdown": table,

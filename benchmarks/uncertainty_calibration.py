@@ -71,6 +71,7 @@ from monai_probreg.metrics.calibration import (
 )
 from monai_probreg.networks.velocity_unet import VelocityPosterior
 from monai_probreg.uncertainty.calibration import (
+    FIT_LEVELS,
     Calibration,
     calibrate_log_var,
     fit_calibration,
@@ -235,13 +236,16 @@ def recovered_fraction(error: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sum((error + truth) * truth) / np.sum(truth**2))
 
 
-def displacement_metrics(std: np.ndarray, error: np.ndarray) -> dict[str, float]:
-    """Metrics of (3, N) std and error: per component, and of the vectors (std_c combined, error length)."""
+def displacement_metrics(std: np.ndarray, error: np.ndarray, interval_dof: float | None = None) -> dict[str, Any]:
+    """Metrics of (3, N) std and error: per component, and of the vectors (std_c combined, error length). The
+    intervals are Student-t with ``interval_dof`` degrees of freedom (None: Gaussian), as the calibration says."""
     perfect = std * np.random.default_rng(0).standard_normal(std.shape)  # errors a calibrated Gaussian would make
     vector_std = np.sqrt((std**2).sum(0))
     return {
-        "coverage_68": interval_coverage(std, error, 0.68),
-        "coverage_95": interval_coverage(std, error, 0.95),
+        "coverage_68": interval_coverage(std, error, 0.68, interval_dof),
+        "coverage_95": interval_coverage(std, error, 0.95, interval_dof),
+        "coverage_by_level": {str(p): interval_coverage(std, error, p, interval_dof) for p in FIT_LEVELS},
+        "interval_dof": interval_dof,
         "spearman_std_abs_error": spearman(std.ravel(), np.abs(error).ravel()),
         "spearman_ceiling": spearman(std.ravel(), np.abs(perfect).ravel()),
         "spearman_vector": spearman(vector_std, np.linalg.norm(error, axis=0)),
@@ -250,6 +254,24 @@ def displacement_metrics(std: np.ndarray, error: np.ndarray) -> dict[str, float]
         "rms_error_voxels": float(np.sqrt(np.mean(error**2))),
         "rms_std_voxels": float(np.sqrt(np.mean(std**2))),
     }
+
+
+def pooled_metrics(stds: list[np.ndarray], errors: list[np.ndarray], dofs: list[float | None]) -> dict[str, Any]:
+    """:func:`displacement_metrics` of the (3, N_i) parts pooled; with parts whose intervals differ (folds that
+    fitted different dofs) the coverages are each part's own, pooled (the other metrics do not read the dof)."""
+    std, error = np.concatenate(stds, axis=1), np.concatenate(errors, axis=1)
+    if len(set(dofs)) <= 1:
+        return displacement_metrics(std, error, dofs[0] if dofs else None)
+    metrics = displacement_metrics(std, error)
+    counts = np.array([s.size for s in stds], np.float64)
+
+    def pooled(level: float) -> float:
+        return float(np.sum([interval_coverage(s, e, level, d) * s.size for s, e, d in zip(stds, errors, dofs)]))
+
+    metrics["coverage_68"], metrics["coverage_95"] = pooled(0.68) / counts.sum(), pooled(0.95) / counts.sum()
+    metrics["coverage_by_level"] = {str(p): pooled(p) / counts.sum() for p in FIT_LEVELS}
+    metrics["interval_dof"] = list(dofs)
+    return metrics
 
 
 def propagated_labels(network, velocities: torch.Tensor, atlas_label: torch.Tensor, size) -> list[torch.Tensor]:
@@ -482,21 +504,26 @@ def main(argv=None) -> int:
         kappa = float(np.mean(population_std**2) / np.mean(velocity_std**2))
         std, error, norm, groups = errors_at(sids, tids, None)
         first = fit_calibration(std, error, norm, groups=groups)
-        current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa))
+        current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa), first.interval_dof)
         for iteration in range(1, args.fit_iterations + 1):
             std, error, norm, groups = errors_at(sids, tids, current)
             refit = fit_calibration(std, error, norm, groups=groups)
-            if abs(refit.std_scale - 1) < FIT_TOLERANCE and refit.bias_fraction < FIT_TOLERANCE:
+            if (
+                abs(refit.std_scale - 1) < FIT_TOLERANCE
+                and refit.bias_fraction < FIT_TOLERANCE
+                and refit.interval_dof == current.interval_dof
+            ):
                 break  # the samples at the current pair already cover as nominal as the fit can make them
-            current = Calibration(
+            current = Calibration(  # the dof is the refit's: it reads the tails of the samples drawn at current
                 refit.std_scale * current.std_scale,
                 math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction / math.sqrt(kappa)),
+                refit.interval_dof,
             )
         print(
             f"  fit on {', '.join(sids + [t + ' (subject probe)' for t in tids])}: kappa {kappa:.3f}, "
             f"refit {iteration} ({refit.std_scale:.3f}, "
-            f"{refit.bias_fraction:.3f}) -> std_scale {current.std_scale:.3f}, bias_fraction "
-            f"{current.bias_fraction:.3f}",
+            f"{refit.bias_fraction:.3f}, dof {refit.interval_dof}) -> std_scale {current.std_scale:.3f}, bias_fraction "
+            f"{current.bias_fraction:.3f}, interval dof {current.interval_dof}",
             flush=True,
         )
         return current
@@ -506,10 +533,12 @@ def main(argv=None) -> int:
         for f in range(args.folds)
     }
     print(
-        "held-out calibrations per fold (std_scale, bias_fraction): "
-        + ", ".join(f"({v.std_scale:.3f}, {v.bias_fraction:.2f})" for v in scales.values()),
+        "held-out calibrations per fold (std_scale, bias_fraction, interval dof): "
+        + ", ".join(f"({v.std_scale:.3f}, {v.bias_fraction:.2f}, {v.interval_dof})" for v in scales.values()),
         flush=True,
     )
+    # the intervals of each row: raw = Gaussian; calibrated = each subject's fold's dof (one dof when the folds agree)
+    row_dofs = {"raw": [], "calibrated": []}
     rows: dict[str, Any] = {
         "raw": {"std": [], "error": [], "auroc": []},
         "calibrated": {"std": [], "error": [], "auroc": []},
@@ -518,16 +547,17 @@ def main(argv=None) -> int:
     truth = {sid: np.concatenate([c["truth"].numpy() for c in cs], axis=1) for sid, cs in cases.items()}
     for sid in cases:
         calibration = scales[folds[sid]]
-        record = {"fold": folds[sid], "std_scale": calibration.std_scale, "bias_fraction": calibration.bias_fraction}
+        record = {"fold": folds[sid], **calibration._asdict()}
         for name, cal in (("raw", Calibration(1.0, 0.0)), ("calibrated", calibration)):
             errors = raw[sid] if name == "raw" else [case_errors(network, c, cal, args.samples) for c in cases[sid]]
             std, error, _ = _pool(errors)
             labels = label_case(network, items[sid], cal, args.samples, args.seed + 7, refinement)
+            row_dofs[name].append(cal.interval_dof)
             rows[name]["std"].append(std)
             rows[name]["error"].append(error)
             rows[name]["auroc"].append(labels["auroc"])
             record[name] = {
-                **displacement_metrics(std, error),
+                **displacement_metrics(std, error, cal.interval_dof),
                 "label_entropy_auroc": labels["auroc"],
                 "wrong_label_fraction": labels["wrong_fraction"],
                 "recovered_fraction": recovered_fraction(error, truth[sid]),
@@ -550,7 +580,7 @@ def main(argv=None) -> int:
     for name, row in rows.items():
         std, error = np.concatenate(row["std"], axis=1), np.concatenate(row["error"], axis=1)
         summary[name] = {
-            **displacement_metrics(std, error),
+            **pooled_metrics(row["std"], row["error"], row_dofs[name]),
             "label_entropy_auroc": float(np.mean(row["auroc"])),
             "recovered_fraction": recovered_fraction(error, np.concatenate(list(truth.values()), axis=1)),
         }
@@ -558,9 +588,13 @@ def main(argv=None) -> int:
     if subject_cases:  # each template scored at the calibration fitted without it (its fold's)
         held_out = {t: subject_run(t, scales[subject_folds[t]]) for t in subject_cases}
         for name, errors in (("raw", subject_raw), ("calibrated", held_out)):
-            std, error, _ = _pool(list(errors.values()))
-            subject_summary[name] = displacement_metrics(std, error)
-            subject_summary[name]["per_template"] = {t: interval_coverage(e[0], e[1], 0.95) for t, e in errors.items()}
+            dofs = {t: None if name == "raw" else scales[subject_folds[t]].interval_dof for t in errors}
+            subject_summary[name] = pooled_metrics(
+                [e[0] for e in errors.values()], [e[1] for e in errors.values()], list(dofs.values())
+            )
+            subject_summary[name]["per_template"] = {
+                t: interval_coverage(e[0], e[1], 0.95, dofs[t]) for t, e in errors.items()
+            }
     table = [
         "| posterior | coverage 68% | coverage 95% | Spearman per component (ceiling) | Spearman of vectors "
         "(ceiling) | UCE (voxels; subject probe: mm) | RMS error / RMS std (voxels; subject probe: mm) | "
@@ -641,15 +675,17 @@ def main(argv=None) -> int:
             args.samples,
             bias_fraction=fitted.bias_fraction,
             refinement=refinement.as_dict() if refinement.enabled else None,
+            interval_dof=fitted.interval_dof,
         )
         result["written_calibration"] = {
             "path": str(model_file),
             "std_scale": record.std_scale,
             "bias_fraction": record.bias_fraction,
+            "interval_dof": record.interval_dof,
         }
         print(
             f"wrote the calibration of {model_file.name}: std_scale {fitted.std_scale:.3f}, bias_fraction "
-            f"{fitted.bias_fraction:.2f} (all {len(raw)} subjects, {len(subject_cases)} subject-probe templates)"
+            f"{fitted.bias_fraction:.2f}, interval dof {fitted.interval_dof} (all {len(raw)} subjects, {len(subject_cases)} subject-probe templates)"
         )
     result["wall_time_s"] = time.time() - start_time  # the whole run, the written calibration's fit included
     json_path = write_text(args.out_dir / "uncertainty_calibration.json", json.dumps(result, indent=2) + "\n")

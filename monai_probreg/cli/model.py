@@ -45,6 +45,7 @@ class LoadedModel:
         1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
     )
     bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
+    interval_dof: float | None = None  # the calibration's Student-t dof of the intervals (None = Gaussian, raw)
     refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement``
     weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
     quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
@@ -116,6 +117,7 @@ def load_model(
         config,
         1.0 if record is None else record.std_scale,
         0.0 if record is None else record.bias_fraction,
+        None if record is None else record.interval_dof,
         refinement=refinement,
         weights_sha256=file_sha256(weights),
         quality=quality_model,

@@ -55,6 +55,7 @@ from monai_probreg.cli.output_dir import (
 from monai_probreg.cli.qc import QCData, save_qc
 from monai_probreg.engines.refinement import RefinementSettings, refine_registration
 from monai_probreg.engines.registration import register_pair
+from monai_probreg.metrics.calibration import interval_z
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import RegistrationOutput
@@ -277,7 +278,7 @@ def _run_model(
             posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
         )
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
-            in_use = Calibration(model.std_scale, model.bias_fraction)
+            in_use = Calibration(model.std_scale, model.bias_fraction, model.interval_dof)
             maps.entropy = _entropy(model, output.velocity_mean, output.velocity_log_var, shape, in_use)
     if samples:
         with _timed(timings, "samples", report):
@@ -672,6 +673,9 @@ def register_scan(
                 "divisor": model.divisor,
                 "posterior_std_scale": model.std_scale,
                 "posterior_bias_fraction": model.bias_fraction,
+                "posterior_interval_dof": model.interval_dof,  # Student-t dof of the intervals; None: Gaussian
+                # the calibrated 95% interval of a displacement component is +- this many displacement_std
+                "posterior_interval_95_half_width_std": round(interval_z(0.95, model.interval_dof), 4),
                 # this run's refinement settings where they differ from those the calibration was fitted around
                 # (the maps are calibrated for that mean); None: the raw posterior, or a sidecar that does not say
                 "calibration_refinement_differs_from_fit": None

@@ -30,6 +30,7 @@ from torch import Tensor
 
 __all__ = [
     "gaussian_interval_z",
+    "interval_z",
     "interval_coverage",
     "ReliabilityBins",
     "reliability_bins",
@@ -67,10 +68,23 @@ def gaussian_interval_z(level: float) -> float:
     return math.sqrt(2.0) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
 
 
-def interval_coverage(std: ArrayLike, error: ArrayLike, level: float) -> float:
-    """Fraction of elements with ``|error| <= z(level) * std``: the empirical coverage of the nominal interval."""
+def interval_z(level: float, dof: float | None = None) -> float:
+    """Half-width, in units of ``std``, of the central interval holding ``level``: Gaussian (``dof`` None) or
+    Student-t with ``dof`` > 0 degrees of freedom (scipy's quantile; 1 dof is the Cauchy: tan(pi level / 2))."""
+    if dof is None:
+        return gaussian_interval_z(level)
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1); got {level}")
+    if not (math.isfinite(dof) and dof > 0):
+        raise ValueError(f"dof must be a positive finite number or None (Gaussian); got {dof}")
+    return float(stats.t.ppf(0.5 + level / 2.0, dof))
+
+
+def interval_coverage(std: ArrayLike, error: ArrayLike, level: float, dof: float | None = None) -> float:
+    """Fraction of elements with ``|error| <= interval_z(level, dof) * std``: the empirical coverage of the nominal
+    interval (``dof`` None: Gaussian)."""
     s, e = _pair(std, error)
-    return float(np.mean(np.abs(e) <= gaussian_interval_z(level) * s))
+    return float(np.mean(np.abs(e) <= interval_z(level, dof) * s))
 
 
 class ReliabilityBins(NamedTuple):

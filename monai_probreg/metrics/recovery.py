@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from monai_probreg.metrics.calibration import gaussian_interval_z
+from monai_probreg.metrics.calibration import interval_z
 
 __all__ = ["DisplacementRecovery", "ErrorSummary", "displacement_recovery"]
 
@@ -66,12 +66,14 @@ def displacement_recovery(
     variance: np.ndarray | None = None,
     variance_axes: np.ndarray | None = None,
     level: float = 0.95,
+    interval_dof: float | None = None,
 ) -> DisplacementRecovery:
     """Errors of ``warp`` against ``true_warp`` (both (*S, 3) LPS mm) inside ``mask`` (*S) (module docstring).
 
     ``points`` (*S, 3): the fixed grid's LPS points and ``affine`` (4, 4): the affine stage, for the affine-only
     error and the frame of the coverage (without ``affine``: the identity). ``variance`` (*S, 3) mm^2 per
-    component along the columns of ``variance_axes`` (3, 3): the calibrated posterior, for the coverage at ``level``.
+    component along the columns of ``variance_axes`` (3, 3): the calibrated posterior, for the coverage at ``level``
+    of its intervals (Student-t with ``interval_dof`` degrees of freedom; None: Gaussian).
     """
     true_warp, warp, mask = np.asarray(true_warp), np.asarray(warp), np.asarray(mask, bool)
     if true_warp.shape != warp.shape or true_warp.shape[-1] != 3 or true_warp.shape[:-1] != mask.shape:
@@ -101,7 +103,7 @@ def displacement_recovery(
         linear = np.eye(3) if affine is None else affine[:3, :3]
         components = np.linalg.solve(linear, error.T).T @ np.asarray(variance_axes, np.float64)
         sigma = np.sqrt(np.maximum(np.asarray(variance)[mask].astype(np.float64), 0.0))
-        coverage = round(float(np.mean(np.abs(components) <= gaussian_interval_z(level) * sigma)), 4)
+        coverage = round(float(np.mean(np.abs(components) <= interval_z(level, interval_dof) * sigma)), 4)
     return DisplacementRecovery(
         _summary(np.linalg.norm(truth, axis=1)),
         affine_summary,

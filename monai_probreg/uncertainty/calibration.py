@@ -20,9 +20,21 @@ displacement variance is, to first order, std_scale^2 times the raw one plus (bi
 displacement, about mu once integrated), which is how :func:`fit_calibration` fits both scalars from one set of
 samples: the pair whose intervals cover closest to nominal at :data:`FIT_LEVELS` (the benchmark re-samples at the
 fitted pair, refits, and checks coverage on held-out subjects).
+
+A third number says how the intervals are read. The calibrated std ranks the errors only weakly (Spearman 0.02-0.12
+on held-out LPBA40 subjects and synthetic subjects), so the error over the std is a Gaussian of uncertain variance:
+heavier-tailed than a Gaussian, and one scale cannot cover both the 68% and the 95% level (bundle 0.20.0's Gaussian
+fit: 72% and 91% held out). The intervals are therefore Student-t (``interval_dof`` degrees of freedom, fitted with
+the scale; None = Gaussian, as sidecars before bundle 0.21.0 read):
+
+    p-interval of a component  =  +- interval_z(p, interval_dof) * sigma_calibrated
+
+(:func:`monai_probreg.metrics.calibration.interval_z`). The std maps and the samples stay the calibrated Gaussian
+posterior's; only the width of an interval at a given level follows the fitted tails.
 They are stored next to the weights they belong to, as ``<weights stem>.calibration.json``, with the weights'
 SHA-256 so that a retrained model is never paired with an old calibration (a sidecar without ``bias_fraction``, from
-before it existed, reads as 0). Raw (uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``.
+before it existed, reads as 0). Raw (uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``, Gaussian
+intervals (``interval_dof = None``).
 """
 
 from __future__ import annotations
@@ -40,12 +52,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from monai_probreg.metrics.calibration import gaussian_interval_z
+from monai_probreg.metrics.calibration import interval_z
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256
 
 __all__ = [
     "FIT_LEVELS",
+    "INTERVAL_DOFS",
     "Calibration",
     "CalibrationRecord",
     "calibrate_log_var",
@@ -64,15 +77,19 @@ __all__ = [
 FIT_LEVELS: tuple[float, ...] = (0.5, 0.68, 0.8, 0.9, 0.95)  # nominal interval levels whose coverage the fit matches
 _GRID_POINTS = 1024  # candidate scales searched between the per-level solutions (log-spaced)
 BIAS_FRACTIONS: tuple[float, ...] = tuple(i / 100 for i in range(101))  # bias fractions fit_calibration tries
-_SEARCH_POINTS = 200_000  # entries fit_calibration searches the bias fraction on
+# Student-t degrees of freedom of the intervals fit_calibration tries (None: the Gaussian, the search's start)
+INTERVAL_DOFS: tuple[float | None, ...] = (None, 50.0, 30.0, 20.0, 15.0, 10.0, 8.0, 6.0, 5.0, 4.0, 3.0, 2.5, 2.0, 1.5)
+SEARCH_ROUNDS = 2  # rounds of the coordinate search over (bias fraction, interval dof), the scale exact for each
+_SEARCH_POINTS = 200_000  # entries fit_calibration searches the bias fraction and the dof on
 _MIN_SCALE = 1e-6  # lower bound of a fitted scale (a bias term alone may cover a level: the scale must stay > 0)
 
 
 class Calibration(NamedTuple):
-    """The two numbers inference uses (raw posterior: 1 and 0)."""
+    """The numbers inference uses (raw posterior: 1, 0 and Gaussian intervals)."""
 
     std_scale: float
     bias_fraction: float
+    interval_dof: float | None = None  # Student-t dof of the intervals; None: Gaussian
 
 
 @dataclass(frozen=True)
@@ -86,20 +103,34 @@ class CalibrationRecord:
     num_samples: int = 0
     levels: list[float] = field(default_factory=lambda: list(FIT_LEVELS))
     method: str = (
-        "coverage matching: (std_scale, bias_fraction) of sigma^2 = std_scale^2 sigma^2 + (bias_fraction "
-        "|mean velocity|)^2 minimise the sum over levels and probes of (coverage - level)^2 of the sampled "
-        "displacements"
+        "coverage matching: (std_scale, bias_fraction, interval_dof) of sigma^2 = std_scale^2 sigma^2 + "
+        "(bias_fraction |mean velocity|)^2 and the intervals +- t_interval_dof(level) sigma minimise the sum over "
+        "levels and probes of (coverage - level)^2 of the sampled displacements"
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe
     # that mean; {} = the network's own mean; None = not recorded (sidecars written before bundle 0.18.0)
     refinement: dict | None = None
+    # Student-t degrees of freedom of the intervals; None: Gaussian (and every sidecar before bundle 0.21.0)
+    interval_dof: float | None = None
 
 
-def check_calibration(std_scale: float, bias_fraction: float) -> None:
-    """ValueError unless ``std_scale`` > 0 and ``bias_fraction`` >= 0, both finite."""
+def check_calibration(std_scale: float, bias_fraction: float, interval_dof: float | None = None) -> None:
+    """ValueError unless ``std_scale`` > 0 and ``bias_fraction`` >= 0, both finite, and ``interval_dof`` None or a
+    positive finite number."""
     _check_scale(std_scale)
     _check_bias_fraction(bias_fraction)
+    _check_dof(interval_dof)
+
+
+def _check_dof(interval_dof: float | None) -> None:
+    if interval_dof is not None and not (
+        isinstance(interval_dof, (int, float))
+        and not isinstance(interval_dof, bool)
+        and math.isfinite(interval_dof)
+        and interval_dof > 0
+    ):
+        raise ValueError(f"interval_dof must be None (Gaussian) or a positive finite number; got {interval_dof!r}")
 
 
 def _check_scale(std_scale: float) -> None:
@@ -171,9 +202,12 @@ def fit_calibration(
     levels: Sequence[float] = FIT_LEVELS,
     bias_fractions: Sequence[float] = BIAS_FRACTIONS,
     groups: Tensor | np.ndarray | None = None,
+    interval_dofs: Sequence[float | None] = INTERVAL_DOFS,
 ) -> Calibration:
-    """(scale s, bias fraction a) for which the intervals ``|error| <= z_p sqrt(s^2 std^2 + a^2 n^2)`` cover closest
-    to p over ``levels`` (least squares in coverage; a searched over ``bias_fractions``, s for each a).
+    """(scale s, bias fraction a, dof) for which the intervals ``|error| <= z_p sqrt(s^2 std^2 + a^2 n^2)``, z_p the
+    quantile of level p of the Student-t with dof degrees of freedom (None: Gaussian), cover closest to p over
+    ``levels`` (least squares in coverage). a and dof are searched over ``bias_fractions`` and ``interval_dofs`` by
+    coordinates (``SEARCH_ROUNDS`` rounds from their first entries, on a fixed subset), s exactly for each pair.
 
     ``std`` > 0, ``error`` and ``displacement_norm`` n = |mean displacement| (>= 0): same shape, any shape, one
     entry per voxel and component. ``s`` multiplies the std the samples were drawn with. ``groups`` (same shape,
@@ -192,17 +226,34 @@ def fit_calibration(
     g = np.zeros(s.size, np.int64) if groups is None else np.asarray(groups).reshape(-1)
     if g.shape != s.shape or not np.issubdtype(g.dtype, np.integer):
         raise ValueError(f"groups must be integers of the shape of std {_array(std).shape}; got {np.shape(groups)}")
-    if not levels or not bias_fractions:
-        raise ValueError(f"levels and bias_fractions must not be empty; got {list(levels)} and {list(bias_fractions)}")
+    if not levels or not bias_fractions or not interval_dofs:
+        raise ValueError(
+            f"levels, bias_fractions and interval_dofs must not be empty; got {list(levels)}, {list(bias_fractions)}"
+            f" and {list(interval_dofs)}"
+        )
     for a in bias_fractions:
         _check_bias_fraction(a)
-    z, p = np.array([gaussian_interval_z(level) for level in levels]), np.asarray(levels, np.float64)
-    bias_fraction = float(bias_fractions[0])
-    if len(bias_fractions) > 1:  # the search on a fixed random subset (millions of entries: seconds, not minutes)
+    for dof in interval_dofs:
+        _check_dof(dof)
+    p = np.asarray(levels, np.float64)
+
+    def quantiles(dof: float | None) -> np.ndarray:
+        return np.array([interval_z(level, dof) for level in levels])
+
+    bias_fraction, dof = float(bias_fractions[0]), interval_dofs[0]
+    if len(bias_fractions) > 1 or len(interval_dofs) > 1:  # on a fixed random subset: seconds, not minutes
         pick = _search_subset(g)
-        costs = [_fit_scale(s[pick], e[pick], (a * n[pick]) ** 2, z, p, g[pick])[1] for a in bias_fractions]
-        bias_fraction = float(bias_fractions[int(np.argmin(costs))])
-    return Calibration(_fit_scale(s, e, (bias_fraction * n) ** 2, z, p, g)[0], bias_fraction)  # the scale on all
+
+        def cost(a: float, d: float | None) -> float:
+            return _fit_scale(s[pick], e[pick], (a * n[pick]) ** 2, quantiles(d), p, g[pick])[1]
+
+        for _ in range(SEARCH_ROUNDS):
+            if len(bias_fractions) > 1:
+                bias_fraction = float(bias_fractions[int(np.argmin([cost(a, dof) for a in bias_fractions]))])
+            if len(interval_dofs) > 1:
+                dof = interval_dofs[int(np.argmin([cost(bias_fraction, d) for d in interval_dofs]))]
+    scale = _fit_scale(s, e, (bias_fraction * n) ** 2, quantiles(dof), p, g)[0]  # the scale on all entries
+    return Calibration(scale, bias_fraction, None if dof is None else float(dof))
 
 
 def _search_subset(groups: np.ndarray) -> np.ndarray:
@@ -213,9 +264,9 @@ def _search_subset(groups: np.ndarray) -> np.ndarray:
 
 
 def fit_std_scale(std: Tensor | np.ndarray, error: Tensor | np.ndarray, levels: Sequence[float] = FIT_LEVELS) -> float:
-    """The scale s for which the intervals ``|error| <= z_p * s * std`` cover closest to p over ``levels``
-    (least squares in coverage): :func:`fit_calibration` without a bias term. ``std`` > 0 and ``error``, same shape."""
-    return fit_calibration(std, error, np.zeros(np.shape(_array(std))), levels, (0.0,)).std_scale
+    """The scale s for which the Gaussian intervals ``|error| <= z_p * s * std`` cover closest to p over ``levels``
+    (least squares in coverage): :func:`fit_calibration` without a bias term, with Gaussian intervals. ``std`` > 0 and ``error``, same shape."""
+    return fit_calibration(std, error, np.zeros(np.shape(_array(std))), levels, (0.0,), interval_dofs=(None,)).std_scale
 
 
 def calibration_path(weights_file: str | os.PathLike) -> Path:
@@ -232,11 +283,12 @@ def save_calibration(
     levels: Sequence[float] = FIT_LEVELS,
     bias_fraction: float = 0.0,
     refinement: Mapping[str, Any] | None = None,
+    interval_dof: float | None = None,
 ) -> CalibrationRecord:
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
     ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
-    network's mean)."""
-    check_calibration(std_scale, bias_fraction)
+    network's mean); ``interval_dof``: the intervals' Student-t dof (None: Gaussian)."""
+    check_calibration(std_scale, bias_fraction, interval_dof)
     record = CalibrationRecord(
         float(std_scale),
         Path(weights_file).name,
@@ -246,6 +298,7 @@ def save_calibration(
         [float(p) for p in levels],
         bias_fraction=float(bias_fraction),
         refinement=dict(refinement or {}),
+        interval_dof=None if interval_dof is None else float(interval_dof),
     )
     target = calibration_path(weights_file)
     write_text(target, json.dumps(asdict(record), indent=2))
@@ -270,7 +323,7 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
             "or use std_scale 1 (raw)"
         )
     try:
-        check_calibration(record.std_scale, record.bias_fraction)
+        check_calibration(record.std_scale, record.bias_fraction, record.interval_dof)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: {err}") from None
     if record.refinement is not None and not isinstance(record.refinement, dict):
@@ -298,10 +351,12 @@ def calibration_record_for(weights_file: str | os.PathLike, calibrate: bool = Tr
 
 
 def calibration_for(weights_file: str | os.PathLike, calibrate: bool = True) -> Calibration:
-    """The calibration to use with ``weights_file``: its sidecar's, or the raw posterior's (1, 0) when ``calibrate``
-    is false or, with a warning, when the weights have no calibration."""
+    """The calibration to use with ``weights_file``: its sidecar's, or the raw posterior's (1, 0, Gaussian) when
+    ``calibrate`` is false or, with a warning, when the weights have no calibration."""
     record = calibration_record_for(weights_file, calibrate)
-    return Calibration(1.0, 0.0) if record is None else Calibration(record.std_scale, record.bias_fraction)
+    if record is None:
+        return Calibration(1.0, 0.0)
+    return Calibration(record.std_scale, record.bias_fraction, record.interval_dof)
 
 
 def std_scale_for(weights_file: str | os.PathLike, calibrate: bool = True) -> float:

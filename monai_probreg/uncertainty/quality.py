@@ -58,10 +58,12 @@ from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256
 
 __all__ = [
+    "ENTROPY_CALIBRATION_KEYS",
     "FAILURE_MARGIN",
     "LNCC_DROP_MARGIN",
     "QualityEstimate",
     "QualityModel",
+    "entropy_calibration_record",
     "failed",
     "fit_quality_model",
     "load_quality_model",
@@ -70,6 +72,8 @@ __all__ = [
     "save_quality_model",
 ]
 
+# the posterior's numbers the entropy feature depends on (the intervals' dof does not enter an entropy)
+ENTROPY_CALIBRATION_KEYS: tuple[str, ...] = ("std_scale", "bias_fraction")
 FAILURE_MARGIN = 0.05  # Dice below no registration + this counts as a failure (the issue's definition)
 RIDGE = 1e-2  # L2 penalty of both fits, on standardised features (numerical safety, not tuning)
 NEWTON_STEPS = 50  # logistic fit: Newton iterations (converges in < 15 on the failure set)
@@ -154,9 +158,9 @@ class QualityModel:
         if not 0.0 <= self.lncc_drop_margin < 1.0:
             raise ValueError(f"lncc_drop_margin must be in [0, 1); got {self.lncc_drop_margin}")
         if self.entropy_calibration:
-            if set(self.entropy_calibration) != set(Calibration._fields):
+            if set(self.entropy_calibration) != set(ENTROPY_CALIBRATION_KEYS):
                 raise ValueError(
-                    f"entropy_calibration must be {{}} or have the keys {list(Calibration._fields)}; got "
+                    f"entropy_calibration must be {{}} or have the keys {list(ENTROPY_CALIBRATION_KEYS)}; got "
                     f"{sorted(self.entropy_calibration)}"
                 )
             check_calibration(**self.entropy_calibration)
@@ -206,6 +210,12 @@ class QualityModel:
                 "the QC figure"
             )
         return QualityEstimate(dice, probability, warning)
+
+
+def entropy_calibration_record(calibration: Calibration) -> dict[str, float]:
+    """What a quality sidecar and failure_detection's records store of ``calibration``: the numbers an entropy depends
+    on (:data:`ENTROPY_CALIBRATION_KEYS`; the intervals' dof does not enter it)."""
+    return {k: float(getattr(calibration, k)) for k in ENTROPY_CALIBRATION_KEYS}
 
 
 def fit_quality_model(
@@ -260,7 +270,7 @@ def fit_quality_model(
         dice_range=[float(y.min()), float(y.max())],
         fitted_on=list(fitted_on),
         refinement=dict(refinement or {}),
-        entropy_calibration={} if entropy_calibration is None else Calibration(*entropy_calibration)._asdict(),
+        entropy_calibration={} if entropy_calibration is None else entropy_calibration_record(entropy_calibration),
     )
 
 

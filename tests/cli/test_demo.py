@@ -15,6 +15,7 @@ from monai.bundle import ConfigParser
 
 from monai_probreg.cli.output_dir import OUTPUT_FILES
 from monai_probreg.spatial.volume_io import read_image
+from monai_probreg.uncertainty.calibration import calibration_path, save_calibration
 
 EXPECTED = {
     "warped.nii.gz",
@@ -78,6 +79,27 @@ def test_the_demo_scores_the_registration_against_the_known_transform(result):
     assert 0.0 <= demo["coverage"] <= 1.0 and demo["coverage_level"] == 0.95
     assert demo["truth_inverse_error_mm"] < 0.1  # a tenth of a millimetre on 1.5 mm voxels
     assert "after registration" in run.out and "interval" in run.out
+
+
+def test_the_coverage_reads_the_calibrations_intervals(result, setup):
+    """The same seed with a sidecar whose intervals are Student-t with 1 dof (std_scale 1, as the raw posterior): the
+    same registration and std, scored with the wider Cauchy intervals (12.7 std at 95%, not 1.96)."""
+    out, _, gaussian = result
+    weights = setup[2] / "models" / "model.pt"
+    save_calibration(weights, 1.0, interval_dof=1.0)
+    try:
+        run = _demo(setup, out.with_name("out_cauchy"), "--seed", "3")
+        assert run.rc == 0, run.err
+        cauchy = json.loads((out.with_name("out_cauchy") / "summary.json").read_text())
+    finally:
+        calibration_path(weights).unlink()
+    assert gaussian["demo"]["interval_dof"] is None and cauchy["demo"]["interval_dof"] == 1.0
+    assert cauchy["model"]["posterior_interval_dof"] == 1.0 and gaussian["model"]["posterior_interval_dof"] is None
+    assert cauchy["model"]["posterior_interval_95_half_width_std"] == pytest.approx(12.7062, abs=1e-4)  # tan(0.475 pi)
+    assert gaussian["model"]["posterior_interval_95_half_width_std"] == pytest.approx(1.96, abs=1e-4)
+    assert cauchy["demo"]["after"] == gaussian["demo"]["after"]
+    assert "interval (Student-t, 1 dof): covers" in run.out and "interval: covers" not in run.out
+    assert cauchy["demo"]["coverage"] > gaussian["demo"]["coverage"]
 
 
 def test_the_outputs_are_complete_and_read_by_itk(result):

@@ -1,5 +1,7 @@
 """Calibration metrics on toys with known answers: a perfectly calibrated Gaussian, an over-confident one, ties."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -9,6 +11,7 @@ from monai_probreg.metrics.calibration import (
     auroc,
     gaussian_interval_z,
     interval_coverage,
+    interval_z,
     reliability_bins,
     spearman,
     uncertainty_calibration_error,
@@ -34,6 +37,36 @@ def test_gaussian_interval_z_known_quantiles():
 def test_gaussian_interval_z_rejects_bad_level(level):
     with pytest.raises(ValueError, match="level"):
         gaussian_interval_z(level)
+
+
+@pytest.mark.parametrize("level", [0.5, 0.68, 0.95])
+def test_interval_z_is_the_gaussian_without_dof_and_the_cauchy_at_one_dof(level):
+    assert interval_z(level) == gaussian_interval_z(level)
+    assert interval_z(level, 1.0) == pytest.approx(math.tan(math.pi * level / 2), rel=1e-9)  # closed form
+    assert interval_z(level, 1e6) == pytest.approx(gaussian_interval_z(level), rel=1e-5)  # t -> Gaussian
+    assert interval_z(level, 3.0) > interval_z(level, 30.0) > gaussian_interval_z(level)  # heavier tails: wider
+
+
+@pytest.mark.parametrize("dof", [0.0, -2.0, math.inf, math.nan])
+def test_interval_z_rejects_bad_dof(dof):
+    with pytest.raises(ValueError, match="dof must be a positive finite number or None"):
+        interval_z(0.95, dof)
+
+
+@pytest.mark.parametrize("level", [0.0, 1.0])
+def test_interval_z_rejects_bad_level_with_dof(level):
+    with pytest.raises(ValueError, match="level"):
+        interval_z(level, 3.0)
+
+
+@pytest.mark.parametrize("level", [0.5, 0.68, 0.95])
+def test_student_t_errors_are_covered_by_their_own_intervals_not_the_gaussians(level):
+    rng = np.random.default_rng(1)
+    std = np.exp(rng.normal(0.0, 0.7, N))
+    error = std * rng.standard_t(3.0, N)
+    assert interval_coverage(std, error, level, 3.0) == pytest.approx(level, abs=0.005)
+    if level == 0.95:  # the Gaussian interval misses the tails
+        assert interval_coverage(std, error, level) < 0.92
 
 
 @pytest.mark.parametrize("level", [0.5, 0.68, 0.95])

@@ -98,3 +98,14 @@ def test_bad_arguments_are_refused(case, kwargs, match):
     arguments = {"true_warp": truth, "warp": truth, "mask": mask} | kwargs
     with pytest.raises(ValueError, match=match):
         displacement_recovery(**arguments)
+
+
+def test_coverage_reads_student_t_intervals_when_the_calibration_says(case):
+    """An error of 2.5 sigma on every component: outside the Gaussian 95% interval (1.96 sigma), inside the
+    Student-t one with 3 dof (3.18 sigma)."""
+    _points, truth, mask = case
+    variance = np.ones(truth.shape)
+    error = truth + 2.5
+    gaussian = displacement_recovery(truth, error, mask, variance=variance, variance_axes=np.eye(3))
+    student = displacement_recovery(truth, error, mask, variance=variance, variance_axes=np.eye(3), interval_dof=3.0)
+    assert gaussian.coverage == 0.0 and student.coverage == 1.0

@@ -180,8 +180,8 @@ def test_fit_calibration_recovers_a_known_scale_and_bias_fraction(scale, bias_fr
 
 def test_fit_calibration_without_bias_matches_fit_std_scale():
     std, error = _toy(3.0)
-    fitted = fit_calibration(std, error, np.ones_like(std), bias_fractions=(0.0,))
-    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0)
+    fitted = fit_calibration(std, error, np.ones_like(std), bias_fractions=(0.0,), interval_dofs=(None,))
+    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0, None)
 
 
 @pytest.mark.parametrize(
@@ -228,12 +228,12 @@ def test_bias_variance_is_the_squared_fraction_of_the_length():
 
 def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
     save_calibration(weights, 2.0, bias_fraction=0.15)
-    assert calibration_for(weights) == (2.0, 0.15) and load_calibration(weights).bias_fraction == 0.15
-    assert calibration_for(weights, calibrate=False) == (1.0, 0.0)
+    assert calibration_for(weights) == (2.0, 0.15, None) and load_calibration(weights).bias_fraction == 0.15
+    assert calibration_for(weights, calibrate=False) == (1.0, 0.0, None)
     record = json.loads(calibration_path(weights).read_text())
     del record["bias_fraction"]  # written before the bias term existed
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (2.0, 0.0)
+    assert calibration_for(weights) == (2.0, 0.0, None)
     record["bias_fraction"] = -0.5
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: bias_fraction"):
@@ -265,12 +265,12 @@ def _grouped_cost(scale: float, std, error, groups, levels=FIT_LEVELS) -> float:
 
 def test_grouped_fit_minimises_the_summed_cost_of_the_groups():
     std, error, norm, groups = _grouped_toy()
-    fitted = fit_calibration(std, error, norm, bias_fractions=(0.0,), groups=groups)
+    fitted = fit_calibration(std, error, norm, bias_fractions=(0.0,), groups=groups, interval_dofs=(None,))
     grid = np.geomspace(0.5, 5.0, 400)
     brute = min(_grouped_cost(s, std, error, groups) for s in grid)
     assert _grouped_cost(fitted.std_scale, std, error, groups) <= brute + 1e-6
     # the small group is not drowned: one pool would fit close to the large group's scale
-    pooled = fit_calibration(std, error, norm, bias_fractions=(0.0,))
+    pooled = fit_calibration(std, error, norm, bias_fractions=(0.0,), interval_dofs=(None,))
     assert pooled.std_scale < 1.3 < 1.6 < fitted.std_scale < 3.0
 
 
@@ -287,3 +287,73 @@ def test_one_group_is_no_group():
 def test_fit_calibration_rejects_bad_groups(groups):
     with pytest.raises(ValueError, match="groups must be integers"):
         fit_calibration(np.ones(4), np.ones(4), np.ones(4), groups=groups)
+
+
+def _student_toy(true_scale: float, dof: float, n: int = 200_000):
+    rng = np.random.default_rng(3)
+    std = np.exp(rng.normal(0.0, 0.5, n))
+    return std, true_scale * std * rng.standard_t(dof, n)
+
+
+@pytest.mark.parametrize("true_scale, true_dof", [(1.5, 3.0), (0.6, 6.0)])
+def test_fit_recovers_the_tails_of_student_t_errors(true_scale, true_dof):
+    """Errors std * scale * t_dof: the fit finds the dof and the scale, and its intervals cover every level, where
+    the best Gaussian scale (the fit without a dof) cannot cover the 68% and the 95% level at once."""
+    std, error = _student_toy(true_scale, true_dof)
+    fitted = fit_calibration(std, error, np.zeros_like(std), bias_fractions=(0.0,))
+    assert fitted.interval_dof == true_dof and fitted.std_scale == pytest.approx(true_scale, rel=0.03)
+    for level in FIT_LEVELS:
+        assert interval_coverage(fitted.std_scale * std, error, level, fitted.interval_dof) == pytest.approx(
+            level, abs=0.01
+        )
+    gaussian = fit_std_scale(std, error)
+    misses = [abs(interval_coverage(gaussian * std, error, p) - p) for p in FIT_LEVELS]
+    assert max(misses) > 0.02
+
+
+def test_fit_keeps_gaussian_intervals_for_gaussian_errors():
+    std, error = _toy(2.0, 200_000)
+    fitted = fit_calibration(std, error, np.zeros_like(std), bias_fractions=(0.0,))
+    assert fitted.interval_dof is None or fitted.interval_dof >= 30  # no tails to fit: Gaussian or nearly
+    assert fitted.std_scale == pytest.approx(2.0, rel=0.03)
+
+
+def test_fit_finds_the_bias_and_the_dof_together():
+    rng = np.random.default_rng(4)
+    n = 200_000
+    std, norm = np.exp(rng.normal(0.0, 0.3, n)), rng.uniform(0.0, 10.0, n)
+    sigma = np.sqrt(1.2**2 * std**2 + (0.3 * norm) ** 2)
+    error = sigma * rng.standard_t(4.0, n)
+    fitted = fit_calibration(std, error, norm)
+    assert fitted.interval_dof in (3.0, 4.0, 5.0) and fitted.bias_fraction == pytest.approx(0.3, abs=0.04)
+    total = np.sqrt(fitted.std_scale**2 * std**2 + (fitted.bias_fraction * norm) ** 2)
+    assert interval_coverage(total, error, 0.95, fitted.interval_dof) == pytest.approx(0.95, abs=0.01)
+
+
+@pytest.mark.parametrize(
+    "dofs, match", [((), "must not be empty"), ((0.0,), "interval_dof"), ((-3.0,), "interval_dof")]
+)
+def test_fit_rejects_bad_interval_dofs(dofs, match):
+    with pytest.raises(ValueError, match=match):
+        fit_calibration(np.ones(4), np.ones(4), np.ones(4), interval_dofs=dofs)
+
+
+def test_sidecar_keeps_the_interval_dof_and_old_sidecars_read_as_gaussian(weights):
+    save_calibration(weights, 1.3, interval_dof=3.0)
+    assert calibration_for(weights) == (1.3, 0.0, 3.0) and load_calibration(weights).interval_dof == 3.0
+    record = json.loads(calibration_path(weights).read_text())
+    del record["interval_dof"]  # written before bundle 0.21.0
+    calibration_path(weights).write_text(json.dumps(record))
+    assert calibration_for(weights) == (1.3, 0.0, None)
+
+
+@pytest.mark.parametrize("dof", [0.0, -1.0, "3", True])
+def test_a_sidecar_with_a_bad_interval_dof_is_refused(weights, dof):
+    save_calibration(weights, 1.3)
+    record = json.loads(calibration_path(weights).read_text())
+    record["interval_dof"] = dof
+    calibration_path(weights).write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="model.calibration.json: interval_dof"):
+        load_calibration(weights)
+    with pytest.raises(ValueError, match="interval_dof"):
+        save_calibration(weights, 1.3, interval_dof=dof)

@@ -253,3 +253,6 @@ def test_the_entropy_feature_keeps_the_fits_calibration():
     assert recorded.entropy_calibration == {"std_scale": 0.49, "bias_fraction": 0.24}
     assert recorded.feature_calibration(0.7, 0.3) == Calibration(0.49, 0.24)
     assert QualityModel(**json.loads(json.dumps(dataclasses.asdict(recorded)))) == recorded
+    # the intervals' dof does not enter an entropy: a calibration with Student-t intervals records the same two numbers
+    with_dof = fit_quality_model(features, dice, failures, entropy_calibration=Calibration(0.49, 0.24, 3.0))
+    assert with_dof.entropy_calibration == recorded.entropy_calibration

@@ -57,8 +57,8 @@ OUTPUT_FILES = {
     "transform's Jacobian is this times summary.json affine.determinant",
     "entropy.nii.gz": "entropy of the velocity posterior q(z) (Dalca et al. 2018, Eq. 8), fixed grid",
     "displacement_std.nii.gz": "std of the displacement over K posterior samples, sqrt(sum of the 3 variances), mm; "
-    "a component's calibrated 95% interval is +- summary.json model.posterior_interval_95_half_width_std times its std "
-    "(Student-t tails) [--samples K]",
+    "a component's calibrated 95% interval is +- summary.json model.posterior_interval_95_half_width_std times that "
+    "component's own std (about this map / sqrt(3)), Student-t tails [--samples K]",
     "subject.nii.gz": "the synthetic subject registered (the moving image), made from the template [demo]",
     "true_warp.nii.gz": "the known field fixed -> moving the subject was made with, LPS mm, on the fixed grid, in "
     "warp.nii.gz's convention: the answer warp.nii.gz is scored against [demo]",

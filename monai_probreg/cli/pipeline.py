@@ -674,7 +674,8 @@ def register_scan(
                 "posterior_std_scale": model.std_scale,
                 "posterior_bias_fraction": model.bias_fraction,
                 "posterior_interval_dof": model.interval_dof,  # Student-t dof of the intervals; None: Gaussian
-                # the calibrated 95% interval of a displacement component is +- this many displacement_std
+                # the calibrated 95% interval of one displacement component is +- this many times that component's
+                # std (displacement_std.nii.gz is the root-sum-square of the 3 components' stds)
                 "posterior_interval_95_half_width_std": round(interval_z(0.95, model.interval_dof), 4),
                 # this run's refinement settings where they differ from those the calibration was fitted around
                 # (the maps are calibrated for that mean); None: the raw posterior, or a sidecar that does not say

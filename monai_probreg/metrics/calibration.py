@@ -2,10 +2,11 @@
 
 Every function takes a predicted standard deviation ``std`` and an observed ``error`` (prediction minus truth) of
 the same shape, any shape, compared element-wise (e.g. one element per voxel and displacement component), and
-reads them as the claim ``error ~ N(0, std^2)``:
+reads them as the claim ``error ~ N(0, std^2)`` (or, for the intervals, ``error / std`` Student-t with ``dof``
+degrees of freedom: a Gaussian whose variance is itself uncertain, heavier-tailed; ``dof=None`` is the Gaussian):
 
-- :func:`interval_coverage`: the fraction of elements with ``|error| <= z_p * std``, z_p the two-sided Gaussian
-  quantile of nominal level p (68% -> 0.994, 95% -> 1.960); calibrated = coverage ~ p.
+- :func:`interval_coverage`: the fraction of elements with ``|error| <= z_p * std``, z_p the two-sided quantile of
+  nominal level p (:func:`interval_z`; Gaussian: 68% -> 0.994, 95% -> 1.960); calibrated = coverage ~ p.
 - :func:`reliability_bins`: elements grouped into bins of predicted std; per bin the RMS predicted std and the RMS
   observed error (calibrated = equal; this is the reliability diagram).
 - :func:`uncertainty_calibration_error` (UCE, Laves et al. 2020): bin-weighted mean of |RMS error - RMS std|, in

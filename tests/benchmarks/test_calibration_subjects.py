@@ -66,12 +66,13 @@ def test_errors_are_taken_in_the_posteriors_frame_with_the_calibration_asked(tem
     monkeypatch.setattr(probe, "register_scan", fake_register_scan)
     model = LoadedModel(torch.nn.Identity(), 16, torch.device("cpu"), Path("model.pt"), Path("inference.yaml"))
     refinement = RefinementSettings(num_iterations=2)
-    std, error, norm = probe.subject_errors(model, case, Calibration(0.5, 0.1), 4, refinement)
+    std, error, norm = probe.subject_errors(model, case, Calibration(0.5, 0.1, 3.0), 4, refinement)
     assert std.shape == error.shape == norm.shape == (3, 200)
     np.testing.assert_allclose(error, np.broadcast_to(ERROR_COMPONENTS[:, None], (3, 200)), atol=1e-4)
     np.testing.assert_allclose(std, np.broadcast_to(np.sqrt(VARIANCE)[:, None], (3, 200)))
     np.testing.assert_allclose(norm, np.linalg.norm(DEFORMABLE), atol=1e-4)
     # the registration ran with the calibration asked, no quality estimate, the case's seed and the refinement
     assert (seen["model"].std_scale, seen["model"].bias_fraction, seen["model"].quality) == (0.5, 0.1, None)
+    assert seen["model"].interval_dof == 3.0
     assert seen["options"].samples == 4 and seen["options"].seed == 3 and seen["options"].affine.seed == 3
     assert seen["options"].refinement == refinement and seen["moving"] is case.subject.image

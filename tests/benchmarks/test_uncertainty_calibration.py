@@ -175,6 +175,8 @@ def test_main_writes_the_table_the_figures_and_a_two_number_calibration(tmp_path
     written = load_calibration(bundle / "models" / "model.pt")
     assert written.std_scale == report["written_calibration"]["std_scale"] > 0
     assert 0 <= written.bias_fraction == report["written_calibration"]["bias_fraction"] <= 1
+    assert written.interval_dof == report["written_calibration"]["interval_dof"]
+    assert set(report["summary"]["calibrated"]["coverage_by_level"]) == {"0.5", "0.68", "0.8", "0.9", "0.95"}
     assert written.refinement == {}  # --refine 0: fitted around the network's own mean
     assert "Spearman of vectors (ceiling)" in report["markdown"]
     # the subject probe (default: the first training subjects; the tiny dataset has one, T03), fitted and held out
@@ -264,3 +266,14 @@ def test_main_calibrates_the_refined_mean_when_asked(tmp_path, tiny_dataset, sin
     assert load_calibration(bundle / "models" / "model.pt").refinement == report["settings"]["refinement"]
     with pytest.raises(SystemExit, match="--refine must be >= 0"):
         bench.main([*common, "--refine", "-1"])
+
+
+def test_pooled_metrics_score_each_part_with_its_own_intervals():
+    """Folds that fitted different dofs: each part's coverage is taken with its own intervals, then pooled by size.
+    Errors of 2.5 std: outside the Gaussian 95% interval (1.96), inside the 3-dof one (3.18)."""
+    std = [np.ones((3, 10)), np.ones((3, 30))]
+    error = [2.5 * np.ones((3, 10)), 2.5 * np.ones((3, 30))]
+    mixed = bench.pooled_metrics(std, error, [None, 3.0])
+    assert mixed["coverage_95"] == pytest.approx(30 / 40) and mixed["interval_dof"] == [None, 3.0]
+    same = bench.pooled_metrics(std, error, [3.0, 3.0])
+    assert same["coverage_95"] == 1.0 and same["interval_dof"] == 3.0

@@ -122,3 +122,20 @@ def test_bias_fraction_reaches_the_written_maps(scene):
     assert rc == 0
     inside = raw > 0
     assert np.median(biased[inside] / raw[inside]) > 1.2
+
+
+def test_student_t_intervals_are_recorded_and_raw_on_request_is_gaussian(scene):
+    """A sidecar with Student-t intervals (3 dof): the summary records the dof and the 95% half-width (3.18 std);
+    --raw-uncertainty gives the raw posterior's Gaussian intervals (1.96)."""
+    _, _, weights, _, _ = scene
+    record = calibration_path(weights).read_text()
+    try:
+        save_calibration(weights, SCALE, ["synthetic"], 2, interval_dof=3.0)
+        rc, summary, _ = _register(scene, "student_t")
+        assert rc == 0 and summary["model"]["posterior_interval_dof"] == 3.0
+        assert summary["model"]["posterior_interval_95_half_width_std"] == pytest.approx(3.1824, abs=1e-4)
+        rc, summary, _ = _register(scene, "student_t_raw", "--raw-uncertainty")
+        assert rc == 0 and summary["model"]["posterior_interval_dof"] is None
+        assert summary["model"]["posterior_interval_95_half_width_std"] == pytest.approx(1.96, abs=1e-4)
+    finally:
+        calibration_path(weights).write_text(record)

@@ -143,6 +143,12 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
     # the raw posterior is over-confident on the two probes together: the fit widens it (docs/uncertainty.md; since
     # bundle 0.19.0 the subject probe's errors, not proportional to the displacement, leave the bias term at 0)
     assert record.std_scale > 1.0 and record.bias_fraction >= 0.0
+    # the 95% half-width the docs quote (README, docs/uncertainty.md, bundle docs: 3.57 std) is the shipped sidecar's
+    from monai_probreg.metrics.calibration import interval_z
+
+    half_width = f"{interval_z(0.95, record.interval_dof):.2f}"
+    for doc in ("README.md", "docs/uncertainty.md", "bundle/docs/README.md"):
+        assert half_width in (weights.parents[2] / doc).read_text(), doc
     assert any("subject probe" in name for name in record.fitted_on)
     # fitted around the mean the configs give by default (the refined one, with these settings)
     from monai.bundle import ConfigParser

@@ -152,6 +152,11 @@ def _model(**changes) -> dict:
         ({"entropy_calibration": {"std_scale": 0.5, "bias_fraction": 0.1, "x": 1}}, "entropy_calibration must be"),
         ({"entropy_calibration": {"std_scale": 0.0, "bias_fraction": 0.1}}, "std_scale must be"),
         ({"entropy_calibration": {"std_scale": 0.5, "bias_fraction": -0.1}}, "bias_fraction must be"),
+        # the intervals' dof is no part of an entropy: a sidecar that records one was not written by this package
+        (
+            {"entropy_calibration": {"std_scale": 0.5, "bias_fraction": 0.1, "interval_dof": 3.0}},
+            "entropy_calibration must be",
+        ),
     ],
 )
 def test_bad_model_values_are_refused(changes, match):

@@ -60,8 +60,10 @@ that grid's affine, so it overlays the atlas in world coordinates.
                        resized to this grid; relative: compare regions, not absolute values
   warped_label.nii.gz  moving labels warped nearest neighbour (written when labels exist)
   displacement_std.nii.gz  sqrt(sum of the 3 variances) of K displacements drawn from the calibrated posterior,
-                       in voxels: how far, roughly, each voxel's correspondence may be off (calibration and its
-                       limits: the bundle docs, "Uncertainty")
+                       in voxels: how far, roughly, each voxel's correspondence may be off; a component's
+                       calibrated p-interval is +- t(p) times its own std (about this map / sqrt(3)), t the
+                       Student-t quantile with the calibration sidecar's interval_dof (calibration and its limits:
+                       the bundle docs, "Uncertainty")
   label_entropy.nii.gz entropy (nats) of the moving labels warped by the K samples: 0 = every sample agrees;
                        high values flag voxels whose warped label is likely wrong (written when labels exist)
 """

@@ -39,6 +39,7 @@ from generalization import dice, synthetic_head
 from monai_probreg.cli.model import load_model
 from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.data.label_synthesis import ASEG_LABELS
+from monai_probreg.spatial.physical import field_from_itk
 from monai_probreg.spatial.volume_io import read_label
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
@@ -70,8 +71,7 @@ def fmt(value: float | None) -> str:
 def invented_displacement_mm(warp_path: Path, mask: np.ndarray) -> float:
     """Median length (mm) of the displacement ``D(p)`` of ``warp_path`` (the command's ``warp.nii.gz``, LPS mm on the
     fixed grid) over the voxels where ``mask`` (the fixed grid's shape, index order) is true."""
-    # ITK's array is (z, y, x, 3): back to index order (x, y, z), the order of read_label's arrays
-    warp = itk.array_from_image(itk.imread(str(warp_path))).transpose(2, 1, 0, 3)
+    warp = field_from_itk(itk.imread(str(warp_path))).array  # index order (x, y, z, 3), as read_label's arrays
     if warp.shape[:3] != mask.shape:
         raise ValueError(f"{warp_path}: expected a field of shape {mask.shape} (the mask's); got {warp.shape[:3]}")
     return float(np.median(np.linalg.norm(warp[mask], axis=-1)))

@@ -257,20 +257,18 @@ def displacement_metrics(std: np.ndarray, error: np.ndarray, interval_dof: float
 
 
 def pooled_metrics(stds: list[np.ndarray], errors: list[np.ndarray], dofs: list[float | None]) -> dict[str, Any]:
-    """:func:`displacement_metrics` of the (3, N_i) parts pooled; with parts whose intervals differ (folds that
-    fitted different dofs) the coverages are each part's own, pooled (the other metrics do not read the dof)."""
-    std, error = np.concatenate(stds, axis=1), np.concatenate(errors, axis=1)
-    if len(set(dofs)) <= 1:
-        return displacement_metrics(std, error, dofs[0] if dofs else None)
-    metrics = displacement_metrics(std, error)
-    counts = np.array([s.size for s in stds], np.float64)
+    """:func:`displacement_metrics` of the (3, N_i) parts pooled, each part's coverage taken with its own intervals
+    (folds may fit different dofs) and weighted by its size; ``interval_dof``: the one dof, or the parts' list."""
+    metrics = displacement_metrics(np.concatenate(stds, axis=1), np.concatenate(errors, axis=1))
+    sizes = np.array([s.size for s in stds], np.float64)
 
-    def pooled(level: float) -> float:
-        return float(np.sum([interval_coverage(s, e, level, d) * s.size for s, e, d in zip(stds, errors, dofs)]))
+    def coverage(level: float) -> float:
+        per_part = [interval_coverage(s, e, level, d) for s, e, d in zip(stds, errors, dofs)]
+        return float(np.dot(sizes, per_part) / sizes.sum())
 
-    metrics["coverage_68"], metrics["coverage_95"] = pooled(0.68) / counts.sum(), pooled(0.95) / counts.sum()
-    metrics["coverage_by_level"] = {str(p): pooled(p) / counts.sum() for p in FIT_LEVELS}
-    metrics["interval_dof"] = list(dofs)
+    metrics["coverage_by_level"] = {str(p): coverage(p) for p in FIT_LEVELS}
+    metrics["coverage_68"], metrics["coverage_95"] = coverage(0.68), metrics["coverage_by_level"]["0.95"]
+    metrics["interval_dof"] = dofs[0] if len(set(dofs)) == 1 else list(dofs)
     return metrics
 
 

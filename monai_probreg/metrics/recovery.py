@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from monai_probreg.metrics.calibration import interval_z
+from monai_probreg.metrics.calibration import interval_coverage
 
 __all__ = ["DisplacementRecovery", "ErrorSummary", "displacement_recovery"]
 
@@ -103,7 +103,7 @@ def displacement_recovery(
         linear = np.eye(3) if affine is None else affine[:3, :3]
         components = np.linalg.solve(linear, error.T).T @ np.asarray(variance_axes, np.float64)
         sigma = np.sqrt(np.maximum(np.asarray(variance)[mask].astype(np.float64), 0.0))
-        coverage = round(float(np.mean(np.abs(components) <= interval_z(level, interval_dof) * sigma)), 4)
+        coverage = round(interval_coverage(sigma, components, level, interval_dof), 4)
     return DisplacementRecovery(
         _summary(np.linalg.norm(truth, axis=1)),
         affine_summary,

@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import DEFAULT_DATASET, DEFAULT_OUT, REPO
-from failure_detection import NORMAL, cases_for, load_scans, run_case
 from uncertainty_calibration import validation_model
 
 from monai_probreg.data.pairs import ATLAS_ID
+from monai_probreg.fitting.quality_cases import NORMAL, cases_for, load_scans, run_case
 from monai_probreg.uncertainty.calibration import calibration_for
 from monai_probreg.uncertainty.quality import LNCC_DROP_MARGIN
 from monai_probreg.utils.files import write_text

@@ -38,7 +38,6 @@ from typing import Any
 import numpy as np
 import torch
 from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, ants_register, bundle_parser
-from failure_detection import load_scans
 from monai.transforms import (
     GaussianSmooth,
     RandAdjustContrast,
@@ -49,6 +48,7 @@ from monai.transforms import (
 
 from monai_probreg.data.pairs import ATLAS_ID
 from monai_probreg.engines.registration import register_pair
+from monai_probreg.fitting.quality_cases import load_scans
 from monai_probreg.metrics.scores import score_pair
 from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.utils.files import write_text

@@ -35,20 +35,18 @@ import numpy as np
 import torch
 from monai.data import Dataset
 from scipy.ndimage import distance_transform_edt
-from uncertainty_calibration import (
+from uncertainty_calibration import propagated_labels, validation_arguments, validation_model
+
+from monai_probreg.blocks.sampling import sample_velocity
+from monai_probreg.blocks.warp import warp_image, warp_labels
+from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.fitting.population_probe import (
     SEED_STRIDE,
     TRUTH_STEPS,
     population_deformation,
     population_velocities,
     population_velocity,
-    propagated_labels,
-    validation_arguments,
-    validation_model,
 )
-
-from monai_probreg.blocks.sampling import sample_velocity
-from monai_probreg.blocks.warp import warp_image, warp_labels
-from monai_probreg.data.dataset import index_dataset, labelled_pairs
 from monai_probreg.metrics.calibration import auroc
 from monai_probreg.uncertainty.calibration import calibrate_log_var, calibration_for
 from monai_probreg.uncertainty.entropy import label_entropy

@@ -22,6 +22,7 @@ TIERS = {  # a folder may import its own tier and the tiers below it, never abov
     "data": 3,  # datasets, transforms, augmentation, synthetic subjects: built on spatial's geometry, never under it
     "engines": 4,
     "cli": 4,
+    "fitting": 5,  # the sidecars' fits: registers through the engines and the command line's path
 }
 
 

@@ -284,10 +284,12 @@ def save_calibration(
     bias_fraction: float = 0.0,
     refinement: Mapping[str, Any] | None = None,
     interval_dof: float | None = None,
+    path: str | os.PathLike | None = None,
 ) -> CalibrationRecord:
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
     ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
-    network's mean); ``interval_dof``: the intervals' Student-t dof (None: Gaussian)."""
+    network's mean); ``interval_dof``: the intervals' Student-t dof (None: Gaussian); ``path``: where to write it
+    (default: next to the weights, :func:`calibration_path`)."""
     check_calibration(std_scale, bias_fraction, interval_dof)
     record = CalibrationRecord(
         float(std_scale),
@@ -300,8 +302,7 @@ def save_calibration(
         refinement=dict(refinement or {}),
         interval_dof=None if interval_dof is None else float(interval_dof),
     )
-    target = calibration_path(weights_file)
-    write_text(target, json.dumps(asdict(record), indent=2))
+    write_text(calibration_path(weights_file) if path is None else path, json.dumps(asdict(record), indent=2))
     return record
 
 
@@ -319,7 +320,7 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
     if record.weights_sha256 != actual:
         raise ValueError(
             f"{path} was fitted for weights with SHA-256 {record.weights_sha256[:12]}..., but "
-            f"{weights_file} has {actual[:12]}...; refit it (benchmarks/uncertainty_calibration.py) "
+            f"{weights_file} has {actual[:12]}...; refit it (python -m monai_probreg.fitting) "
             "or use std_scale 1 (raw)"
         )
     try:

@@ -289,12 +289,13 @@ def quality_path(weights_file: str | os.PathLike) -> Path:
     return path.with_name(path.stem + ".quality.json")
 
 
-def save_quality_model(model: QualityModel, weights_file: str | os.PathLike) -> Path:
-    """Write ``model`` as the sidecar of ``weights_file`` (atomically), stamped with the weights' SHA-256."""
+def save_quality_model(
+    model: QualityModel, weights_file: str | os.PathLike, path: str | os.PathLike | None = None
+) -> Path:
+    """Write ``model`` as the sidecar of ``weights_file`` (atomically), stamped with the weights' SHA-256; ``path``:
+    where (default: next to the weights, :func:`quality_path`)."""
     model.weights_file, model.weights_sha256 = Path(weights_file).name, file_sha256(weights_file)
-    target = quality_path(weights_file)
-    write_text(target, json.dumps(asdict(model), indent=2) + "\n")
-    return target
+    return write_text(quality_path(weights_file) if path is None else path, json.dumps(asdict(model), indent=2) + "\n")
 
 
 def load_quality_model(weights_file: str | os.PathLike) -> QualityModel | None:
@@ -310,6 +311,6 @@ def load_quality_model(weights_file: str | os.PathLike) -> QualityModel | None:
     if model.weights_sha256 != actual:
         raise ValueError(
             f"{path} was fitted for weights with SHA-256 {model.weights_sha256[:12]}..., but "
-            f"{weights_file} has {actual[:12]}...; refit it (benchmarks/failure_detection.py --fit)"
+            f"{weights_file} has {actual[:12]}...; refit it (python -m monai_probreg.fitting)"
         )
     return model

@@ -1,4 +1,4 @@
-"""The failure set of ``failure_detection.py``: what goes wrong with the scans users bring, applied to a moving scan.
+"""The failure set of the quality model's fit: what goes wrong with the scans users bring, applied to a moving scan.
 
 Each perturbation takes the preprocessed moving image and label map ((1, 1, *S) on the fixed grid, intensities in
 [0, 1]) and a seeded generator, and returns both. Orientation errors move image *and* labels (the anatomy is where

@@ -1,11 +1,10 @@
-"""benchmarks/calibration_subjects.py: the subject probe's cases and the frame its errors are taken in."""
+"""monai_probreg.fitting.subject_probe: the subject probe's cases and the frame its errors are taken in."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from types import SimpleNamespace
 
-import calibration_subjects as probe
 import numpy as np
 import pytest
 import torch
@@ -15,6 +14,7 @@ from monai_probreg.cli.model import LoadedModel
 from monai_probreg.cli.pipeline import Registered
 from monai_probreg.data.synthetic import brain_mask
 from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.fitting import subject_probe as probe
 from monai_probreg.uncertainty.calibration import Calibration
 
 # the affine's linear part: 90 degrees about the third LPS axis, then scaled (not orthogonal: L^-1 != L^T)

@@ -1,13 +1,13 @@
 """The calibration's subject probe: synthetic subjects made as the demo makes its own, registered by the command.
 
-The population probe of ``uncertainty_calibration.py`` deforms the atlas by a field like the model's own
+The population probe (:mod:`monai_probreg.fitting.population_probe`) deforms the atlas by a field like the model's own
 subject -> atlas fields and registers it back on the dataset grid: the same intensities on both sides, no affine
 stage. A user's scan (and ``monai-probreg demo``'s subject) also differs by a turn and a shift that the affine stage
 takes out only roughly, a bias field and noise, and goes through the whole command (affine, network, refinement),
 whose residual error is not proportional to the displacement (the bias term's model). This probe measures that:
 
 - the templates are training subjects' scans (never the MNI152 template that the demo and
-  ``generalization.py`` score on, never a validation subject), one synthetic subject each;
+  ``benchmarks/generalization.py`` score on, never a validation subject), one synthetic subject each;
 - each subject is :func:`~monai_probreg.data.synthetic.synthesize_subject` of its template with the demo's
   ``SyntheticSettings`` (a random rigid turn and shift, a random smooth deformation, a bias field, Rician noise),
   seed ``SUBJECT_SEED + n`` (far from the demo's seeds 0-2);

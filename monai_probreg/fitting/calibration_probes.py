@@ -1,0 +1,210 @@
+"""The calibration's cases and its fit: the population probe and the subject probe, registered once, fitted together.
+
+:func:`calibration_probes` registers the cases of both probes (:mod:`~monai_probreg.fitting.population_probe` on the
+bundle's validation subjects, :mod:`~monai_probreg.fitting.subject_probe` on the first training subjects' scans) and
+keeps each case's posterior, so that :meth:`CalibrationProbes.errors_at` can sample them again at any calibration.
+:meth:`CalibrationProbes.fit` is the coverage-matching fit of (std_scale, bias_fraction, interval_dof) on any subset of
+the cases, each probe's coverage matched on its own (``fit_calibration``'s ``groups``): on all of them for the
+sidecar (``python -m monai_probreg.fitting``), on the other folds for the held-out numbers of
+``benchmarks/uncertainty_calibration.py``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from monai.data import Dataset
+from torch import nn
+from tqdm import tqdm
+
+from monai_probreg.cli.model import LoadedModel, load_model
+from monai_probreg.data.dataset import DatasetIndex, labelled_pairs
+from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.fitting.population_probe import (
+    SEED_STRIDE,
+    VOXELS_PER_CASE,
+    case_errors,
+    displacement_case,
+    pool_errors,
+    population_velocities,
+)
+from monai_probreg.fitting.subject_probe import SUBJECT_SEED, SubjectCase, subject_case, subject_errors
+from monai_probreg.metrics.calibration import interval_coverage
+from monai_probreg.uncertainty.calibration import Calibration, fit_calibration
+from monai_probreg.utils.tensors import plain_tensor
+
+__all__ = [
+    "FIT_ITERATIONS",
+    "FIT_TOLERANCE",
+    "SUBJECT_PROBE_TEMPLATES",
+    "POPULATION",
+    "SUBJECTS",
+    "CalibrationProbes",
+    "calibration_probes",
+]
+
+_LOG = logging.getLogger(__name__)
+
+FIT_ITERATIONS = 3  # at most this many re-samplings at the fitted pair and refits (the std is not linear in it;
+# the two scalars trade along a ridge of near-equal coverage, and 8 refits drift on to a
+# smaller scale and a larger bias fraction: Spearman +0.02, label AUROC -0.004, README)
+FIT_TOLERANCE = 0.02  # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
+SUBJECT_PROBE_TEMPLATES = 6  # training subjects whose synthetic subjects make the subject probe (0: none)
+POPULATION, SUBJECTS = 0, 1  # the fit's groups: each probe's coverage is matched on its own (fit_calibration)
+RAW = Calibration(1.0, 0.0)
+
+
+@dataclass
+class CalibrationProbes:
+    """The registered cases of both probes. ``cases``: each validation subject's population-probe cases (posterior and
+    truth); ``items``: its preprocessed pair (moving = the subject, fixed = the atlas); ``subject_cases``: each
+    template's synthetic subject; ``raw`` / ``subject_raw``: their errors sampled from the raw posterior."""
+
+    network: nn.Module
+    samples: int
+    refinement: RefinementSettings
+    cases: dict[str, list[dict]]
+    items: dict[str, dict]
+    subject_cases: dict[str, SubjectCase]
+    command_model: LoadedModel | None
+    raw: dict[str, list[tuple[np.ndarray, ...]]]
+    subject_raw: dict[str, tuple[np.ndarray, ...]]
+
+    def population_errors(self, sid: str, calibration: Calibration) -> list[tuple[np.ndarray, ...]]:
+        """(std, error, norm) of each population case of ``sid``, sampled at ``calibration``."""
+        return [case_errors(self.network, c, calibration, self.samples) for c in self.cases[sid]]
+
+    def subject_errors(self, tid: str, calibration: Calibration) -> tuple[np.ndarray, ...]:
+        """(std, error, norm) of template ``tid``'s synthetic subject, registered by the command's path."""
+        return subject_errors(self.command_model, self.subject_cases[tid], calibration, self.samples, self.refinement)
+
+    def errors_at(self, sids: list[str], tids: list[str], calibration: Calibration | None) -> tuple[np.ndarray, ...]:
+        """(std, error, norm, group) pooled over the population cases of ``sids`` and the subject cases of
+        ``tids``, sampled at ``calibration`` (None: the raw samples already drawn)."""
+        parts = [
+            (*e, np.full(e[0].shape, POPULATION))
+            for s in sids
+            for e in (self.raw[s] if calibration is None else self.population_errors(s, calibration))
+        ]
+        parts += [
+            (*e, np.full(e[0].shape, SUBJECTS))
+            for e in (self.subject_raw[t] if calibration is None else self.subject_errors(t, calibration) for t in tids)
+        ]
+        return pool_errors(parts)
+
+    def fit(self, sids: list[str], tids: list[str], iterations: int = FIT_ITERATIONS) -> Calibration:
+        """Coverage-matching (scale, bias fraction, dof) on the population cases of ``sids`` and the subject-probe
+        cases of ``tids``, each probe matched on its own: fitted on the raw samples, then re-sampled at the current
+        pair and refitted, at most ``iterations`` times. Independent velocity noise reaches the displacement damped by
+        a factor kappa (interpolation and integration average neighbours; kappa = sampled raw displacement variance /
+        raw velocity variance on the image grid), so a refit (c, a) of samples drawn at (s, b) means a variance of
+        about c^2 kappa (s^2 sigma^2 + b^2 |mu|^2) + a^2 |u|^2 (u ~ mu once integrated): the new pair is
+        (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
+        population_std = pool_errors([e for s in sids for e in self.raw[s]])[0]
+        velocity_std = np.concatenate([c["velocity_std"].numpy() for s in sids for c in self.cases[s]], axis=1)
+        kappa = float(np.mean(population_std**2) / np.mean(velocity_std**2))
+        std, error, norm, groups = self.errors_at(sids, tids, None)
+        first = fit_calibration(std, error, norm, groups=groups)
+        current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa), first.interval_dof)
+        for iteration in range(1, iterations + 1):
+            std, error, norm, groups = self.errors_at(sids, tids, current)
+            refit = fit_calibration(std, error, norm, groups=groups)
+            if (
+                abs(refit.std_scale - 1) < FIT_TOLERANCE
+                and refit.bias_fraction < FIT_TOLERANCE
+                and refit.interval_dof == current.interval_dof
+            ):
+                break  # the samples at the current pair already cover as nominal as the fit can make them
+            current = Calibration(  # the dof is the refit's: it reads the tails of the samples drawn at current
+                refit.std_scale * current.std_scale,
+                math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction / math.sqrt(kappa)),
+                refit.interval_dof,
+            )
+        _LOG.info(
+            f"  fit on {', '.join(sids + [t + ' (subject probe)' for t in tids])}: kappa {kappa:.3f}, "
+            f"refit {iteration} ({refit.std_scale:.3f}, "
+            f"{refit.bias_fraction:.3f}, dof {refit.interval_dof}) -> std_scale {current.std_scale:.3f}, bias_fraction "
+            f"{current.bias_fraction:.3f}, interval dof {current.interval_dof}"
+        )
+        return current
+
+    def fitted_on(self) -> list[str]:
+        """The cases' names as the sidecar records them: the subjects, then each template with its seed."""
+        return list(self.cases) + [f"{t} (subject probe, seed {c.seed})" for t, c in self.subject_cases.items()]
+
+
+def calibration_probes(
+    network: nn.Module,
+    preprocessing,
+    index: DatasetIndex,
+    subjects: Sequence[str],
+    bundle_root: str | Path,
+    model_file: str | Path,
+    refinement: RefinementSettings,
+    *,
+    deformations: int,
+    samples: int,
+    seed: int = 0,
+    subject_probe: int = SUBJECT_PROBE_TEMPLATES,
+    probe: str = "population",
+    reference: str = "atlas",
+) -> CalibrationProbes:
+    """Register both probes' cases. ``network`` (evaluate.yaml's, eval mode) registers the population probe of the
+    labelled ``subjects`` of ``index`` (``preprocessing``: evaluate.yaml's), ``deformations`` cases each (subject n's
+    r-th drawn with seed ``seed + SEED_STRIDE n + r``), its deformation model made of the other subjects' velocities
+    (``probe`` "population"; "noise": smoothed noise of the RMS of the subject's own registration); ``reference``
+    "atlas" deforms the atlas, "subject" the subject. The subject probe takes the first ``subject_probe`` other
+    subjects' scans, registered by the command line's model of ``bundle_root`` with ``model_file`` (raw posterior).
+    ``refinement``: the refinement of the mean both probes calibrate."""
+    pairs = labelled_pairs(index, list(subjects))
+    population = None
+    if probe == "population":  # training subjects only: the scored subjects never shape the probe
+        train_ids = [i for i in index.ids if i not in subjects]
+        population = population_velocities(network, Dataset(labelled_pairs(index, train_ids), transform=preprocessing))
+        _LOG.info(
+            f"population probe: mean and {len(population[1])} deviations of the model's velocities of "
+            f"{', '.join(train_ids)} -> atlas"
+        )
+    cases, items = {}, {}
+    progress = tqdm(Dataset(pairs, transform=preprocessing), desc="population probe", unit="subject", disable=None)
+    for n, item in enumerate(progress):
+        pair = {k: plain_tensor(v)[None] if isinstance(v, torch.Tensor) else v for k, v in item.items()}
+        sid, items[pair["id"]] = pair["id"], pair
+        with torch.inference_mode():
+            real = network(pair["moving"], pair["fixed"]).displacement  # eval mode: the mean registration
+        brain = pair["moving"][0, 0] > 0
+        rms = float(real[0][:, brain].pow(2).sum(0).mean().sqrt())
+        fixed = pair["fixed"] if reference == "atlas" else pair["moving"]
+        cases[sid] = [
+            displacement_case(network, fixed, rms, samples, seed + SEED_STRIDE * n + r, population, refinement)
+            for r in range(deformations)
+        ]
+        truth_rms = [float(c["truth"].pow(2).sum(0).mean().sqrt()) for c in cases[sid]]
+        _LOG.info(
+            f"[{n + 1}/{len(pairs)}] {sid}: {deformations} {probe} deformations of the {reference}, "
+            f"true RMS {', '.join(f'{r:.2f}' for r in truth_rms)} voxels (the model's own for {sid} -> atlas: "
+            f"{rms:.2f})"
+        )
+    raw = {sid: [case_errors(network, c, RAW, samples) for c in cs] for sid, cs in cases.items()}
+
+    templates = [i for i in index.ids if i not in subjects][:subject_probe]
+    command_model = load_model(bundle_root, model_file, calibrate=False, quality=False) if templates else None
+    subject_cases = {
+        tid: subject_case(tid, index.images[tid], SUBJECT_SEED + n, VOXELS_PER_CASE, command_model.divisor)
+        for n, tid in enumerate(templates)
+    }
+    probes = CalibrationProbes(network, samples, refinement, cases, items, subject_cases, command_model, raw, {})
+    for n, tid in enumerate(tqdm(subject_cases, desc="subject probe", unit="template", disable=None)):
+        probes.subject_raw[tid] = errors = probes.subject_errors(tid, RAW)
+        _LOG.info(
+            f"[subject probe {n + 1}/{len(subject_cases)}] {tid}: raw coverage 95% "
+            f"{interval_coverage(*errors[:2], 0.95):.3f}, median error {np.median(np.abs(errors[1])):.2f} mm per "
+            "component"
+        )
+    return probes

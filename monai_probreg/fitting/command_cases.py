@@ -1,0 +1,147 @@
+"""The quality model's whole-command cases: each subject through ``monai-probreg register``'s path onto the atlas.
+
+The features of a registration depend on its path (the command line's affine stage undoes part of a wrong header, and
+its features are taken on the model grid behind a brain mask), and a detector fitted on the bundle path alone passed a
+turned native header as normal for some weights. So each subject also goes through the whole command
+(:func:`monai_probreg.cli.pipeline.register_scan`) onto the atlas, with its header as it is (``COMMAND``) and turned by
+90 and 180 degrees about the S axis (:func:`turned_header`). Its "no registration" Dice is the bundle path's (same scan,
+same atlas grid); "before" is the command's affine-only Dice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import tempfile
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+from tqdm import tqdm
+
+from monai_probreg.cli.model import load_model
+from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
+from monai_probreg.data.dataset import index_dataset
+from monai_probreg.data.pairs import ATLAS_ID
+from monai_probreg.fitting.quality_cases import RecordLog
+from monai_probreg.uncertainty.calibration import Calibration
+from monai_probreg.uncertainty.quality import QualityModel, entropy_calibration_record, failed
+from monai_probreg.uncertainty.quality_features import QualityFeatures
+from monai_probreg.utils.errors import InputError
+
+__all__ = ["HEADER_TURNS", "COMMAND", "COMMAND_NAMES", "command_cases", "turned_header", "turned_inputs"]
+
+HEADER_TURNS = (0, 90, 180)  # degrees about the S axis through the scan's centre, applied to its header only
+COMMAND = "command"  # the whole-command cases' perturbation name; turned ones add "_turn<degrees>"
+COMMAND_NAMES = tuple(f"{COMMAND}_turn{d}" if d else COMMAND for d in HEADER_TURNS)
+_LOG = logging.getLogger(__name__)
+
+
+def command_cases(
+    dataset_dir: Path,
+    ids: list[str],
+    bundle_root: Path,
+    model_file: Path | None,
+    identity_dice: dict[str, float],
+    seed: int,
+    refine: int | None = None,
+    entropy_calibration: Calibration | None = None,
+    log: RecordLog | None = None,
+) -> list[dict]:
+    """Each subject through the whole command onto the atlas, its header as it is and turned (module docstring), with
+    inference.yaml's refinement (``refine`` steps when given), as ``monai-probreg register`` runs it.
+    ``entropy_calibration``: the posterior calibration of the entropy feature (None: the weights' sidecar's, read
+    only then).
+    ``log``: the cases it holds are taken from it, the others registered and added to it."""
+    index = index_dataset(dataset_dir)
+    # the summary records the features only when the weights have a quality model; the one being fitted has none yet,
+    # so a neutral one (every coefficient 0) stands in: its estimate is ignored, the features are what is kept
+    n = len(QualityFeatures._fields)
+    neutral = QualityModel(
+        list(QualityFeatures._fields),
+        [-math.inf] * n,
+        [math.inf] * n,
+        [0.0] * n,
+        [1.0] * n,
+        [0.0] * n,
+        0.5,
+        [0.0] * n,
+        0.0,
+        entropy_calibration={} if entropy_calibration is None else entropy_calibration_record(entropy_calibration),
+    )
+    # the weights' calibration sidecar only where the entropy needs it: a refit for new weights finds a stale one
+    loaded = load_model(bundle_root, model_file, calibrate=entropy_calibration is None, quality=False)
+    model = dataclasses.replace(loaded, quality=neutral)
+    fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
+    # None: the command's default path (the config's refinement)
+    refinement = None if refine is None else dataclasses.replace(model.refinement, num_iterations=refine)
+    started = None if log is None else log.header.get("command_refinement")
+    differ = {} if started is None else model.refinement.differences(started)
+    if differ:  # inference.yaml changed since the run started
+        raise InputError(
+            f"inference.yaml's refinement is not the one this run started with (name: [at the start, now]): {differ}"
+        )
+    records = []
+    with tempfile.TemporaryDirectory(prefix="failure_command_") as tmp:
+        for sid in tqdm(ids, desc="whole-command registrations", unit="subject", disable=None):
+            for degrees, name in zip(HEADER_TURNS, COMMAND_NAMES):
+                case = {"moving": sid, "fixed": ATLAS_ID, "perturbation": name, "seed": seed}
+                logged = log.get(COMMAND, case) if log is not None else None
+                if logged is not None:
+                    records.append(logged)
+                    continue
+                scan, labels = turned_inputs(index.images[sid], index.labels[sid], degrees, Path(tmp))
+                summary = register_scan(
+                    model,
+                    fixed,
+                    scan,
+                    Path(tmp) / f"{sid}_{degrees}",
+                    labels,
+                    RegistrationOptions(qc=False, inverse=False, maps=False, seed=seed, refinement=refinement),
+                )
+                dice, before = summary["dice"]["mean"], summary["dice"]["mean_affine_only"]
+                record = {
+                    **case,
+                    "dice": dice,
+                    "dice_identity": identity_dice[sid],
+                    "dice_before": before,
+                    "failed": failed(dice, before, identity_dice[sid]),
+                    "features": summary["quality"]["features"],
+                    "answer_features": summary["quality"]["answer_features"],
+                }
+                records.append(record if log is None else log.put(COMMAND, case, record))
+                _LOG.info(
+                    f"[command] {sid} header turned {degrees} deg: Dice {before:.3f} (affine) -> {dice:.3f}"
+                    f"{' FAILED' if record['failed'] else ''}"
+                )
+    return records
+
+
+def turned_header(scan: Path, degrees: float, out: Path, reference: Path | None = None) -> Path:
+    """``scan`` with its header turned by ``degrees`` about the world S axis through the centre of ``reference``'s
+    grid (default: its own; the voxels untouched): what a wrong orientation header does to a scan (and its labels)."""
+    image = nib.load(scan)
+    grid = nib.load(reference) if reference is not None else image
+    centre = grid.affine @ np.r_[(np.asarray(grid.shape[:3]) - 1) / 2, 1.0]
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    turn = np.eye(4)
+    turn[:2, :2] = [[c, -s], [s, c]]
+    turn[:3, 3] = centre[:3] - turn[:3, :3] @ centre[:3]
+    turned = nib.Nifti1Image(np.asanyarray(image.dataobj), turn @ image.affine, image.header)
+    turned.set_qform(turn @ image.affine, code=1)
+    turned.set_sform(turn @ image.affine, code=1)
+    nib.save(turned, out)
+    return out
+
+
+def turned_inputs(scan: Path, labels: Path | None, degrees: float, folder: Path) -> tuple[Path, Path | None]:
+    """``scan`` and its ``labels`` (or None) with their header turned by ``degrees`` (0: the files as they are),
+    written into ``folder``: the labels share the scan's (wrong) header, turned about the scan's grid centre."""
+    if not degrees:
+        return scan, labels
+    stem = scan.name.split(".")[0]
+    turned = turned_header(scan, degrees, folder / f"{stem}_turn{degrees}.nii.gz")
+    if labels is not None:
+        labels = turned_header(labels, degrees, folder / f"{stem}_labels_turn{degrees}.nii.gz", reference=scan)
+    return turned, labels

@@ -1,0 +1,114 @@
+"""monai_probreg.fitting.command_cases: the header turn, and each scan through the whole command as it is and turned."""
+
+from __future__ import annotations
+
+import math
+
+import nibabel as nib
+import numpy as np
+import pytest
+from conftest import BUNDLE_DIR, make_tiny_dataset, tiny_bundle
+
+from monai_probreg.fitting import command_cases as command
+from monai_probreg.fitting.quality_cases import RecordLog
+from monai_probreg.uncertainty.quality import failed
+from monai_probreg.uncertainty.quality_features import QualityFeatures
+from monai_probreg.utils.errors import InputError
+
+LOG = "quality.json"
+HEADER = {"weights_sha256": "ab", "refinement": {"num_iterations": 10}, "seed": 0, "train_ids": ["S12"]}
+
+
+def test_a_turned_header_turns_the_world_and_keeps_the_voxels(tmp_path):
+    data = np.arange(4 * 6 * 5, dtype=np.int16).reshape(4, 6, 5)
+    affine = np.diag([1.5, 1.0, 2.0, 1.0])
+    affine[:3, 3] = [10.0, -20.0, 5.0]
+    nib.save(nib.Nifti1Image(data, affine), tmp_path / "scan.nii.gz")
+    out = command.turned_header(tmp_path / "scan.nii.gz", 180.0, tmp_path / "turned.nii.gz")
+    turned = nib.load(out)
+    assert np.array_equal(np.asanyarray(turned.dataobj), data)
+    centre = affine @ np.r_[1.5, 2.5, 2.0, 1.0]
+    assert np.allclose(turned.affine @ np.r_[1.5, 2.5, 2.0, 1.0], centre)  # about the grid centre
+    corner, turned_corner = affine @ np.r_[0, 0, 0, 1.0], turned.affine @ np.r_[0, 0, 0, 1.0]
+    assert np.allclose(turned_corner[:2] - centre[:2], -(corner[:2] - centre[:2]))  # R and A flip, S stays
+    assert math.isclose(turned_corner[2], corner[2])
+
+
+def test_command_cases_register_each_scan_as_it_is_and_turned(tmp_path):
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    records = command.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3)
+    assert [r["perturbation"] for r in records] == list(command.COMMAND_NAMES)
+    assert command.COMMAND_NAMES == ("command", "command_turn90", "command_turn180")
+    for r in records:
+        assert (r["moving"], r["fixed"], r["seed"], r["dice_identity"]) == ("T01", "atlas", 3, 0.5)
+        assert set(r["features"]) == set(QualityFeatures._fields)
+        assert all(math.isfinite(v) for v in r["features"].values())
+        assert r["failed"] == failed(r["dice"], r["dice_before"], 0.5)
+    assert records[0]["dice_before"] > 0.5  # as it is: the affine stage finds the phantom
+    # the command's default path refines (inference.yaml), so each record has the refined answer's features too;
+    # --refine 0 gives the network alone and none
+    assert all(set(r["answer_features"]) == set(QualityFeatures._fields) for r in records)
+    plain = command.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3, refine=0)
+    assert all(r["answer_features"] is None for r in plain)
+    for a, b in zip(plain, records):  # the estimate reads the network's registration either way
+        assert a["features"] == pytest.approx(b["features"], abs=1e-6)
+
+
+def test_turned_inputs_give_the_labels_the_scans_turned_header(tmp_path):
+    affine = np.diag([1.5, 1.0, 2.0, 1.0])
+    affine[:3, 3] = [10.0, -20.0, 5.0]
+    scan = tmp_path / "S9.nii.gz"
+    labels = tmp_path / "S9_labels.nii.gz"
+    nib.save(nib.Nifti1Image(np.zeros((4, 6, 5), np.float32), affine), scan)
+    nib.save(nib.Nifti1Image(np.ones((4, 6, 5), np.int16), affine), labels)
+    assert command.turned_inputs(scan, labels, 0, tmp_path) == (scan, labels)
+    turned, turned_labels = command.turned_inputs(scan, labels, 90, tmp_path)
+    assert turned != scan and turned_labels != labels
+    assert np.allclose(nib.load(turned).affine, nib.load(turned_labels).affine)
+    assert not np.allclose(nib.load(turned).affine, affine)
+    assert command.turned_inputs(scan, None, 180, tmp_path)[1] is None
+
+
+def test_command_cases_compute_the_entropy_with_the_calibration_given(tmp_path):
+    """The records' entropy feature is computed with the calibration the quality model will record (the tiny bundle
+    has none: raw); halving the std lowers it by exactly 3 log 2 nats and changes no other feature."""
+    from monai_probreg.uncertainty.calibration import Calibration
+
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    common = (dataset, ["T01"], bundle, None, {"T01": 0.5})
+    plain = command.command_cases(*common, seed=3, refine=0)
+    halved = command.command_cases(*common, seed=3, refine=0, entropy_calibration=Calibration(0.5, 0.0))
+    for a, b in zip(plain, halved):
+        assert b["features"]["entropy"] == pytest.approx(a["features"]["entropy"] - 3 * math.log(2), abs=1e-4)
+        others = {k: v for k, v in b["features"].items() if k != "entropy"}
+        assert others == pytest.approx({k: v for k, v in a["features"].items() if k != "entropy"}, abs=1e-6)
+
+
+def test_command_cases_take_logged_registrations_from_the_log(tmp_path, monkeypatch):
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    path = tmp_path / "out" / LOG
+    common = (dataset, ["T01"], bundle, None, {"T01": 0.5})
+    first = command.command_cases(*common, seed=3, refine=0, log=RecordLog(path, HEADER))
+
+    def no_registration(*args, **kwargs):
+        raise AssertionError("a logged case was registered again")
+
+    monkeypatch.setattr(command, "register_scan", no_registration)
+    again = command.command_cases(*common, seed=3, refine=0, log=RecordLog(path, HEADER, resume=True))
+    assert again == first and len(again) == len(command.COMMAND_NAMES)
+    with pytest.raises(AssertionError, match="registered again"):  # another seed is another case
+        command.command_cases(*common, seed=4, refine=0, log=RecordLog(path, HEADER, resume=True))
+
+
+def test_command_cases_refuse_a_refinement_changed_since_the_run_started(tmp_path):
+    """The whole-command cases load the model (inference.yaml) when they start, late in a run: if the configs changed
+    since the run's log was begun, their records would be of other settings than the rest."""
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    started = {**HEADER, "command_refinement": {"num_iterations": 99}}
+    log = RecordLog(tmp_path / LOG, started)
+    with pytest.raises(InputError, match=r"num_iterations.*99"):
+        command.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3, log=log)

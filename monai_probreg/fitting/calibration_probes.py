@@ -112,7 +112,7 @@ class CalibrationProbes:
         std, error, norm, groups = self.errors_at(sids, tids, None)
         first = fit_calibration(std, error, norm, groups=groups)
         current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa), first.interval_dof)
-        for iteration in range(1, iterations + 1):
+        for iteration in tqdm(range(1, iterations + 1), desc="calibration refits", unit="refit", disable=None):
             std, error, norm, groups = self.errors_at(sids, tids, current)
             refit = fit_calibration(std, error, norm, groups=groups)
             if (

@@ -104,8 +104,8 @@ def bundle_setup(bundle_root: Path, dataset_dir: Path, model_file: Path | None =
         raise InputError(f"--model-file {str(model_file)!r}: expected a weights file, got no such file")
     try:
         network = load_weights(network_def, model_file, "cpu")
-    except InputError:
-        raise
+    except InputError as err:  # untrusted (a pickle that could run code), truncated or corrupt: its own message
+        raise InputError(str(err).replace("model file", "--model-file", 1)) from None
     except (RuntimeError, KeyError, ValueError) as err:
         raise InputError(
             f"--model-file {str(model_file)!r}: expected weights of evaluate.yaml's network, got {first_line(err)}"

@@ -18,8 +18,9 @@ Gaussian on the velocity grid, so sampling (diffeomorphic samples), the velocity
 the label entropy all follow from the calibrated ``log_var``. For the small sigmas of a trained model the sampled
 displacement variance is, to first order, std_scale^2 times the raw one plus (bias_fraction |u|)^2 (u the
 displacement, about mu once integrated), which is how :func:`fit_calibration` fits both scalars from one set of
-samples: the pair whose intervals cover closest to nominal at :data:`FIT_LEVELS` (the benchmark re-samples at the
-fitted pair, refits, and checks coverage on held-out subjects).
+samples: the pair whose intervals cover closest to nominal at :data:`FIT_LEVELS` (``python -m monai_probreg.fitting``
+re-samples at the fitted pair and refits, :mod:`monai_probreg.fitting.calibration_probes`;
+``benchmarks/uncertainty_calibration.py`` checks coverage on held-out subjects).
 
 A third number says how the intervals are read. The calibrated std ranks the errors only weakly (Spearman 0.02-0.12
 on held-out LPBA40 subjects and synthetic subjects), so the error over the std is a Gaussian of uncertain variance:

@@ -27,8 +27,8 @@ rounding of the UNet's arithmetic (bf16 on CPUs with native bf16, fp32 elsewhere
 measures both precisions (docs/uncertainty.md). That rule is not fitted: the clipping above hides such a case from
 the linear models whenever the pair is more alike than any training pair (a scan registered to a copy of itself, the
 demo's synthetic subject); ``benchmarks/failure_detection.py`` counts how often the drop occurs among its failures and
-its normal registrations (docs/uncertainty.md). Both models are fitted
-by ``benchmarks/failure_detection.py`` on *training* subjects only (normal pairs and a failure set: wrong
+its normal registrations (docs/uncertainty.md). Both models are fitted by ``python -m monai_probreg.fitting``
+(:mod:`monai_probreg.fitting.quality_fit`) on *training* subjects only (normal pairs and a failure set: wrong
 orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast), through both paths
 that compute the features (the bundle's, on the dataset grid, and the whole command's, affine stage and model grid
 included, with headers as they are and turned), and stored next to the

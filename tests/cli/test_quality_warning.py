@@ -138,7 +138,8 @@ def test_the_batch_lists_the_warning_and_the_scan_stays_ok(scene, tmp_path):
 
 
 def test_load_model_can_leave_a_stale_quality_model_out(scene):
-    """failure_detection.py fits a new quality model with the command line's loading: a stale one must not stop it."""
+    """python -m monai_probreg.fitting fits a new quality model with the command line's loading: a stale one must not
+    stop it."""
     from monai_probreg.cli.model import load_model
     from monai_probreg.utils.errors import InputError
 

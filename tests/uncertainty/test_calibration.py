@@ -132,7 +132,7 @@ def test_corrupt_sidecar_names_the_file(weights):
 
 
 def test_the_shipped_default_weights_carry_their_own_calibration():
-    """New default weights need a refitted calibration (benchmarks/uncertainty_calibration.py --write-calibration):
+    """New default weights need a refitted calibration (python -m monai_probreg.fitting):
     a stale record would be refused at inference time; this catches it before release."""
     from pathlib import Path
 

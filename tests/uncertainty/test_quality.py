@@ -194,7 +194,7 @@ def test_features_outside_the_training_range_are_not_extrapolated():
 
 
 def test_the_shipped_default_weights_carry_their_own_quality_model():
-    """New default weights need a refitted quality model (benchmarks/failure_detection.py --fit): a stale one would be
+    """New default weights need a refitted quality model (python -m monai_probreg.fitting): a stale one would be
     refused at inference time; this catches it before release."""
     from pathlib import Path
 

@@ -63,16 +63,11 @@ def run_command(subcommand: str, *args: str) -> tuple[subprocess.CompletedProces
 
 # ------------------------------------------------------------------------------------------------ configs
 def bundle_parser(bundle_root: Path, names: Sequence[str], overrides: dict[str, Any] | None = None) -> ConfigParser:
-    """A ``monai.bundle.ConfigParser`` over ``bundle_root/configs/<names>`` (merged in order), with ``bundle_root``
-    set to ``bundle_root`` and each ``overrides`` key set after reading, as ``monai.bundle run --key value`` does."""
-    from monai.bundle import ConfigParser
+    """The package's :func:`monai_probreg.fitting.stages.bundle_parser` (imported here, when called): the bundle's
+    ``configs/<names>`` merged, ``bundle_root`` and each ``overrides`` key set, as ``monai.bundle run`` does."""
+    from monai_probreg.fitting.stages import bundle_parser as parser
 
-    parser = ConfigParser()
-    parser.read_config([str(bundle_root / "configs" / n) for n in names])
-    parser["bundle_root"] = str(bundle_root)
-    for key, value in (overrides or {}).items():
-        parser[key] = value
-    return parser
+    return parser(bundle_root, names, overrides)
 
 
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
@@ -97,11 +92,14 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------------------------ ANTs
 def parse_variant(text: str) -> tuple[str, dict]:
-    """``name=field:value,field:value`` -> (name, {field: value}) with int/float/str values."""
+    """``name=field:value,field:value`` -> (name, {field: value}) with bool (true/false)/int/float/str values."""
     name, _, fields = text.partition("=")
     out: dict = {}
     for item in filter(None, fields.split(",")):
         key, _, value = item.partition(":")
+        if value.lower() in ("true", "false"):
+            out[key] = value.lower() == "true"
+            continue
         for cast in (int, float, str):
             try:
                 out[key] = cast(value)

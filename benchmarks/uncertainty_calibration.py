@@ -56,6 +56,7 @@ from monai_probreg.fitting.calibration_probes import (
     FIT_ITERATIONS,
     FIT_TOLERANCE,
     SUBJECT_PROBE_TEMPLATES,
+    ProbeSettings,
     calibration_probes,
 )
 from monai_probreg.fitting.population_probe import (
@@ -275,12 +276,7 @@ def main(argv=None) -> int:
             args.bundle_root,
             model_file,
             refinement,
-            deformations=args.deformations,
-            samples=args.samples,
-            seed=args.seed,
-            subject_probe=args.subject_probe,
-            probe=args.probe,
-            reference=args.reference,
+            ProbeSettings(args.deformations, args.samples, args.seed, args.subject_probe, args.probe, args.reference),
         )
     except InputError as err:
         raise SystemExit(str(err)) from None

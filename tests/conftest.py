@@ -64,6 +64,18 @@ def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture
+def brain():
+    """A smooth positive 'brain' (1, 1, 32, 36, 28) inside a zero background (linear interpolation barely blurs it)."""
+    import torch
+
+    x, y, z = torch.meshgrid(*(torch.arange(n, dtype=torch.float32) for n in (32, 36, 28)), indexing="ij")
+    image = torch.zeros(1, 1, 32, 36, 28)
+    inside = (slice(6, 26), slice(6, 30), slice(5, 23))
+    image[0, 0][inside] = (1.5 + torch.sin(x / 3) * torch.cos(y / 4) + 0.5 * torch.sin(z / 5))[inside]
+    return image
+
+
+@pytest.fixture
 def single_thread():
     """Run a test with one torch thread (the bundle tests share 2 cores with whatever else runs)."""
     import torch

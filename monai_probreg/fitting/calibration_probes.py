@@ -16,6 +16,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -45,6 +46,7 @@ __all__ = [
     "SUBJECT_PROBE_TEMPLATES",
     "POPULATION",
     "SUBJECTS",
+    "ProbeSettings",
     "CalibrationProbes",
     "calibration_probes",
 ]
@@ -58,6 +60,20 @@ FIT_TOLERANCE = 0.02  # ... stopping once a refit asks for less than this: |scal
 SUBJECT_PROBE_TEMPLATES = 6  # training subjects whose synthetic subjects make the subject probe (0: none)
 POPULATION, SUBJECTS = 0, 1  # the fit's groups: each probe's coverage is matched on its own (fit_calibration)
 RAW = Calibration(1.0, 0.0)
+
+
+class ProbeSettings(NamedTuple):
+    """The probes' cases: ``deformations`` population-probe cases per subject, ``samples`` posterior samples, the
+    ``seed`` of the population probe, ``subject_probe`` templates, the population probe's model (``probe``:
+    "population", or "noise": smoothed noise of the RMS of the subject's own registration) and the image it deforms
+    (``reference``: "atlas", or "subject")."""
+
+    deformations: int = 1
+    samples: int = 16
+    seed: int = 0
+    subject_probe: int = SUBJECT_PROBE_TEMPLATES
+    probe: str = "population"
+    reference: str = "atlas"
 
 
 @dataclass
@@ -147,21 +163,15 @@ def calibration_probes(
     bundle_root: str | Path,
     model_file: str | Path,
     refinement: RefinementSettings,
-    *,
-    deformations: int,
-    samples: int,
-    seed: int = 0,
-    subject_probe: int = SUBJECT_PROBE_TEMPLATES,
-    probe: str = "population",
-    reference: str = "atlas",
+    settings: ProbeSettings = ProbeSettings(),
 ) -> CalibrationProbes:
-    """Register both probes' cases. ``network`` (evaluate.yaml's, eval mode) registers the population probe of the
-    labelled ``subjects`` of ``index`` (``preprocessing``: evaluate.yaml's), ``deformations`` cases each (subject n's
-    r-th drawn with seed ``seed + SEED_STRIDE n + r``), its deformation model made of the other subjects' velocities
-    (``probe`` "population"; "noise": smoothed noise of the RMS of the subject's own registration); ``reference``
-    "atlas" deforms the atlas, "subject" the subject. The subject probe takes the first ``subject_probe`` other
-    subjects' scans, registered by the command line's model of ``bundle_root`` with ``model_file`` (raw posterior).
-    ``refinement``: the refinement of the mean both probes calibrate."""
+    """Register both probes' cases (``settings``). ``network`` (evaluate.yaml's, eval mode) registers the population
+    probe of the labelled ``subjects`` of ``index`` (``preprocessing``: evaluate.yaml's), subject n's r-th case drawn
+    with seed ``seed + SEED_STRIDE n + r``, its deformation model made of the other subjects' velocities. The subject
+    probe takes the first ``subject_probe`` other subjects' scans, registered by the command line's model of
+    ``bundle_root`` with ``model_file`` (raw posterior). ``refinement``: the refinement of the mean both probes
+    calibrate."""
+    deformations, samples, seed, subject_probe, probe, reference = settings
     pairs = labelled_pairs(index, list(subjects))
     population = None
     if probe == "population":  # training subjects only: the scored subjects never shape the probe

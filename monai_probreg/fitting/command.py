@@ -33,7 +33,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from monai_probreg.cli.model import default_bundle_root
 from monai_probreg.data.dataset import index_dataset
-from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES
+from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings
 from monai_probreg.fitting.population_probe import SEED_STRIDE
 from monai_probreg.fitting.quality_fit import CommandSetup
 from monai_probreg.fitting.stages import (
@@ -142,18 +142,8 @@ def run(args: argparse.Namespace) -> list[Path]:
     torch.set_num_threads(args.threads)
     calibration = None
     if args.only != "quality":
-        calibration = fit_calibration_stage(
-            setup,
-            index,
-            subjects,
-            bundle_root,
-            work_dir,
-            deformations=args.deformations,
-            samples=args.samples,
-            subject_probe=args.subject_probe,
-            seed=args.seed,
-            resume=args.resume,
-        )
+        settings = ProbeSettings(args.deformations, args.samples, args.seed, args.subject_probe)
+        calibration = fit_calibration_stage(setup, index, subjects, bundle_root, work_dir, settings, args.resume)
         fitted = calibration.calibration
         _LOG.info(
             f"calibration: std_scale {fitted.std_scale:.3f}, bias_fraction {fitted.bias_fraction:.3f}, interval dof "

@@ -26,7 +26,7 @@ from torch import nn
 
 from monai_probreg.data.dataset import DatasetIndex
 from monai_probreg.engines.refinement import RefinementSettings
-from monai_probreg.fitting.calibration_probes import FIT_ITERATIONS, calibration_probes
+from monai_probreg.fitting.calibration_probes import FIT_ITERATIONS, ProbeSettings, calibration_probes
 from monai_probreg.fitting.quality_cases import RecordLog, load_scans
 from monai_probreg.fitting.quality_fit import CommandSetup, fit_on_records, split_records
 from monai_probreg.uncertainty.calibration import Calibration, calibration_path, save_calibration
@@ -127,15 +127,11 @@ def fit_calibration_stage(
     subjects: Sequence[str],
     bundle_root: Path,
     work_dir: Path,
-    *,
-    deformations: int,
-    samples: int,
-    subject_probe: int,
-    seed: int,
-    resume: bool,
+    settings: ProbeSettings,
+    resume: bool = False,
 ) -> FittedCalibration:
-    """The calibration of ``setup``'s network and refinement, fitted on the population probe of ``subjects`` and the
-    subject probe of the first ``subject_probe`` training subjects
+    """The calibration of ``setup``'s network and refinement, fitted on the cases ``settings`` asks for: the
+    population probe of ``subjects`` and the subject probe of the first training subjects
     (:func:`~monai_probreg.fitting.calibration_probes.calibration_probes`); taken from the log when ``resume`` finds
     one of the same settings."""
     header = {
@@ -144,17 +140,14 @@ def fit_calibration_stage(
         "command_refinement": setup.command_refinement.as_dict(),  # the subject probe's network is inference.yaml's
         "subjects": list(subjects),
         "training_subjects": [i for i in index.ids if i not in subjects],
-        "deformations": deformations,
-        "samples": samples,
-        "subject_probe": subject_probe,
-        "seed": seed,
+        **settings._asdict(),
         "fit_iterations": FIT_ITERATIONS,
     }
     log = RecordLog(work_dir / CALIBRATION_LOG, header, resume=resume)
     if _FITTED in log.records:
         stored = log.records[_FITTED]
         _LOG.info(f"resumed: the calibration fitted before, from {log.path}")
-        return FittedCalibration(Calibration(**stored["calibration"]), stored["fitted_on"], samples)
+        return FittedCalibration(Calibration(**stored["calibration"]), stored["fitted_on"], settings.samples)
     _LOG.info(
         f"calibration: registering the probes of the {'refined' if setup.refinement.enabled else 'network'} mean "
         f"({setup.refinement.num_iterations} refinement steps)"
@@ -167,12 +160,11 @@ def fit_calibration_stage(
         bundle_root,
         setup.model_file,
         setup.refinement,
-        deformations=deformations,
-        samples=samples,
-        seed=seed,
-        subject_probe=subject_probe,
+        settings,
     )
-    fitted = FittedCalibration(probes.fit(list(probes.cases), list(probes.subject_cases)), probes.fitted_on(), samples)
+    fitted = FittedCalibration(
+        probes.fit(list(probes.cases), list(probes.subject_cases)), probes.fitted_on(), settings.samples
+    )
     log.records[_FITTED] = {"calibration": fitted.calibration._asdict(), "fitted_on": fitted.fitted_on}
     log.save()
     return fitted

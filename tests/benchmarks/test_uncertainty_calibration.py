@@ -14,16 +14,6 @@ from monai_probreg.blocks.warp import warp_image
 bench = load_benchmark("uncertainty_calibration")
 
 
-@pytest.fixture
-def brain():
-    """A smooth positive 'brain' inside a zero background (linear interpolation barely blurs it)."""
-    x, y, z = torch.meshgrid(*(torch.arange(n, dtype=torch.float32) for n in (32, 36, 28)), indexing="ij")
-    image = torch.zeros(1, 1, 32, 36, 28)
-    inside = (slice(6, 26), slice(6, 30), slice(5, 23))
-    image[0, 0][inside] = (1.5 + torch.sin(x / 3) * torch.cos(y / 4) + 0.5 * torch.sin(z / 5))[inside]
-    return image
-
-
 def test_recovered_fraction_closed_forms():
     truth = np.random.default_rng(0).normal(size=1000)
     assert bench.recovered_fraction(np.zeros(1000), truth) == pytest.approx(1.0)

@@ -13,16 +13,6 @@ from monai_probreg.fitting import population_probe as probe
 from monai_probreg.utils.errors import InputError
 
 
-@pytest.fixture
-def brain():
-    """A smooth positive 'brain' inside a zero background (linear interpolation barely blurs it)."""
-    x, y, z = torch.meshgrid(*(torch.arange(n, dtype=torch.float32) for n in (32, 36, 28)), indexing="ij")
-    image = torch.zeros(1, 1, 32, 36, 28)
-    inside = (slice(6, 26), slice(6, 30), slice(5, 23))
-    image[0, 0][inside] = (1.5 + torch.sin(x / 3) * torch.cos(y / 4) + 0.5 * torch.sin(z / 5))[inside]
-    return image
-
-
 def test_random_deformation_has_the_asked_rms_and_inverse(brain):
     forward, inverse = probe.random_deformation(brain, 1.5, torch.Generator().manual_seed(1))
     inside = brain[0, 0] > 0

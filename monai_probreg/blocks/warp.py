@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import List
+from collections.abc import Sequence
+from typing import List, Optional
 
 import torch
 import torch.nn.functional as F
@@ -37,6 +38,7 @@ from monai_probreg.utils.tensors import shape_str
 __all__ = [
     "CachedWarp",
     "warp_image",
+    "warp_box",
     "warp_labels",
     "warp_one_hot",
     "compose_displacements",
@@ -57,10 +59,14 @@ def identity_grid(spatial_shape: tuple[int, ...], dtype: torch.dtype, device: to
     return torch.stack(meshgrid_ij(*axes), dim=0).unsqueeze(0)
 
 
-def sampling_grid(ddf: Tensor) -> Tensor:
+def sampling_grid(ddf: Tensor, origin: Optional[List[int]] = None, image_size: Optional[List[int]] = None) -> Tensor:
     """``grid_sample``'s grid for the pull-back ``x -> x + ddf(x)``: (B, *S, D), last axis in its reversed (xyz)
     order, coordinates normalised to [-1, 1] with ``align_corners=True`` (the rule of
     :mod:`monai_probreg.blocks.grid_coords`: voxel i of n -> i * 2 / (n - 1) - 1).
+
+    ``origin`` and ``image_size``: ``ddf`` covers a box of a larger image grid (``image_size`` voxels per axis) whose
+    first voxel is index ``origin`` of that grid; the grid then samples that image at ``origin + x + ddf(x)``.
+    None: the field covers the image's whole grid (origin 0, the field's own size).
 
     One pass over the field: each grid component is a broadcast 1-D axis plus the scaled field component, written
     into place (``out=``) when no gradient is needed, stacked otherwise (differentiable in ``ddf``).
@@ -76,9 +82,12 @@ def sampling_grid(ddf: Tensor) -> Tensor:
         shape = [1] * (dims + 1)
         shape[1 + axis] = spatial[axis]
         # normalise_index is MONAI's order of operations: the identity grid is bit-identical to MONAI's
-        line = normalise_index(torch.arange(spatial[axis], dtype=ddf.dtype, device=ddf.device), spatial[axis])
-        line = line.view(shape)
-        scale = index_scale(spatial[axis])
+        size = spatial[axis] if image_size is None else image_size[axis]
+        index = torch.arange(spatial[axis], dtype=ddf.dtype, device=ddf.device)
+        if origin is not None:
+            index = index + origin[axis]
+        line = normalise_index(index, size).view(shape)
+        scale = index_scale(size)
         if differentiable:
             components.append(line + ddf[:, axis] * scale)
         else:
@@ -203,6 +212,16 @@ def warp_image(image: Tensor, ddf: Tensor, padding_mode: str = "border", fast: b
     """Linearly resample ``image`` (B, C, *S) at ``x + ddf(x)``; differentiable in both arguments.
     ``fast``: see :class:`CachedWarp`."""
     return _warp_layer("bilinear", padding_mode, fast)(image, ddf)
+
+
+def warp_box(image: Tensor, ddf: Tensor, origin: Sequence[int], padding_mode: str = "border") -> Tensor:
+    """:func:`warp_image` (the one-pass grid) of a box of the output grid only: ``ddf`` (B, D, *s) is the field on the
+    box whose first voxel is index ``origin`` of ``image``'s grid (B, C, *S); returns (B, C, *s), the box of what
+    ``warp_image(image, ddf_on_the_whole_grid)`` gives. Differentiable in both arguments."""
+    if len(origin) != ddf.ndim - 2:
+        raise ValueError(f"expected {ddf.ndim - 2} origin indices (the field's spatial dims); got {list(origin)}")
+    grid = sampling_grid(ddf, [int(i) for i in origin], [int(n) for n in image.shape[2:]])
+    return split_grid_sample(image, grid, "bilinear", padding_mode)
 
 
 def warp_labels(labels: Tensor, ddf: Tensor) -> Tensor:

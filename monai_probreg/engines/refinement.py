@@ -48,9 +48,10 @@ from monai.networks.layers.factories import Pool
 from torch import Tensor
 
 from monai_probreg.blocks.integration import resize_displacement
-from monai_probreg.blocks.warp import warp_image
-from monai_probreg.losses.elbo import ProbRegLoss
-from monai_probreg.losses.likelihood import IMAGE_LOSSES
+from monai_probreg.blocks.warp import warp_box, warp_image
+from monai_probreg.losses.kl import LaplacianKLLoss
+from monai_probreg.losses.likelihood import IMAGE_LOSSES, make_image_loss
+from monai_probreg.losses.lncc import FixedImageLNCC, support_box
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
 
@@ -96,6 +97,18 @@ class RefinementSettings:
         command's (``benchmarks/refinement_levers.py``, docs/accuracy.md); the shipped configs use 2 (since bundle
         0.18.0), which their calibration and quality model are fitted for. The dataclass default stays 1, the cheaper
         form.
+    coarse_iterations: of the ``num_iterations`` steps, the first this many compare the images on the network's
+        grid (``image_grid_factor`` 1, eight times fewer voxels in 3-d), the rest on the ``image_grid_factor`` grid:
+        a coarse-to-fine schedule (0: every step on the finer grid).
+    symmetric_start: start from (and pull towards) ``(mu(moving, fixed) - mu(fixed, moving)) / 2``, the network's
+        mean made antisymmetric in the pair by a second pass with the images swapped (``exp(-v)`` is the inverse
+        of ``exp(v)``, so the two directions should be opposite velocities): a scan onto a copy of itself then starts
+        from the identity instead of what the network invents there; False: the network's mean as it is.
+    adam_eps: Adam's epsilon, in the units of the loss's gradient per velocity-grid voxel. Adam scales every
+        coordinate's step to about ``learning_rate`` whatever its gradient's size, so a gradient of float rounding or
+        of LNCC's variance floor (nearly flat windows, where the images give no evidence) moves the velocity as far
+        as a real one: a scan onto a copy of itself then ends displaced. Where the gradient is well below this value
+        the step shrinks in proportion (torch's default, 1e-8, leaves no such floor).
     """
 
     num_iterations: int = 0
@@ -110,16 +123,19 @@ class RefinementSettings:
     fold_local_steps: int = 4
     velocity_grid_factor: int = 1
     image_grid_factor: int = 1
+    coarse_iterations: int = 0
+    symmetric_start: bool = False
+    adam_eps: float = 1e-8
 
     def __post_init__(self) -> None:
-        for name in ("num_iterations", "fold_backtracks", "fold_local_steps"):
+        for name in ("num_iterations", "fold_backtracks", "fold_local_steps", "coarse_iterations"):
             _check_integer(name, getattr(self, name), minimum=0)
         _check_integer("velocity_grid_factor", self.velocity_grid_factor, minimum=1)
         _check_integer("image_grid_factor", self.image_grid_factor, minimum=1)
         _check_integer("lncc_kernel_size", self.lncc_kernel_size, minimum=3)
         if self.lncc_kernel_size % 2 == 0:
             raise ValueError(f"lncc_kernel_size must be an odd integer >= 3; got {self.lncc_kernel_size!r}")
-        for name in ("learning_rate", "image_sigma", "prior_lambda"):
+        for name in ("learning_rate", "image_sigma", "prior_lambda", "adam_eps"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
                 raise ValueError(f"{name} must be a number > 0; got {value!r}")
@@ -127,6 +143,13 @@ class RefinementSettings:
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
                 raise ValueError(f"{name} must be a number >= 0; got {value!r}")
+        if not isinstance(self.symmetric_start, bool):
+            raise ValueError(f"symmetric_start must be True or False; got {self.symmetric_start!r}")
+        if self.coarse_iterations > self.num_iterations:
+            raise ValueError(
+                f"coarse_iterations must be at most num_iterations ({self.num_iterations}); "
+                f"got {self.coarse_iterations!r}"
+            )
         if self.image_loss not in IMAGE_LOSSES:
             raise ValueError(f"image_loss must be one of {IMAGE_LOSSES}; got {self.image_loss!r}")
 
@@ -213,6 +236,39 @@ def _without_folds(
     return None
 
 
+class _ImageTerm:
+    """The refinement's image term ``D(moving o exp(mu), fixed)`` as a function of the displacement on the loss's
+    grid. LNCC (with the network's one-pass sampling, ``fast_sampling``) is :class:`FixedImageLNCC`: the fixed
+    image's window sums once per pair, and the moving image warped and compared only inside the box around the fixed
+    image's nonzero voxels where a window can add to the loss (:func:`support_box`; the same value as over the whole
+    grid, the background of a skull-stripped fixed image adding exactly 0). Otherwise the warp and the loss of
+    :func:`make_image_loss` over the whole grid."""
+
+    def __init__(self, network: ProbRegNet, moving: Tensor, fixed: Tensor, settings: RefinementSettings) -> None:
+        self.network, self.moving = network, moving
+        self.lncc = None
+        if settings.image_loss == "lncc" and network.fast_sampling:
+            # windows with no nonzero fixed voxel add 0: the box holds the nonzero voxels and every window that
+            # reaches them (one radius) with whole windows of their own (a second radius)
+            region = support_box(fixed, margin=2 * (settings.lncc_kernel_size // 2))
+            self.lncc = FixedImageLNCC(fixed, settings.lncc_kernel_size, region=region)
+        else:
+            self.fixed = fixed
+            self.loss = make_image_loss(
+                settings.image_loss, moving.ndim - 2, settings.image_sigma, settings.lncc_kernel_size, "mean"
+            )
+
+    def __call__(self, displacement: Tensor) -> Tensor:
+        net = self.network
+        if self.lncc is None:
+            warped = warp_image(self.moving, displacement, padding_mode=net.padding_mode, fast=net.fast_sampling)
+            return self.loss(warped, self.fixed)
+        if self.lncc.region is None:
+            return self.lncc(warp_image(self.moving, displacement, padding_mode=net.padding_mode))
+        origin = self.lncc.region[0]
+        return self.lncc(warp_box(self.moving, self.lncc.crop(displacement), origin, padding_mode=net.padding_mode))
+
+
 def refine_registration(
     network: ProbRegNet, moving: Tensor, fixed: Tensor, output: RegistrationOutput, settings: RefinementSettings
 ) -> RegistrationOutput:
@@ -238,36 +294,32 @@ def refine_registration(
         raise ValueError(
             f"output is for a batch of {output.velocity_mean.shape[0]}; got images of batch {moving.shape[0]}"
         )
-    size = tuple(network.network_size or moving.shape[2:])
-    if settings.image_grid_factor > 1:
-        size = tuple(min(int(n) * settings.image_grid_factor, int(m)) for n, m in zip(size, moving.shape[2:]))
-    loss_fn = ProbRegLoss(
-        image_loss=settings.image_loss,
-        image_sigma=settings.image_sigma,
-        prior_lambda=settings.prior_lambda,
-        image_weight=settings.image_weight,
-        lncc_kernel_size=settings.lncc_kernel_size,
-        spatial_dims=moving.ndim - 2,
-    )
+    coarse = tuple(int(n) for n in (network.network_size or moving.shape[2:]))
+    size = tuple(min(n * settings.image_grid_factor, int(m)) for n, m in zip(coarse, moving.shape[2:]))
+    kl_loss = LaplacianKLLoss(settings.prior_lambda, reduction="mean")
     # clones: tensors made under inference_mode cannot enter autograd; the images are constants here
     start = output.velocity_mean.detach().clone().float()
+    if settings.symmetric_start:  # the antisymmetric part of the network's two directions: 0 for a pair of copies
+        with torch.no_grad():
+            start = 0.5 * (start - network.posterior(fixed, moving).mean.float())
     log_var = output.velocity_log_var.detach().clone().float()
     if settings.velocity_grid_factor > 1:
         grid = [int(n) * settings.velocity_grid_factor for n in start.shape[2:]]
         start, log_var = resize_displacement(start, grid), resize_log_var(log_var, grid)
         size = tuple(max(int(s), g) for s, g in zip(size, grid))
-    moving_small, fixed_small = (_on_grid(t.detach().clone().float(), size) for t in (moving, fixed))
+        coarse = tuple(max(int(s), g) for s, g in zip(coarse, grid))
+    terms: dict[tuple[int, ...], _ImageTerm] = {}  # the image term on each grid of the schedule, built once
     velocity = start.clone().requires_grad_(True)
-    optimiser = torch.optim.Adam([velocity], lr=settings.learning_rate)
+    optimiser = torch.optim.Adam([velocity], lr=settings.learning_rate, eps=settings.adam_eps)
     with torch.enable_grad():
-        for _ in range(settings.num_iterations):
+        for iteration in range(settings.num_iterations):
+            grid = coarse if iteration < settings.coarse_iterations else size
+            if grid not in terms:
+                images = (_on_grid(t.detach().clone().float(), grid) for t in (moving, fixed))
+                terms[grid] = _ImageTerm(network, *images, settings)
             optimiser.zero_grad(set_to_none=True)
-            displacement = network.velocity_to_displacement(velocity, size)
-            warped = warp_image(
-                moving_small, displacement, padding_mode=network.padding_mode, fast=network.fast_sampling
-            )
-            step = RegistrationOutput(warped, displacement, velocity, velocity, log_var, None, None)
-            loss = loss_fn(step, moving_small, fixed_small).total
+            displacement = network.velocity_to_displacement(velocity, grid)
+            loss = settings.image_weight * terms[grid](displacement) + kl_loss(velocity, log_var)
             if settings.posterior_weight > 0:  # (mu - mu_net)^2 / sigma_net^2, mean over the velocity grid
                 pull = ((velocity - start).square() * log_var.neg().exp()).mean()
                 loss = loss + 0.5 * settings.posterior_weight * pull

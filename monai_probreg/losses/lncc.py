@@ -20,9 +20,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from monai.losses import LocalNormalizedCrossCorrelationLoss
-from torch import Tensor
+from torch import Tensor, nn
 
-__all__ = ["POOLED_FROM_VOXELS", "BoxLNCCLoss", "box_mean"]
+__all__ = ["POOLED_FROM_VOXELS", "BoxLNCCLoss", "FixedImageLNCC", "box_mean", "box_sum", "support_box"]
 
 # spatial voxels from which the window sums are pooled (MONAI's separable convolution below): the crossover measured
 # by benchmarks/lncc_speed.py on a CPU lies between 80 x 96 x 80 (0.61M voxels, 0.8x) and 96 x 112 x 96 (1.03M, 1.2x)
@@ -44,6 +44,36 @@ def box_mean(x: Tensor, kernel_size: int) -> Tensor:
         padding[axis] = radius
         x = pool(x, tuple(window), stride=1, padding=tuple(padding), count_include_pad=True)
     return x
+
+
+def box_sum(x: Tensor, kernel_size: int) -> Tensor:
+    """(B, C, *S) -> the sum of each ``kernel_size``-wide window centred on each voxel (odd size), the voxels outside
+    the image counted as zeros, one axis at a time: the sum of ``kernel_size`` shifted copies built by doubling
+    (sums of 1, 2, 4, ... neighbours, then the binary digits of the size: 5 additions for 9 instead of 8), which
+    is faster than ``avg_pool`` on a CPU and exact in the order of additions (no running sums to cancel). Written by
+    hand: torch and MONAI offer the box filter only as pooling or convolution."""
+    for dim in range(2, x.ndim):
+        x = _window_sum(x, kernel_size, dim)
+    return x
+
+
+def _window_sum(x: Tensor, kernel_size: int, dim: int) -> Tensor:
+    radius, size = kernel_size // 2, x.shape[dim]
+    padded = F.pad(x, [0, 0] * (x.ndim - 1 - dim) + [radius, radius])
+    # power[i] = sum of padded[i : i + width]; total gathers the binary digits of kernel_size, lowest first
+    power, width, offset, remaining = padded, 1, 0, kernel_size
+    total: Tensor | None = None
+    while True:
+        if remaining & 1:
+            piece = power.narrow(dim, offset, size)
+            total = piece if total is None else total + piece
+            offset += width
+        remaining >>= 1
+        if not remaining:
+            return total
+        length = power.shape[dim] - width
+        power = power.narrow(dim, 0, length) + power.narrow(dim, width, length)
+        width *= 2
 
 
 class BoxLNCCLoss(LocalNormalizedCrossCorrelationLoss):
@@ -95,3 +125,120 @@ class BoxLNCCLoss(LocalNormalizedCrossCorrelationLoss):
         if self.reduction == "mean":
             return ncc.mean().neg()
         raise ValueError(f"reduction must be 'mean', 'sum' or 'none'; got {self.reduction!r}")
+
+
+class _FixedLNCCFunction(torch.autograd.Function):
+    """-sum of the local NCC of ``pred`` against a fixed target whose window sums are given, with its gradient by
+    hand (see :class:`FixedImageLNCC`). Inputs: pred (B, C, *S); target, t_sum, t_var of the same shape; returns the
+    sum over every voxel of -ncc (a scalar)."""
+
+    @staticmethod
+    def forward(ctx, pred, target, t_sum, t_var, kernel_size, smooth_dr):  # type: ignore[override]
+        channels, volume = pred.shape[1], float(kernel_size ** (pred.ndim - 2))
+        sums = box_sum(torch.cat([pred, pred * pred, target * pred], dim=1), kernel_size)
+        p_sum, p2_sum, tp_sum = sums.split(channels, dim=1)
+        p_avg = p_sum / volume
+        cross = tp_sum - p_avg * t_sum
+        p_raw = p2_sum - p_avg * p_sum
+        p_var = p_raw.clamp_min(smooth_dr)
+        ratio = cross / (t_var * p_var)  # d ncc / d cross = 2 * ratio
+        ncc = cross * ratio
+        ctx.save_for_backward(pred, target, t_sum, ratio, ncc, p_var, p_avg, p_raw > smooth_dr)
+        ctx.kernel_size = kernel_size
+        return ncc.sum().neg()
+
+    @staticmethod
+    def backward(ctx, grad_output):  # type: ignore[override]
+        pred, target, t_sum, ratio, ncc, p_var, p_avg, p_free = ctx.saved_tensors
+        channels, volume = pred.shape[1], float(ctx.kernel_size ** (pred.ndim - 2))
+        # per window w: d ncc_w / d (TP, P2, P) = (2 r, -ncc / p_var [p_var not floored], -2 r t_avg - 2 (d/dP2) p_avg)
+        # with r = cross / (t_var p_var); a voxel's gradient sums its windows' terms (a box sum: the centred box
+        # with zeros outside is its own adjoint): t_i box(d/dTP) + 2 p_i box(d/dP2) + box(d/dP)
+        d_tp = 2.0 * ratio
+        d_p2 = torch.where(p_free, -ncc / p_var, torch.zeros_like(ncc))
+        d_p = -d_tp * (t_sum / volume) - 2.0 * d_p2 * p_avg
+        boxed = box_sum(torch.cat([d_tp, d_p2, d_p], dim=1), ctx.kernel_size)
+        b_tp, b_p2, b_p = boxed.split(channels, dim=1)
+        grad = (target * b_tp + 2.0 * pred * b_p2 + b_p).mul_(grad_output.neg())
+        return grad, None, None, None, None, None
+
+
+class FixedImageLNCC(nn.Module):
+    """:class:`BoxLNCCLoss` (``reduction="mean"``, ``smooth_nr`` 0) against one fixed target, for a loop that
+    compares many moving images with it (the test-time refinement): the target's two window sums are computed once,
+    and the loss's gradient is written by hand (the same formula differentiated on paper: three window sums forward,
+    three backward, where autograd through the pooled form takes five forward and three twice as slow backward).
+    Same values and gradients as :class:`BoxLNCCLoss` to float rounding (tests/losses/test_lncc.py).
+
+    ``forward(pred)`` (the target's shape, or the shape of ``region``'s box when given) -> -mean of the local NCC
+    over the target's voxels.
+
+    ``region``: compare only inside a box of the target (``(starts, stops)`` per spatial axis, from
+    :func:`support_box`): a window with no nonzero target voxel adds exactly 0 to the loss and its gradient, so the
+    loss over a box that holds every such window (the target's nonzero voxels and twice the window's radius around
+    them) equals the loss over the whole grid; the mean still divides by the whole grid's voxel count.
+    Written by hand: MONAI's LNCC recomputes the target's sums and differentiates through autograd.
+    """
+
+    def __init__(
+        self,
+        target: Tensor,
+        kernel_size: int = 9,
+        smooth_dr: float = 1e-5,
+        region: tuple[tuple[int, ...], tuple[int, ...]] | None = None,
+    ) -> None:
+        super().__init__()
+        if target.ndim not in (3, 4, 5):
+            raise ValueError(f"expected a target (B, C, *S) with 1-3 spatial dims; got shape {tuple(target.shape)}")
+        if isinstance(kernel_size, bool) or not isinstance(kernel_size, int) or kernel_size < 1 or kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be an odd integer >= 1; got {kernel_size!r}")
+        self.kernel_size, self.smooth_dr = kernel_size, float(smooth_dr)
+        self.num_elements = target.numel()
+        target = target.detach()
+        if region is not None:
+            target = target[_box_slices(target, region)]
+        self.region = region
+        volume = float(kernel_size ** (target.ndim - 2))
+        with torch.no_grad():
+            t_sum, t2_sum = box_sum(torch.cat([target, target * target], dim=1), kernel_size).split(
+                target.shape[1], dim=1
+            )
+            t_var = (t2_sum - t_sum / volume * t_sum).clamp_min(self.smooth_dr)
+        self.target, self.t_sum, self.t_var = target, t_sum, t_var
+
+    def crop(self, image: Tensor) -> Tensor:
+        """``image`` on the target's grid (any channels) -> its part inside ``region`` (itself when None)."""
+        return image if self.region is None else image[_box_slices(image, self.region)]
+
+    def forward(self, pred: Tensor) -> Tensor:
+        if pred.shape[2:] != self.target.shape[2:] or pred.shape[:2] != self.target.shape[:2]:
+            raise ValueError(
+                f"expected pred of shape {tuple(self.target.shape)} (the target's, inside region); "
+                f"got {tuple(pred.shape)}"
+            )
+        total = _FixedLNCCFunction.apply(pred, self.target, self.t_sum, self.t_var, self.kernel_size, self.smooth_dr)
+        return total / self.num_elements
+
+
+def _box_slices(image: Tensor, region: tuple[tuple[int, ...], tuple[int, ...]]) -> tuple[slice, ...]:
+    starts, stops = region
+    return (slice(None), slice(None), *(slice(int(a), int(b)) for a, b in zip(starts, stops)))
+
+
+def support_box(target: Tensor, margin: int) -> tuple[tuple[int, ...], tuple[int, ...]] | None:
+    """(starts, stops) of the smallest box holding every nonzero voxel of ``target`` (B, C, *S, any item or channel),
+    grown by ``margin`` voxels per side and clipped to the grid; None when the box is the whole grid or the target
+    is all zero (nothing to gain)."""
+    nonzero = target.detach().ne(0).flatten(0, 1).any(dim=0)
+    if not bool(nonzero.any()):
+        return None
+    starts, stops = [], []
+    for axis, size in enumerate(nonzero.shape):
+        others = tuple(a for a in range(nonzero.ndim) if a != axis)
+        hit = nonzero.any(dim=others) if others else nonzero
+        index = hit.nonzero().flatten()
+        starts.append(max(int(index[0]) - margin, 0))
+        stops.append(min(int(index[-1]) + 1 + margin, size))
+    if all(a == 0 for a in starts) and list(stops) == list(nonzero.shape):
+        return None
+    return tuple(starts), tuple(stops)

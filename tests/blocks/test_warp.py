@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from monai.networks.blocks import Warp
 
 from monai_probreg import CachedWarp, SpatialTransformer, compose_displacements, warp_image, warp_labels, warp_one_hot
-from monai_probreg.blocks.warp import MIN_POINTS_PER_THREAD, sampling_grid, split_grid_sample
+from monai_probreg.blocks.warp import MIN_POINTS_PER_THREAD, sampling_grid, split_grid_sample, warp_box
 
 SHAPES = {2: (7, 9), 3: (5, 7, 9)}  # non-cubic, so that an axis flip cannot go unnoticed
 CASES = [(2, 0), (2, 1), (3, 0), (3, 1), (3, 2)]  # (spatial_dims, axis)
@@ -302,3 +302,28 @@ def test_warp_image_gradcheck(spatial_shape, padding_mode):
     # linear interpolation is piecewise linear: gradcheck's finite differences (eps 1e-6) are valid because no
     # sample point is within 0.1 voxel of a knot (and none sits on the border clamp)
     assert torch.autograd.gradcheck(lambda i, u: warp_image(i, u, padding_mode=padding_mode), (image, ddf))
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+@pytest.mark.parametrize("padding_mode", ["border", "zeros"])
+def test_warp_box_is_the_box_of_the_whole_warp(spatial_dims, padding_mode):
+    """warp_box samples the whole image at origin + x + ddf(x) for a field on a box: the box of warp_image's result
+    (values and both gradients), on an asymmetric box of a non-cubic grid."""
+    spatial = SHAPES[spatial_dims]
+    starts, stops = (1, 2, 3)[:spatial_dims], (5, 6, 8)[:spatial_dims]
+    box = (slice(None), slice(None), *(slice(a, b) for a, b in zip(starts, stops)))
+    image = torch.rand(1, 2, *spatial, dtype=torch.float64, requires_grad=True)
+    ddf = _smooth_field(spatial, 2.5, seed=spatial_dims, dtype=torch.float64).requires_grad_()
+    whole = warp_image(image, ddf, padding_mode=padding_mode)[box]
+    part = warp_box(image, ddf[box], starts, padding_mode=padding_mode)
+    torch.testing.assert_close(part, whole, rtol=1e-12, atol=1e-12)
+    weights = torch.rand_like(whole)
+    expected = torch.autograd.grad((whole * weights).sum(), (image, ddf))
+    got = torch.autograd.grad((part * weights).sum(), (image, ddf))
+    for g, e in zip(got, expected):
+        torch.testing.assert_close(g, e, rtol=1e-12, atol=1e-12)
+
+
+def test_warp_box_names_a_bad_origin():
+    with pytest.raises(ValueError, match="expected 3 origin indices"):
+        warp_box(torch.rand(1, 1, 5, 7, 9), torch.zeros(1, 3, 2, 2, 2), (0, 1))

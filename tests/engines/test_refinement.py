@@ -84,6 +84,15 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
         ("image_grid_factor", 0),
         ("image_grid_factor", 2.0),
         ("image_grid_factor", True),
+        ("coarse_iterations", -1),
+        ("coarse_iterations", 2.0),
+        ("coarse_iterations", True),
+        ("coarse_iterations", 1),  # more than num_iterations (0)
+        ("symmetric_start", 1),
+        ("symmetric_start", "yes"),
+        ("adam_eps", 0.0),
+        ("adam_eps", -1e-8),
+        ("adam_eps", "1e-8"),
     ],
 )
 def test_bad_setting_names_itself(name, value):
@@ -417,3 +426,82 @@ def test_differences_name_each_setting_that_differs_from_a_record():
     }
     older = {k: v for k, v in fitted.items() if k != "image_grid_factor"}  # a record made before a setting existed
     assert RefinementSettings(num_iterations=10).differences(older) == {"image_grid_factor": [None, 1]}
+
+
+def test_a_coarse_to_fine_schedule_runs_its_first_steps_on_the_networks_grid():
+    """coarse_iterations: every step coarse is image_grid_factor 1's answer, none is the finer grid's, and a
+    schedule of both finds the known shift (network_size 16 x 32, images 32 x 64)."""
+    net = _identity_net(2, network_size=(16, 32))
+    moving, fixed = _pair((32, 64), axis=1)
+    start = register_pair(net, moving, fixed)
+    base = {"num_iterations": 60, "learning_rate": 0.1, "prior_lambda": 10.0, "posterior_weight": 0.0}
+
+    def refined(**kwargs):
+        return refine_registration(net, moving, fixed, start, RefinementSettings(**base, **kwargs)).velocity_mean
+
+    coarse_only, fine_only = refined(image_grid_factor=2, coarse_iterations=60), refined(image_grid_factor=2)
+    torch.testing.assert_close(coarse_only, refined(image_grid_factor=1), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(fine_only, refined(image_grid_factor=2, coarse_iterations=0), rtol=0, atol=0)
+    both = refine_registration(
+        net, moving, fixed, start, RefinementSettings(**base, image_grid_factor=2, coarse_iterations=50)
+    )
+    assert not torch.allclose(both.velocity_mean, coarse_only) and not torch.allclose(both.velocity_mean, fine_only)
+    inside = fixed[0, 0] > 0.3
+    assert both.displacement[0, 1][inside].mean().item() == pytest.approx(SHIFT, abs=0.35)
+
+
+def _trained_like_net(spatial_dims: int) -> ProbRegNet:
+    """A small ProbRegNet with a nonzero mean head: it invents a displacement even for a pair of copies."""
+    torch.manual_seed(1)
+    net = ProbRegNet(spatial_dims=spatial_dims, **SMALL)
+    with torch.no_grad():
+        net.unet.mean_head.weight.normal_(0.0, 0.5)
+        net.unet.mean_head.bias.normal_(0.0, 0.5)
+    return net.eval()
+
+
+def test_the_symmetric_start_is_the_antisymmetric_part_of_the_two_directions():
+    """symmetric_start: the refinement starts from (mu(m, f) - mu(f, m)) / 2 (one step of a vanishing size keeps it
+    there), where the plain start is mu(m, f)."""
+    net = _trained_like_net(2)
+    moving, fixed = _pair((32, 48), axis=0)
+    forward, backward = register_pair(net, moving, fixed), register_pair(net, fixed, moving)
+    tiny = {"num_iterations": 1, "learning_rate": 1e-9}
+    symmetric = refine_registration(net, moving, fixed, forward, RefinementSettings(**tiny, symmetric_start=True))
+    expected = 0.5 * (forward.velocity_mean - backward.velocity_mean)
+    torch.testing.assert_close(symmetric.velocity_mean, expected, rtol=0, atol=1e-7)
+    plain = refine_registration(net, moving, fixed, forward, RefinementSettings(**tiny))
+    torch.testing.assert_close(plain.velocity_mean, forward.velocity_mean, rtol=0, atol=1e-7)
+
+
+def test_a_scan_onto_a_copy_of_itself_starts_at_the_identity_and_a_gradient_floor_keeps_it_there():
+    """The network invents a displacement for a pair of copies; the symmetric start removes it exactly. There the
+    image term's gradient is float rounding, which Adam scales into a step of about its learning rate (0.3 voxel);
+    adam_eps well above that rounding turns it into a step of its size instead."""
+    net = _trained_like_net(2)
+    image, _ = _pair((32, 48), axis=0)
+    # a zero background, as a skull-stripped scan's: the blobs' faint tails would leave windows whose variance is
+    # below LNCC's floor, where the loss is not stationary at the identity (a real gradient, not rounding)
+    image = torch.where(image > 0.02, image, torch.zeros_like(image))
+    output = register_pair(net, image, image)
+    assert output.displacement.abs().max() > 0.05
+    one_step = {"num_iterations": 1, "learning_rate": 0.3, "posterior_weight": 0.0, "symmetric_start": True}
+    floored = refine_registration(net, image, image, output, RefinementSettings(**one_step, adam_eps=1e-4))
+    assert floored.velocity_mean.abs().max() < 1e-3
+    unfloored = refine_registration(net, image, image, output, RefinementSettings(**one_step, adam_eps=1e-8))
+    assert unfloored.velocity_mean.abs().max() > 0.1
+
+
+def test_the_cropped_hand_written_lncc_refines_as_monais_lncc_does():
+    """The refinement's LNCC (the fixed image's sums once, a hand-written gradient, the moving image warped only in
+    the box around the fixed image's nonzero voxels) gives the answer of MONAI's warp and LNCC over the whole grid
+    (``fast_sampling=False`` takes that path), on a fixed image with a zero background."""
+    moving, fixed = _pair((48, 48), axis=1)
+    fixed = torch.where(fixed > 0.05, fixed, torch.zeros_like(fixed))
+    settings = RefinementSettings(num_iterations=10, learning_rate=0.1, posterior_weight=0.0)
+    answers = []
+    for fast in (True, False):
+        net = _identity_net(2, fast_sampling=fast)
+        answers.append(refine_registration(net, moving, fixed, register_pair(net, moving, fixed), settings))
+    torch.testing.assert_close(answers[0].velocity_mean, answers[1].velocity_mean, rtol=1e-4, atol=1e-5)
+    assert answers[0].velocity_mean.abs().max() > 0.1  # it moved

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
 from monai.losses import LocalNormalizedCrossCorrelationLoss
 
-from monai_probreg.losses.lncc import BoxLNCCLoss, box_mean
+from monai_probreg.losses.lncc import BoxLNCCLoss, FixedImageLNCC, box_mean, box_sum, support_box
 
 SHAPES = {1: (2, 3, 40), 2: (2, 1, 30, 41), 3: (1, 2, 11, 14, 17)}
 
@@ -113,3 +114,83 @@ def test_the_window_sums_are_pooled_from_the_threshold_on(monkeypatch):
 def test_a_bad_threshold_is_named(value):
     with pytest.raises(ValueError, match="pooled_from_voxels"):
         BoxLNCCLoss(3, 3, pooled_from_voxels=value)
+
+
+def _zero_background(shape, seed=0):
+    """(pred, target) float64 with the target zero outside an off-centre box (a skull-stripped fixed image)."""
+    pred, target = _pair(shape, seed=seed)
+    inside = torch.zeros_like(target, dtype=torch.bool)
+    inside[(slice(None), slice(None), *(slice(2, max(3, n - 5)) for n in shape[2:]))] = True
+    return pred, target * inside
+
+
+@pytest.mark.parametrize("spatial_dims", [1, 2, 3])
+@pytest.mark.parametrize("kernel_size", [3, 5])
+@pytest.mark.parametrize("cropped", [False, True])
+def test_fixed_image_lncc_is_monais_values_and_gradients(spatial_dims, kernel_size, cropped):
+    """The target's sums once, the gradient by hand, and (cropped) only the box around the target's nonzero voxels
+    (two radii of margin): MONAI's mean LNCC and its autograd gradient, over the whole grid."""
+    pred, target = _zero_background(SHAPES[spatial_dims])
+    pred.requires_grad_(True)
+    monai = LocalNormalizedCrossCorrelationLoss(spatial_dims, kernel_size)(pred, target)
+    region = support_box(target, margin=2 * (kernel_size // 2)) if cropped else None
+    if cropped:
+        assert region is not None
+    loss = FixedImageLNCC(target, kernel_size, region=region)
+    ours = loss(loss.crop(pred))
+    torch.testing.assert_close(ours, monai, rtol=1e-10, atol=1e-12)
+    (g_ours,) = torch.autograd.grad(ours, pred)
+    (g_monai,) = torch.autograd.grad(monai, pred)
+    torch.testing.assert_close(g_ours, g_monai, rtol=1e-9, atol=1e-12)
+
+
+def test_fixed_image_lncc_passes_gradcheck_with_a_flat_patch():
+    """float64 gradcheck, a flat patch of the target included (the variance floor decides there)."""
+    pred, target = _pair((1, 1, 7, 6, 5))
+    target[..., :3, :3, :] = 0.5
+    loss = FixedImageLNCC(target, 3)
+    assert torch.autograd.gradcheck(loss, (pred.requires_grad_(True),))
+
+
+@pytest.mark.parametrize("spatial_dims", [1, 2, 3])
+@pytest.mark.parametrize("kernel_size", [1, 3, 9, 15])
+def test_box_sum_is_a_convolution_with_ones(spatial_dims, kernel_size):
+    """Doubling sums against a convolution with a box of ones (zeros outside), a window wider than some axes
+    included; and the pooled box mean times the window where pooling takes the size."""
+    x, _ = _pair(SHAPES[spatial_dims])
+    conv = {1: F.conv1d, 2: F.conv2d, 3: F.conv3d}[spatial_dims]
+    ones = torch.ones((1, 1) + (kernel_size,) * spatial_dims, dtype=x.dtype)
+    flat = x.reshape(-1, 1, *x.shape[2:])
+    expected = conv(flat, ones, padding=kernel_size // 2).reshape(x.shape)
+    torch.testing.assert_close(box_sum(x, kernel_size), expected, rtol=1e-12, atol=1e-12)
+    if kernel_size <= min(x.shape[2:]):
+        torch.testing.assert_close(box_sum(x, kernel_size), box_mean(x, kernel_size) * kernel_size**spatial_dims)
+
+
+def test_support_box_is_the_nonzero_box_grown_and_clipped():
+    target = torch.zeros(2, 1, 20, 30, 12)
+    target[1, 0, 5, 7, 3] = 1.0
+    target[0, 0, 9, 20, 4] = -2.0  # any item, any sign
+    assert support_box(target, margin=0) == ((5, 7, 3), (10, 21, 5))
+    assert support_box(target, margin=4) == ((1, 3, 0), (14, 25, 9))
+    assert support_box(torch.zeros(1, 1, 4, 4), margin=1) is None  # all zero: nothing to compare
+    assert support_box(torch.ones(1, 1, 4, 4), margin=0) is None  # the whole grid: no gain
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"target": torch.zeros(4, 4)}, "expected a target"),
+        ({"target": torch.zeros(1, 1, 4, 4), "kernel_size": 4}, "kernel_size"),
+        ({"target": torch.zeros(1, 1, 4, 4), "kernel_size": 3.0}, "kernel_size"),
+    ],
+)
+def test_fixed_image_lncc_names_a_bad_argument(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        FixedImageLNCC(**kwargs)
+
+
+def test_fixed_image_lncc_names_the_expected_shape():
+    loss = FixedImageLNCC(torch.rand(1, 1, 8, 9), 3, region=((1, 2), (7, 9)))
+    with pytest.raises(ValueError, match=r"expected pred of shape \(1, 1, 6, 7\)"):
+        loss(torch.rand(1, 1, 8, 9))

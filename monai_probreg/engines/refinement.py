@@ -100,6 +100,8 @@ class RefinementSettings:
     coarse_iterations: of the ``num_iterations`` steps, the first this many compare the images on the network's
         grid (``image_grid_factor`` 1, eight times fewer voxels in 3-d), the rest on the ``image_grid_factor`` grid:
         a coarse-to-fine schedule (0: every step on the finer grid).
+    coarse_lncc_kernel_size: the LNCC window of those coarse steps, in voxels of the network's grid (odd; None:
+        ``lncc_kernel_size``, a window ``image_grid_factor`` times wider than the finer grid's).
     symmetric_start: start from (and pull towards) ``(mu(moving, fixed) - mu(fixed, moving)) / 2``, the network's
         mean made antisymmetric in the pair by a second pass with the images swapped (``exp(-v)`` is the inverse
         of ``exp(v)``, so the two directions should be opposite velocities): a scan onto a copy of itself then starts
@@ -125,6 +127,7 @@ class RefinementSettings:
     image_grid_factor: int = 1
     coarse_iterations: int = 0
     symmetric_start: bool = False
+    coarse_lncc_kernel_size: int | None = None
     adam_eps: float = 1e-8
 
     def __post_init__(self) -> None:
@@ -143,6 +146,10 @@ class RefinementSettings:
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
                 raise ValueError(f"{name} must be a number >= 0; got {value!r}")
+        if self.coarse_lncc_kernel_size is not None:
+            _check_integer("coarse_lncc_kernel_size", self.coarse_lncc_kernel_size, minimum=3)
+            if self.coarse_lncc_kernel_size % 2 == 0:
+                raise ValueError(f"coarse_lncc_kernel_size must be odd; got {self.coarse_lncc_kernel_size!r}")
         if not isinstance(self.symmetric_start, bool):
             raise ValueError(f"symmetric_start must be True or False; got {self.symmetric_start!r}")
         if self.coarse_iterations > self.num_iterations:
@@ -244,19 +251,19 @@ class _ImageTerm:
     grid, the background of a skull-stripped fixed image adding exactly 0). Otherwise the warp and the loss of
     :func:`make_image_loss` over the whole grid."""
 
-    def __init__(self, network: ProbRegNet, moving: Tensor, fixed: Tensor, settings: RefinementSettings) -> None:
+    def __init__(
+        self, network: ProbRegNet, moving: Tensor, fixed: Tensor, settings: RefinementSettings, kernel_size: int
+    ) -> None:
         self.network, self.moving = network, moving
         self.lncc = None
         if settings.image_loss == "lncc" and network.fast_sampling:
             # windows with no nonzero fixed voxel add 0: the box holds the nonzero voxels and every window that
             # reaches them (one radius) with whole windows of their own (a second radius)
-            region = support_box(fixed, margin=2 * (settings.lncc_kernel_size // 2))
-            self.lncc = FixedImageLNCC(fixed, settings.lncc_kernel_size, region=region)
+            region = support_box(fixed, margin=2 * (kernel_size // 2))
+            self.lncc = FixedImageLNCC(fixed, kernel_size, region=region)
         else:
             self.fixed = fixed
-            self.loss = make_image_loss(
-                settings.image_loss, moving.ndim - 2, settings.image_sigma, settings.lncc_kernel_size, "mean"
-            )
+            self.loss = make_image_loss(settings.image_loss, moving.ndim - 2, settings.image_sigma, kernel_size, "mean")
 
     def __call__(self, displacement: Tensor) -> Tensor:
         net = self.network
@@ -313,10 +320,12 @@ def refine_registration(
     optimiser = torch.optim.Adam([velocity], lr=settings.learning_rate, eps=settings.adam_eps)
     with torch.enable_grad():
         for iteration in range(settings.num_iterations):
-            grid = coarse if iteration < settings.coarse_iterations else size
+            is_coarse = iteration < settings.coarse_iterations
+            grid = coarse if is_coarse else size
             if grid not in terms:
                 images = (_on_grid(t.detach().clone().float(), grid) for t in (moving, fixed))
-                terms[grid] = _ImageTerm(network, *images, settings)
+                kernel = settings.coarse_lncc_kernel_size if is_coarse else None
+                terms[grid] = _ImageTerm(network, *images, settings, kernel or settings.lncc_kernel_size)
             optimiser.zero_grad(set_to_none=True)
             displacement = network.velocity_to_displacement(velocity, grid)
             loss = settings.image_weight * terms[grid](displacement) + kl_loss(velocity, log_var)

@@ -83,6 +83,7 @@ def test_run_command_runs_the_cli_in_a_fresh_process_and_names_a_failure(tmp_pat
         ("lam=prior_lambda:3.5", ("lam", {"prior_lambda": 3.5})),
         ("g=image_loss:gaussian,image_weight:1", ("g", {"image_loss": "gaussian", "image_weight": 1})),
         ("plain=", ("plain", {})),
+        ("sym=symmetric_start:true,x:False", ("sym", {"symmetric_start": True, "x": False})),
     ],
 )
 def test_a_variant_is_a_name_and_typed_fields(text, expected):

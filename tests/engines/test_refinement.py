@@ -93,6 +93,9 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
         ("adam_eps", 0.0),
         ("adam_eps", -1e-8),
         ("adam_eps", "1e-8"),
+        ("coarse_lncc_kernel_size", 4),
+        ("coarse_lncc_kernel_size", 1),
+        ("coarse_lncc_kernel_size", 5.0),
     ],
 )
 def test_bad_setting_names_itself(name, value):
@@ -441,6 +444,9 @@ def test_a_coarse_to_fine_schedule_runs_its_first_steps_on_the_networks_grid():
 
     coarse_only, fine_only = refined(image_grid_factor=2, coarse_iterations=60), refined(image_grid_factor=2)
     torch.testing.assert_close(coarse_only, refined(image_grid_factor=1), rtol=1e-5, atol=1e-6)
+    narrow = refined(image_grid_factor=2, coarse_iterations=60, coarse_lncc_kernel_size=5)  # the coarse window
+    torch.testing.assert_close(narrow, refined(image_grid_factor=1, lncc_kernel_size=5), rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(narrow, coarse_only)
     torch.testing.assert_close(fine_only, refined(image_grid_factor=2, coarse_iterations=0), rtol=0, atol=0)
     both = refine_registration(
         net, moving, fixed, start, RefinementSettings(**base, image_grid_factor=2, coarse_iterations=50)

@@ -18,8 +18,8 @@ each side of the last axis). Every method sees the same arrays. Rows:
 Timing: wall time of the registration call, one untimed warm-up (ANTs: on a 4x smaller pair), then ``--repeats``
 runs per pair (ANTs: ``--ants-repeats``); the median over all pairs and runs; threads as given (torch, MKL, ITK).
 Memory: each method runs in a process of its own (benchmarks/speed_workers.py) and reports the peak resident set
-of its timed runs (Python, torch, the pairs and the method together; the scoring afterwards is not counted). A ``levers`` process measures the inference levers
-one by one, the time by stage and the CPU's peaks (benchmarks/speed_levers.py).
+of its timed runs (Python, torch, the pairs and the method together; the scoring afterwards is not counted). What each
+inference lever is worth and where the time goes: experiments/speed_levers.py.
 
     python benchmarks/speed_compare.py --threads 2         # table + benchmarks/results/speed_compare.{json,png}
     python benchmarks/speed_compare.py --methods ours_mean voxelmorph --pairs 1
@@ -119,7 +119,6 @@ def run_worker(method: str, pairs_file: Path, work: Path, args: argparse.Namespa
         "--samples",
         str(args.samples),
     ]
-    cmd += ["--no-compile"] if args.no_compile else []
     threads = str(args.threads)
     env = {
         **os.environ,
@@ -182,19 +181,6 @@ def markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def levers_markdown(levers: dict[str, Any]) -> str:
-    plain = levers["levers"]["plain: float32, default layout, MONAI Warp"]
-    lines = ["| setting | s per pair | × faster than plain |", "|---|---|---|"]
-    lines += [f"| {name} | {t:.3f} | {plain / t:.2f} |" for name, t in levers["levers"].items()]
-    stages = levers["stages"]
-    lines += ["", "| stage | plain (s) | default levers (s) |", "|---|---|---|"]
-    lines += [
-        f"| {a} | {stages['plain'][a]:.3f} | {stages['default'][b]:.3f} |"
-        for a, b in zip(stages["plain"], stages["default"])
-    ]
-    return "\n".join(lines)
-
-
 def bar_chart(rows: list[dict[str, Any]], path: Path, title: str) -> None:
     """Time per pair (log scale) and peak memory per method; written atomically."""
     import matplotlib
@@ -231,12 +217,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--subjects", nargs="+", default=None, help="subject ids (default: the first --pairs of val_ids)")
     ap.add_argument("--pairs", type=int, default=2, help="how many subjects when --subjects is not given")
     ap.add_argument("--size", type=int, nargs=3, default=PAPER_SIZE, help="pad/crop every pair to this grid")
-    ap.add_argument("--methods", nargs="+", choices=[*ROWS, "levers"], default=[*ROWS, "levers"])
+    ap.add_argument("--methods", nargs="+", choices=list(ROWS), default=list(ROWS))
     ap.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads of every method")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per pair (torch methods)")
     ap.add_argument("--ants-repeats", type=int, default=1, help="timed runs per pair for ANTs SyN")
     ap.add_argument("--samples", type=int, default=10, help="K of the posterior-samples row")
-    ap.add_argument("--no-compile", action="store_true", help="skip the torch.compile measurement (levers)")
     ap.add_argument("--synthetic", action="store_true", help="random pairs, no dataset: speed and memory only")
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where speed_compare.{json,png} go")
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
@@ -290,7 +275,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     rows = summarise(results, args.samples)
     table = markdown(rows)
-    levers = results.get("levers", {})
     report = {
         "settings": {
             "size": args.size,
@@ -314,7 +298,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "rows": rows,
         "results": results,
         "markdown": table,
-        "levers_markdown": levers_markdown(levers) if levers.get("status") == "ok" else None,
     }
     args.out_dir.mkdir(parents=True, exist_ok=True)
     json_path = args.out_dir / "speed_compare.json"
@@ -324,8 +307,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     png_path = args.out_dir / "speed_compare.png"
     bar_chart(rows, png_path, f"{len(pairs)} pairs at {'x'.join(map(str, args.size))}, {args.threads} threads")
     print(f"\n{table}\n")
-    if report["levers_markdown"]:
-        print(report["levers_markdown"] + "\n")
     print(f"wrote {json_path}\nwrote {png_path}", flush=True)
     return 0
 

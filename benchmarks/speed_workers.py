@@ -9,7 +9,7 @@ whole process's peak is kept as ``process_peak_rss_mb``. Started by speed_compar
 
 PAIRS.pt holds the prepared pairs (moving, fixed, labels; already padded/cropped to the benchmark size); RESULT.json
 gets the wall times per pair (warm-up excluded), the scores of the trained methods and the memory figures.
-Methods: see :data:`METHODS`; ``levers`` measures the speed levers one by one, the stages and the hardware peaks.
+Methods: see :data:`METHODS`.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from common import ants_register
 
-METHODS = ("ours_mean", "ours_mean_no_reuse", "ours_samples", "ours_trained", "voxelmorph", "ants", "levers")
+METHODS = ("ours_mean", "ours_mean_no_reuse", "ours_samples", "ours_trained", "voxelmorph", "ants")
 REUSES_MEMORY = ("ours_mean", "ours_samples", "ours_trained")  # as monai-probreg and the bundle run them
 KIB_PER_MB = 1024  # ru_maxrss is in KiB on Linux
 
@@ -239,20 +239,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, required=True)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--samples", type=int, default=10)
-    ap.add_argument("--no-compile", action="store_true", help="levers: skip torch.compile")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     data = torch.load(args.pairs, weights_only=True)
     meta, pairs = data["meta"], data["pairs"]
-    if args.method == "levers":
-        from speed_levers import run_levers
-
-        result = run_levers(pairs[0], meta, args)
-    elif args.method == "ants":
+    if args.method == "ants":
         result = run_ants(pairs, meta, args)
     else:
         result = run_torch_method(args.method, pairs, meta, args)
-    result.setdefault("peak_rss_mb", process_peak_rss_mb())  # levers: the whole process
     result.update(method=args.method, threads=torch.get_num_threads(), process_peak_rss_mb=process_peak_rss_mb())
     all_times = [t for times in result.get("times_s", {}).values() for t in times]
     if all_times:

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from types import SimpleNamespace
+from types import ModuleType, SimpleNamespace
 
 import nibabel as nib
 import numpy as np
@@ -15,8 +16,20 @@ import pytest
 
 from monai_probreg.spatial.affine_settings import AffineSettings
 
+REPO = Path(__file__).resolve().parents[1]
 DEFAULT_WEIGHTS = "model.pt"  # the configs' model_file: the shipped default (the model zoo's name)
 TINY_LABELS = (21, 22, 181)  # non-contiguous ids, like LPBA40's
+
+
+def load_script(folder: str, name: str) -> ModuleType:
+    """``<folder>/<name>.py`` of the repository (``benchmarks`` or ``experiments``: folders of scripts, not packages)
+    imported as a module. The scripts' own plain imports (``from common import ...``, one script from another) resolve
+    through pytest's ``pythonpath`` (pyproject.toml), as ``python benchmarks/<name>.py`` resolves them through the
+    script's folder and ``PYTHONPATH=benchmarks python experiments/<name>.py`` through the variable."""
+    spec = importlib.util.spec_from_file_location(f"{name}_{folder}", REPO / folder / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def _phantom(shape: Sequence[int], shift: Sequence[float], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

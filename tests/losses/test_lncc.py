@@ -106,7 +106,7 @@ def test_the_window_sums_are_pooled_from_the_threshold_on(monkeypatch):
     BoxLNCCLoss(3, 3, pooled_from_voxels=210)(pred.requires_grad_(True), target)
     assert calls == [(1, 2, 6, 7, 5), (1, 3, 6, 7, 5)]  # the target's two sums, then the prediction's three
     assert grads == [False, True]  # a fixed target's sums are built outside autograd
-    # benchmarks/lncc_speed.py's crossover: the network's grid stays MONAI's, from 96 x 112 x 96 on it is pooled
+    # experiments/lncc_speed.py's crossover: the network's grid stays MONAI's, from 96 x 112 x 96 on it is pooled
     assert 80 * 96 * 80 < lncc.POOLED_FROM_VOXELS <= 96 * 112 * 96
 
 

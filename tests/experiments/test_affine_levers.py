@@ -1,16 +1,15 @@
-"""benchmarks/affine_levers.py: its Dice on a synthetic atlas (the real-data run is the benchmark itself)."""
+"""experiments/affine_levers.py: its Dice on a synthetic atlas (the real-data run is the benchmark itself)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from bench_helpers import load_benchmark
-from conftest import FIXED_LPS, asymmetric_phantom, save_lps
+from conftest import FIXED_LPS, asymmetric_phantom, load_script, save_lps
 
 from monai_probreg.cli.pipeline import prepare_fixed
 from monai_probreg.spatial.volume_io import Volume
 
-affine_levers = load_benchmark("affine_levers")
+affine_levers = load_script("experiments", "affine_levers")
 
 
 @pytest.fixture

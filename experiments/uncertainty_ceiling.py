@@ -20,7 +20,9 @@ knowing the mean's *displacement* error exactly. This script measures that bound
    If even the oracles stay near the calibrated posterior on the probe, a better displacement uncertainty cannot
    close the real pairs' gap: what the entropy misses there is not a displacement error the posterior could know.
 
-    python benchmarks/uncertainty_ceiling.py --threads 2     # table, results/uncertainty_ceiling.json (~5 min)
+    PYTHONPATH=benchmarks python experiments/uncertainty_ceiling.py --threads 2   # ~5 min
+
+Prints a table and writes ``experiments/results/uncertainty_ceiling.json``.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import json
 import math
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -53,6 +56,7 @@ from monai_probreg.uncertainty.entropy import label_entropy
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.tensors import plain_tensor
 
+RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
 ORACLE_SCALES = (1 / 64, 1 / 16, 0.25, 1.0, 4.0)  # oracle variance levels, relative to the calibrated posterior's
 # mean variance (label entropy is not scale-free: the best is kept)
 ORACLE_EPS = 1e-4  # velocity-grid voxels^2 added to the squared error (log of an exact 0)
@@ -176,7 +180,9 @@ def subject_rows(network, pair, calibration, population, num_samples: int, seed:
 
 
 def main(argv=None) -> int:
-    args = validation_arguments(__doc__).parse_args(argv)
+    parser = validation_arguments(__doc__)
+    parser.set_defaults(out_dir=RESULTS)
+    args = parser.parse_args(argv)
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir}")
         return 0

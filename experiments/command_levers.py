@@ -17,7 +17,7 @@ No dataset needed: every input is made here (seeded) at the sizes of a real regi
 Each in-process row is the best of ``--repeats`` after one warm-up; each process row the median of ``--repeats``.
 Prints a table and writes ``OUT_DIR/command_levers.json``.
 
-    python benchmarks/command_levers.py --threads 2
+    python experiments/command_levers.py --threads 2   # -> experiments/results/command_levers.json
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import DEFAULT_OUT
 from isal import igzip
 
 from monai_probreg.metrics.jacobian import jacobian_determinant
@@ -43,6 +42,7 @@ from monai_probreg.spatial.physical import apply_affine, grid_points
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
+RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
 ATLAS_SHAPE = (160, 192, 160)
 MOVING_SHAPE = (256, 124, 256)
 SEED = 0
@@ -136,7 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats per row (default: %(default)s)")
-    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where command_levers.json goes")
+    ap.add_argument("--out-dir", type=Path, default=RESULTS, help="where command_levers.json goes")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     rows = {}

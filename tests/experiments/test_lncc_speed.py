@@ -1,13 +1,13 @@
-"""benchmarks/lncc_speed.py on tiny grids: one row per size, the two losses agree, the JSON and table are written."""
+"""experiments/lncc_speed.py on tiny grids: one row per size, the two losses agree, the JSON and table are written."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
-from bench_helpers import load_benchmark
+from conftest import load_script
 
-lncc_speed = load_benchmark("lncc_speed")
+lncc_speed = load_script("experiments", "lncc_speed")
 
 
 def test_rows_agree_and_are_written(tmp_path, monkeypatch, capsys):

@@ -1,12 +1,12 @@
-"""benchmarks/command_levers.py: each in-process row compares two ways of computing the same thing (tiny sizes)."""
+"""experiments/command_levers.py: each in-process row compares two ways of computing the same thing (tiny sizes)."""
 
 from __future__ import annotations
 
 import gzip
 
-from bench_helpers import load_benchmark
+from conftest import load_script
 
-command_levers = load_benchmark("command_levers")
+command_levers = load_script("experiments", "command_levers")
 
 
 def test_in_process_rows_agree_and_time_both_sides(monkeypatch):

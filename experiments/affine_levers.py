@@ -9,7 +9,7 @@ moving labels pulled through the affine, nearest neighbour) and the seconds per 
 first). Prints a table and writes ``OUT_DIR/affine_levers.json``; without the data it prints "skipped: ..." and
 exits 0.
 
-    python benchmarks/affine_levers.py --threads 2
+    PYTHONPATH=benchmarks python experiments/affine_levers.py --threads 2   # -> experiments/results/affine_levers.json
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import DEFAULT_DATASET, DEFAULT_NATIVE, DEFAULT_OUT
+from common import DEFAULT_DATASET, DEFAULT_NATIVE
 
 from monai_probreg.cli.pipeline import prepare_fixed
 from monai_probreg.data.dataset import index_dataset
@@ -35,6 +35,7 @@ from monai_probreg.spatial.volume_io import read_image, read_label
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
+RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
 DEFAULT_SUBJECTS = ("S11", "S12", "S13", "S14", "S15")  # validation subjects
 MOVE_SEED = 7
 MAX_ROTATION_DEG, MAX_TRANSLATION_MM, MOVED_SPACING = 15.0, 20.0, (0.9, 1.5, 0.9)
@@ -58,7 +59,7 @@ def settings_to_compare() -> dict[str, AffineSettings]:
 
 def load_cases(dataset_dir: Path, native_dir: Path, subjects: Sequence[str], atlas) -> list[tuple[str, object, object]]:
     """(id, moving Volume, moving labels Volume) of each case (module docstring)."""
-    from register_real_scan import misalign  # benchmarks/ is this script's folder
+    from register_real_scan import misalign  # benchmarks/ is on PYTHONPATH
 
     cases = []
     for scan in sorted(native_dir.glob("*.nii.gz")) if native_dir.is_dir() else []:
@@ -89,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET, help="its atlas/ is the fixed image")
     ap.add_argument("--native-dir", type=Path, default=DEFAULT_NATIVE, help="native scans with <id>_labels.nii.gz")
     ap.add_argument("--subjects", nargs="*", default=list(DEFAULT_SUBJECTS), help="dataset subjects to move")
-    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="where affine_levers.json goes")
+    ap.add_argument("--out-dir", type=Path, default=RESULTS, help="where affine_levers.json goes")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     args = ap.parse_args(argv)
     if not args.dataset_dir.resolve().is_dir():

@@ -11,9 +11,9 @@ bundle path (evaluate.yaml's network and calibration, the dataset grid), in bf16
 - the self pairs (each validation subject and the atlas onto itself): the rule's edge, where nothing is to be done.
 
 The margin must sit well above the precision's effect (so the rule says the same in both) and well below the drops
-of the failure set (``benchmarks/failure_detection.py``'s records, checked here when present).
+of the failure set (``benchmarks/failure_detection.py``'s records in benchmarks/results, checked here when present).
 
-    python benchmarks/lncc_margin.py --threads 2      # -> benchmarks/results/lncc_margin.json
+    PYTHONPATH=benchmarks python experiments/lncc_margin.py --threads 2   # -> experiments/results/lncc_margin.json
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from monai_probreg.uncertainty.calibration import calibration_for
 from monai_probreg.uncertainty.quality import LNCC_DROP_MARGIN
 from monai_probreg.utils.files import write_text
 
+RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
 PRECISIONS = ("bf16", "fp32")
 
 
@@ -81,7 +82,7 @@ def main(argv=None) -> int:
     ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
     ap.add_argument("--subjects", nargs="+", default=None, help="validation subjects (default: val_ids of train.yaml)")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir}")
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
     self_cases = [{"moving": s, "fixed": s, "perturbation": NORMAL, "seed": 0} for s in [*val_ids, ATLAS_ID]]
     normal_rows = lncc_records(network, calibration, scans, normal)
     self_rows = lncc_records(network, calibration, scans, self_cases)
-    stored = args.out_dir / "failure_detection.json"
+    stored = DEFAULT_OUT / "failure_detection.json"
     failure_drops = []
     if stored.is_file():
         records = json.loads(stored.read_text())

@@ -7,7 +7,7 @@ gradients are compared. Sizes: the shipped network's grid (80x96x80, ``refine_im
 pools from there on; here it is forced to pool at every size). The ratio is what to read: both run in the same
 process, alternately.
 
-    python benchmarks/lncc_speed.py --threads 2
+    python experiments/lncc_speed.py --threads 2   # -> experiments/results/lncc_speed.json
 
 Prints one table and writes ``OUT_DIR/lncc_speed.json``.
 """
@@ -23,13 +23,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from common import DEFAULT_OUT
 from monai.losses import LocalNormalizedCrossCorrelationLoss
 
 from monai_probreg.losses.lncc import BoxLNCCLoss
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
+RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
 SIZES = {
     "network grid": (80, 96, 80),
     "1.2x": (96, 112, 96),
@@ -79,7 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES))
-    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     if args.repeats < 1:
         raise SystemExit(f"--repeats must be >= 1; got {args.repeats}")

@@ -1,6 +1,7 @@
-"""The ``levers`` measurement of ``benchmarks/speed_compare.py`` (run by speed_workers.py in its own process).
+"""Where the network's time goes, and what each inference lever is worth: a study behind ``ProbRegNet``'s defaults.
 
-On the first benchmark pair, with the paper-size network (UNet on the input grid, untrained weights):
+On the first pair of ``benchmarks/speed_compare.py`` (the same preprocessing, padded to the paper's 160 x 192 x 224),
+with the paper-size network (UNet on the input grid, untrained weights):
   - each inference lever alone and together (ProbRegNet's ``unet_precision``, ``channels_last``, ``fast_sampling``),
     ``torch.no_grad`` against ``torch.inference_mode``, and ``torch.compile`` of the UNet (compile time apart);
   - K posterior samples fused in one batch against one integration at a time (``ProbRegNet.sample``'s
@@ -8,23 +9,36 @@ On the first benchmark pair, with the paper-size network (UNet on the input grid
   - the time by stage (UNet, integration, upsampling, warp), plain and with the default levers;
   - the network's multiply-accumulates (conv hooks) and the CPU's measured peaks: a large matmul and the UNet's
     largest convolution alone, float32 and bf16, to say how close to the FLOP limit the UNet runs.
-Every time is the median of ``repeats`` calls after one untimed warm-up call.
+Every time is the median of ``repeats`` calls after one untimed warm-up call. The process keeps glibc's default
+allocator (memory reuse is speed_compare.py's "ours, mean" against "ours, mean, memory reuse off"). It imports
+speed_compare.py's pair preparation, so benchmarks/ goes on the path:
+
+    PYTHONPATH=benchmarks python experiments/speed_levers.py --threads 2    # -> experiments/results/speed_levers.json
+    PYTHONPATH=benchmarks python experiments/speed_levers.py --synthetic --size 64 64 64 --no-compile
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import statistics
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
+from common import DEFAULT_DATASET, REPO
+from speed_compare import PAPER_SIZE, prepare_pairs, synthetic_pairs
 from torch import nn
 
 from monai_probreg import ProbRegNet, resize_displacement, warp_image
 from monai_probreg.engines.registration import register_pair
+from monai_probreg.utils.files import write_text
+
+RESULTS = Path(__file__).resolve().parent / "results"
 
 MATMUL_SIZE = 4096  # square matmul for the peak: large enough to run at the library's best rate
 LEVER_SETTINGS = {  # row name -> ProbRegNet arguments
@@ -33,7 +47,7 @@ LEVER_SETTINGS = {  # row name -> ProbRegNet arguments
     "+ channels-last only": dict(unet_precision="fp32", channels_last=True, fast_sampling=False),
     "+ bf16 UNet only": dict(unet_precision="bf16", channels_last=False, fast_sampling=False),
     "bf16 + channels-last": dict(unet_precision="bf16", channels_last=True, fast_sampling=False),
-    # this process keeps glibc's allocator defaults: memory reuse is the main table's "ours, mean" against
+    # this process keeps glibc's allocator defaults: memory reuse is speed_compare.py's "ours, mean" against
     # "ours, mean, memory reuse off"
     "all model levers (memory reuse off here)": dict(unet_precision="auto", channels_last=True, fast_sampling=True),
 }
@@ -153,7 +167,7 @@ def compiled_unet(moving: torch.Tensor, fixed: torch.Tensor, repeats: int) -> di
     return {"unet_eager_s": eager, "unet_compiled_s": compiled, "compile_s": compile_s}
 
 
-def run_levers(pair: dict, meta: dict, args: argparse.Namespace) -> dict[str, Any]:
+def run_levers(pair: dict, args: argparse.Namespace) -> dict[str, Any]:
     moving, fixed = pair["moving"], pair["fixed"]
     result: dict[str, Any] = {"size": list(moving.shape[2:]), "levers": {}}
     for name, settings in LEVER_SETTINGS.items():
@@ -177,3 +191,51 @@ def run_levers(pair: dict, meta: dict, args: argparse.Namespace) -> dict[str, An
     if not args.no_compile:
         result["compile"] = compiled_unet(moving, fixed, args.repeats)
     return result
+
+
+def levers_markdown(levers: dict[str, Any]) -> str:
+    """The levers table and the stages table of one :func:`run_levers` result."""
+    plain = levers["levers"]["plain: float32, default layout, MONAI Warp"]
+    lines = ["| setting | s per pair | × faster than plain |", "|---|---|---|"]
+    lines += [f"| {name} | {t:.3f} | {plain / t:.2f} |" for name, t in levers["levers"].items()]
+    stages = levers["stages"]
+    lines += ["", "| stage | plain (s) | default levers (s) |", "|---|---|---|"]
+    lines += [
+        f"| {a} | {stages['plain'][a]:.3f} | {stages['default'][b]:.3f} |"
+        for a, b in zip(stages["plain"], stages["default"])
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET, help="atlas/, images/, labels/")
+    ap.add_argument("--subject", default=None, help="the pair's moving subject (default: the first of val_ids)")
+    ap.add_argument("--size", type=int, nargs=3, default=PAPER_SIZE, help="pad/crop the pair to this grid")
+    ap.add_argument("--threads", type=int, default=1, help="CPU threads")
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs of each measurement")
+    ap.add_argument("--samples", type=int, default=10, help="K of the fused-samples measurement")
+    ap.add_argument("--no-compile", action="store_true", help="skip the torch.compile measurement")
+    ap.add_argument("--synthetic", action="store_true", help="a random pair, no dataset")
+    ap.add_argument("--out-dir", type=Path, default=RESULTS, help="where speed_levers.json goes")
+    ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
+    args = ap.parse_args(argv)
+    if args.synthetic:
+        pair = synthetic_pairs(1, args.size)[0]
+    elif not args.dataset_dir.is_dir():
+        print(f"skipped: dataset not found at {args.dataset_dir}", flush=True)
+        return 0
+    else:
+        subjects = None if args.subject is None else [args.subject]
+        pair = prepare_pairs(args.dataset_dir.resolve(), subjects, 1, args.size, args.bundle_root.resolve())[0][0]
+    torch.set_num_threads(args.threads)
+    result = run_levers(pair, args)
+    result.update(pair=pair["id"], threads=torch.get_num_threads(), markdown=levers_markdown(result))
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    path = write_text(args.out_dir / "speed_levers.json", json.dumps(result, indent=2) + "\n")
+    print(f"{result['markdown']}\n\nwrote {path}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

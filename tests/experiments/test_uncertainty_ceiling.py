@@ -1,4 +1,5 @@
-"""The ceiling benchmark's oracles and baseline: closed forms on tiny tensors, and a run on the tiny dataset."""
+"""experiments/uncertainty_ceiling.py: its oracles and baseline in closed form on tiny tensors, and a run on the tiny
+dataset."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from bench_helpers import load_benchmark
+from conftest import REPO, bundle_with_random_model, load_script
 
-bench = load_benchmark("uncertainty_ceiling")
+bench = load_script("experiments", "uncertainty_ceiling")
 
 
 def test_oracle_log_var_is_the_squared_error_at_the_reference_level():
@@ -70,9 +71,6 @@ def test_scores_rank_the_wrong_voxels():
 
 
 def test_main_writes_the_table(tmp_path, tiny_dataset, single_thread):
-    from bench_helpers import REPO
-    from conftest import bundle_with_random_model
-
     bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
     out = tmp_path / "out"
     with pytest.warns(UserWarning, match="no calibration"):

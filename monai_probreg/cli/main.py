@@ -408,7 +408,7 @@ def _with_refinement(options, model, iterations: int | None):
     if iterations is None:
         return options
     try:
-        refinement = dataclasses.replace(model.refinement, num_iterations=iterations)
+        refinement = model.refinement.with_iterations(iterations)
     except ValueError as err:
         raise InputError(f"--refine: {err}") from None
     return dataclasses.replace(options, refinement=refinement)

@@ -40,7 +40,7 @@ docs/accuracy.md).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -55,7 +55,7 @@ from monai_probreg.losses.lncc import FixedImageLNCC, support_box
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
 
-__all__ = ["RefinementSettings", "local_blend", "refine_registration"]
+__all__ = ["LATER_SETTINGS", "RefinementSettings", "local_blend", "refine_registration"]
 
 
 @dataclass(frozen=True)
@@ -164,6 +164,13 @@ class RefinementSettings:
     def enabled(self) -> bool:
         return self.num_iterations > 0
 
+    def with_iterations(self, num_iterations: int) -> RefinementSettings:
+        """These settings with ``num_iterations`` steps in all, the schedule's finer steps kept last: as many finer
+        steps as now (fewer if ``num_iterations`` is smaller), the rest coarse (the command's ``--refine N``)."""
+        _check_integer("num_iterations", num_iterations, minimum=0)
+        fine = self.num_iterations - self.coarse_iterations
+        return replace(self, num_iterations=num_iterations, coarse_iterations=max(num_iterations - fine, 0))
+
     def as_dict(self) -> dict[str, float | int | str]:
         """The settings by name, for summaries."""
         return asdict(self)
@@ -171,15 +178,22 @@ class RefinementSettings:
     def differences(self, record: dict) -> dict[str, list]:
         """These settings where they differ from ``record`` (another run's :meth:`as_dict`, e.g. the one a quality
         model was fitted with): name -> [recorded value, this value]; {} when they match. An empty record stands for
-        no refinement (``RefinementSettings()``); a setting the record lacks is recorded as None, so it differs. When
-        neither refines (0 iterations both), the other settings are unused: {}; when one of them refines, every setting
-        that differs is named (what the refining side would change)."""
-        recorded = record or RefinementSettings().as_dict()
+        no refinement (``RefinementSettings()``); a setting the record lacks is recorded as None, so it differs, but
+        for the settings of :data:`LATER_SETTINGS`, added with a default that runs the refinement as before they
+        existed: a record made before them ran that default. When neither refines (0 iterations both), the other
+        settings are unused: {}; when one of them refines, every setting that differs is named (what the refining side
+        would change)."""
+        recorded = {**LATER_SETTINGS, **record} if record else RefinementSettings().as_dict()
         if not self.enabled and not recorded.get("num_iterations"):
             return {}
         return {
             name: [recorded.get(name), value] for name, value in self.as_dict().items() if recorded.get(name) != value
         }
+
+
+# settings added after records of fitted sidecars existed, each with the default that runs the refinement exactly as
+# it ran before the setting existed (RefinementSettings.differences reads a record without them as these)
+LATER_SETTINGS = {"coarse_iterations": 0, "symmetric_start": False, "coarse_lncc_kernel_size": None, "adam_eps": 1e-8}
 
 
 def _check_integer(name: str, value: object, minimum: int) -> None:

@@ -11,7 +11,13 @@ import torch
 from monai_probreg.blocks.integration import resize_displacement
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.handlers import RegistrationInferer
-from monai_probreg.engines.refinement import RefinementSettings, local_blend, refine_registration, resize_log_var
+from monai_probreg.engines.refinement import (
+    LATER_SETTINGS,
+    RefinementSettings,
+    local_blend,
+    refine_registration,
+    resize_log_var,
+)
 from monai_probreg.engines.registration import register_pair, timed_register_pair
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet
@@ -429,6 +435,12 @@ def test_differences_name_each_setting_that_differs_from_a_record():
     }
     older = {k: v for k, v in fitted.items() if k != "image_grid_factor"}  # a record made before a setting existed
     assert RefinementSettings(num_iterations=10).differences(older) == {"image_grid_factor": [None, 1]}
+    # a record made before the later settings ran their defaults: nothing differs there unless this run changes them
+    before = {k: v for k, v in fitted.items() if k not in LATER_SETTINGS}
+    assert RefinementSettings(num_iterations=10).differences(before) == {}
+    assert RefinementSettings(num_iterations=10, adam_eps=1e-5).differences(before) == {"adam_eps": [1e-8, 1e-5]}
+    assert set(LATER_SETTINGS) <= set(fitted)
+    assert all(RefinementSettings().as_dict()[k] == v for k, v in LATER_SETTINGS.items())
 
 
 def test_a_coarse_to_fine_schedule_runs_its_first_steps_on_the_networks_grid():
@@ -511,3 +523,17 @@ def test_the_cropped_hand_written_lncc_refines_as_monais_lncc_does():
         answers.append(refine_registration(net, moving, fixed, register_pair(net, moving, fixed), settings))
     torch.testing.assert_close(answers[0].velocity_mean, answers[1].velocity_mean, rtol=1e-4, atol=1e-5)
     assert answers[0].velocity_mean.abs().max() > 0.1  # it moved
+
+
+def test_a_number_of_steps_keeps_the_schedules_finer_steps_last():
+    """with_iterations (the command's --refine N): N steps in all, as many finer steps as the schedule has (at most
+    N), the rest coarse; the other settings as they were."""
+    schedule = RefinementSettings(num_iterations=10, coarse_iterations=8, learning_rate=0.2)
+    assert schedule.with_iterations(20) == RefinementSettings(
+        num_iterations=20, coarse_iterations=18, learning_rate=0.2
+    )
+    assert schedule.with_iterations(1) == RefinementSettings(num_iterations=1, coarse_iterations=0, learning_rate=0.2)
+    assert not schedule.with_iterations(0).enabled
+    assert RefinementSettings(num_iterations=10).with_iterations(4) == RefinementSettings(num_iterations=4)
+    with pytest.raises(ValueError, match="num_iterations"):
+        schedule.with_iterations(-1)

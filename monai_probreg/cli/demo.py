@@ -33,7 +33,7 @@ __all__ = ["DEMO_SAMPLES", "demo_report", "run_demo"]
 
 # posterior samples the demo draws unless --samples says otherwise (>= 2 for the coverage): as many as the shipped
 # calibration was fitted with (its sidecar's num_samples; a test ties them). A std from fewer samples is noisier and
-# its intervals cover less (seed 0, bundle 0.21.0: 90.4% with 8, 92.0% with 16, 92.6% with 32; docs/uncertainty.md)
+# its intervals cover less (benchmarks/demo_recovery.py --samples measures it)
 DEMO_SAMPLES = 16
 
 COVERAGE_LEVEL = 0.95  # the calibrated interval whose coverage the demo reports

@@ -376,7 +376,7 @@ def _setup(args: argparse.Namespace):
 
             raise InputError(f"--threads must be >= 1; got {args.threads}")
         torch.set_num_threads(args.threads)
-        # ITK reads this when its core first loads (the torch path never loads it: about 0.8 s saved); the ITK
+        # ITK reads this when its core first loads (the torch path never loads it, which saves its load time); the ITK
         # backend, where ITK's threads matter, is told directly (ITK may be loaded already in this process)
         os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)
         if args.affine_backend == "itk":
@@ -612,8 +612,8 @@ def run() -> None:
     """The console entry point (``monai-probreg``, ``python -m monai_probreg.cli``): :func:`main`, then leave
     without tearing the interpreter down.
 
-    Python's normal exit spends 1.5-2 s here, after every output is written, destroying the half a million objects
-    that importing monai, torch and ITK creates (measured: ``import monai`` alone costs 1.2 s at exit). Once
+    Python's normal exit spends seconds here, after every output is written, destroying the half a million objects
+    that importing monai, torch and ITK creates (``experiments/command_levers.py``'s ``exit`` row times both). Once
     :func:`main` has returned, every file of ours is closed and moved into place, so the only work left is flushing
     the standard streams and logging, done here before ``os._exit`` skips the teardown; the exit status is
     :func:`main`'s. Library callers of :func:`main` (tests, scripts) are unaffected."""

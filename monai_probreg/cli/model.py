@@ -65,8 +65,8 @@ def load_model(
     from the config's ``model_file``, both under ``bundle_root`` unless given; InputError with one line if unusable.
     ``calibrate``: use the weights' calibration sidecar (``<weights stem>.calibration.json``); False = raw. The quality
     estimate (``<weights stem>.quality.json``) computes its entropy feature with the calibration of its own fit, which
-    its sidecar records (since bundle 0.19.0), so it works with the raw posterior too; a sidecar that does not record
-    it was fitted on the calibrated posterior, and is used only with it. ``quality=False`` leaves it out
+    its sidecar records, so it works with the raw posterior too; an older sidecar that does not record it was fitted
+    on the calibrated posterior, and is used only with it. ``quality=False`` leaves it out
     (:mod:`monai_probreg.fitting` while it fits a new one)."""
     root = Path(bundle_root) if bundle_root is not None else default_bundle_root()
     config = Path(config_file) if config_file is not None else root / "configs" / "inference.yaml"

@@ -7,7 +7,7 @@ Ctrl-C, the staging folder is removed and ``DIR`` is left as it was; a hard kill
 
 Images and fields are written with the header ITK writes (ITK is the reader ANTs and Slicer use), so they carry
 exactly the geometry ITK read from the inputs: NIfTI by :mod:`monai_probreg.spatial.nifti_write` (nibabel and
-ISA-L's gzip, 10x faster than ITK's writer), other formats by ITK; each write is itself atomic
+ISA-L's gzip, far faster than ITK's writer), other formats by ITK; each write is itself atomic
 (:func:`monai_probreg.utils.files.atomic_write`).
 """
 
@@ -127,7 +127,7 @@ def staged_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> It
 
 def write_volume(path: str | os.PathLike, volume: Volume, dtype: type = np.float32) -> Path:
     """Write a :class:`Volume` (atomic); labels: pass an integer ``dtype`` (int16 when it fits). NIfTI through
-    :mod:`monai_probreg.spatial.nifti_write` (ITK's header, compressed 10x faster), other formats with ITK."""
+    :mod:`monai_probreg.spatial.nifti_write` (ITK's header, compressed faster), other formats with ITK."""
     if is_nifti(path):
         return write_nifti(path, volume.array.astype(dtype, copy=False), volume.index_to_lps)
     image = volume_to_itk(volume, dtype)

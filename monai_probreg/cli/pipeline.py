@@ -106,11 +106,11 @@ class FixedSpace:
 
     @functools.cached_property
     def itk_image(self) -> itk.Image:
-        return volume_to_itk(self.image)  # loads ITK's core modules (~0.8 s): not on the torch backend's path
+        return volume_to_itk(self.image)  # loads ITK's core modules (slow): not on the torch backend's path
 
     def samples_for(self, settings: AffineSettings) -> FixedSamples | None:
         """The torch affine backend's fixed-image samples for ``settings``, made on first use and kept (the same
-        for every scan of a batch: 0.3 s each on a 1 mm brain grid); None for the ITK backend."""
+        for every scan of a batch, so made once); None for the ITK backend."""
         if settings.backend != "torch":
             return None
         if settings not in self.affine_samples:

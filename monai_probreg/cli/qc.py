@@ -100,7 +100,7 @@ def qc_figure(data: QCData) -> plt.Figure:
         "Jacobian determinant",
         data.uncertainty_name,
     ]
-    # a fixed layout (matplotlib's constrained layout cost 0.3 s of a 1 s figure): panels, then a strip for the
+    # a fixed layout (matplotlib's constrained layout costs a large share of the figure's time): panels, then a strip for the
     # colour bars under the last two columns; the title above
     fig, axes = plt.subplots(
         3,

@@ -13,11 +13,10 @@ more moving anatomy to match without changing what it has to learn. The ranges a
 ``augment_*`` settings; ``augment_prob`` 0 (the default) turns augmentation off.
 
 :class:`RandDiffeomorphicd` is written here because MONAI's ``Rand3DElasticd`` smooths full-resolution noise with
-a Gaussian filter (1.9 s per 80x96x80 call at sigma 6, one thread: a third of a training iteration) and gives no
-diffeomorphism guarantee. Ours draws the velocity on a coarse control grid, upsamples it (smooth by construction)
-and integrates it with the package's own scaling and squaring at half resolution: a smooth invertible warp in
-0.65 s per 80x96x80 call, measured on one thread of a 2-core machine that was running two trainings (a training
-iteration took 5.7 s there).
+a Gaussian filter (slow at the smoothness a training deformation needs: a large share of a training iteration on a
+CPU) and gives no diffeomorphism guarantee. Ours draws the velocity on a coarse control grid, upsamples it (smooth by
+construction) and integrates it with the package's own scaling and squaring at half resolution: a smooth invertible
+warp at a fraction of that cost.
 """
 
 from __future__ import annotations

@@ -54,8 +54,8 @@ __all__ = [
 _LOG = logging.getLogger(__name__)
 
 FIT_ITERATIONS = 3  # at most this many re-samplings at the fitted pair and refits (the std is not linear in it;
-# the two scalars trade along a ridge of near-equal coverage, and 8 refits drift on to a
-# smaller scale and a larger bias fraction: Spearman +0.02, label AUROC -0.004, README)
+# the two scalars trade along a ridge of near-equal coverage, and more refits drift on to a
+# smaller scale and a larger bias fraction without covering better)
 FIT_TOLERANCE = 0.02  # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
 SUBJECT_PROBE_TEMPLATES = 6  # training subjects whose synthetic subjects make the subject probe (0: none)
 POPULATION, SUBJECTS = 0, 1  # the fit's groups: each probe's coverage is matched on its own (fit_calibration)

@@ -61,7 +61,7 @@ __all__ = [
 
 def _image_type():
     """``itk.Image[itk.F, 3]``, looked up when the ITK backend runs: touching ITK's types at import would load its
-    core modules (about 0.8 s) in every process that imports this module, the torch backend's included."""
+    core modules (slow) in every process that imports this module, the torch backend's included."""
     return itk.Image[itk.F, 3]
 
 

@@ -25,10 +25,9 @@ class AffineSettings:
     backend's (two levels at 1/4 and 1/2, 20% sampled, as ``antsRegistrationSyNQuick.sh``'s linear stages stop at
     half resolution).
 
-    ``max_samples`` caps the sample points of a level (torch backend): 5% of the full-resolution level is 245,000
-    points on a 1 mm brain grid, eight times the half-resolution level's, for the same alignment. The cap trades
-    affine-only Dice for time: ``benchmarks/affine_levers.py`` measures both for each cap and for dropping the
-    full-resolution level (docs/speed.md, "The command's levers").
+    ``max_samples`` caps the sample points of a level (torch backend): 5% of the full-resolution level is eight
+    times the half-resolution level's points, for the same alignment. The cap trades affine-only Dice for time:
+    ``experiments/affine_levers.py`` measures both for each cap and for dropping the full-resolution level.
 
     Iterations are maxima (both backends stop a level earlier when converged). ITK backend only: ``max_step_mm``,
     ``convergence`` and ``deterministic`` (the line search's step bound, the stopping threshold, and the metric in
@@ -105,8 +104,8 @@ class AffineResult:
     """``matrix``: fixed LPS -> moving LPS (4, 4); ``center``: the centre of its ITK form (LPS mm: the file's
     ``FixedParameters``; the map itself does not depend on it); ``initial``: the initializer's (4, 4); ``stages``:
     per-stage reports. :attr:`transform`: the same map as an ITK ``AffineTransform``, built on first use (the ITK
-    backend passes its own): loading ITK's transform modules costs about 0.85 s, which the torch backend's command
-    path does not need (affine.tfm is written from the matrix and centre)."""
+    backend passes its own): loading ITK's transform modules is slow, and the torch backend's command
+    path does not need them (affine.tfm is written from the matrix and centre)."""
 
     matrix: np.ndarray
     center: np.ndarray

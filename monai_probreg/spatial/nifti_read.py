@@ -1,7 +1,7 @@
 """Read a NIfTI scan without ITK, placed in space exactly as ITK places it, when the header leaves ITK no choice.
 
 Why: ITK is the reference for where a voxel lies (ANTs and Slicer read through it), but on the command line loading
-ITK's NIfTI modules costs about 0.9 s, and ITK, the header check and the voxel check each decompressed a ``.nii.gz``
+ITK's NIfTI modules is slow, and ITK, the header check and the voxel check each decompressed a ``.nii.gz``
 (three passes of zlib over the same bytes). Here the file is decompressed once (ISA-L's igzip, which also checks the
 CRC), checked (:func:`monai_probreg.spatial.checks.load_nifti`) and read by nibabel.
 

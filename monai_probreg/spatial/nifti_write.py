@@ -1,12 +1,11 @@
 """Write volumes and displacement fields as NIfTI-1 (``.nii`` / ``.nii.gz``), fast, with the header ITK writes.
 
-Why not ``itk.imwrite``: ITK compresses with zlib at its default level, about 35 MB/s on one core here, and a
-registration's outputs are 200-250 MB of float32 (the inverse field on a 256 x 124 x 256 moving grid alone is
-98 MB): 5-6 s of the whole command went into writing. Float32 noise barely compresses at any level (88 of 98 MB),
-so the time is spent for nothing. Here nibabel builds the file and ISA-L's igzip (``isal``, Python bindings of
-Intel's ISA-L) compresses it at level 1: the same gzip format (read by ITK, ANTs, nibabel, FSL, Slicer), the same
-size, 10-15x faster, and it releases the GIL, so several files compress in parallel
-(:func:`monai_probreg.utils.files.parallel_writes`).
+Why not ``itk.imwrite``: ITK compresses with zlib at its default level, slowly, and a registration's outputs are
+hundreds of MB of float32 (the inverse field on a native scan's grid is the largest), which barely compress at any
+level: the time is spent for nothing. Here nibabel builds the file and ISA-L's igzip (``isal``, Python bindings of
+Intel's ISA-L) compresses it at level 1: the same gzip format (read by ITK, ANTs, nibabel, FSL, Slicer), about the
+same size, an order of magnitude faster, and it releases the GIL, so several files compress in parallel
+(:func:`monai_probreg.utils.files.parallel_writes`). The time against zlib: ``experiments/command_levers.py``.
 
 The header is the one ITK writes (checked by ``tests/spatial/test_nifti_write.py`` against ``itk.imwrite``, and read
 back by ITK): qform and sform from the grid (code 1, "scanner"), units mm and s, nibabel's RAS affine
@@ -32,7 +31,7 @@ from monai_probreg.utils.files import atomic_write
 
 __all__ = ["GZIP_LEVEL", "nifti_bytes", "write_nifti"]
 
-GZIP_LEVEL = 1  # ISA-L levels are 0-3; 1 gives zlib-level-1 sizes at ~10x the speed (module docstring)
+GZIP_LEVEL = 1  # ISA-L levels are 0-3; 1 gives zlib-level-1 sizes, far faster (module docstring)
 _SCANNER = 1  # NIfTI xform code "scanner", what ITK writes for both qform and sform
 
 

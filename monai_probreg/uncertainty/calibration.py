@@ -1,4 +1,4 @@
-"""Post-hoc calibration of the posterior: two scalars, a velocity std scale and a bias fraction.
+"""Post-hoc calibration of the posterior: a velocity std scale, a bias fraction and the intervals' tails.
 
 Variational posteriors are over-confident (the KL pulls sigma^2 towards 1/(lambda D), whatever the real error).
 We keep the network as trained and temper its posterior afterwards:
@@ -6,36 +6,34 @@ We keep the network as trained and temper its posterior afterwards:
     sigma_calibrated = std_scale * sigma        i.e.   log_var_calibrated = log_var + 2 log(std_scale)
 
 The posterior's spread is not the whole error: the prior also pulls the mean registration short of large
-displacements (the translation and population probes of ``benchmarks/uncertainty_calibration.py`` recover 50-96%
-of a known displacement), a bias that grows with the displacement and that the raw posterior does not show. The
-calibrated posterior therefore gets a second, isotropic variance term per component (written by hand: no library
-offers it):
+displacements, a bias that grows with the displacement and that the raw posterior does not show. The calibrated
+posterior therefore gets a second, isotropic variance term per component (written by hand: no library offers it):
 
     sigma^2_calibrated,c = std_scale^2 * sigma^2_c + (bias_fraction * |mu|)^2
 
-with mu the posterior mean velocity at that voxel (|mu| its length over the D components). It stays a diagonal
-Gaussian on the velocity grid, so sampling (diffeomorphic samples), the velocity entropy, the displacement std and
-the label entropy all follow from the calibrated ``log_var``. For the small sigmas of a trained model the sampled
-displacement variance is, to first order, std_scale^2 times the raw one plus (bias_fraction |u|)^2 (u the
-displacement, about mu once integrated), which is how :func:`fit_calibration` fits both scalars from one set of
-samples: the pair whose intervals cover closest to nominal at :data:`FIT_LEVELS` (``python -m monai_probreg.fitting``
-re-samples at the fitted pair and refits, :mod:`monai_probreg.fitting.calibration_probes`;
-``benchmarks/uncertainty_calibration.py`` checks coverage on held-out subjects).
+with mu the posterior mean velocity at that voxel (|mu| its length over the D components; sigma and mu in voxels of
+the velocity grid, so ``bias_fraction`` is unitless). It stays a diagonal Gaussian on the velocity grid, so sampling
+(diffeomorphic samples), the velocity entropy, the displacement std and the label entropy all follow from the
+calibrated ``log_var``. For the small sigmas of a trained model the sampled displacement variance is, to first
+order, std_scale^2 times the raw one plus (bias_fraction |u|)^2 (u the displacement, about mu once integrated),
+which is how :func:`fit_calibration` fits both scalars from one set of samples: the pair whose intervals cover
+closest to nominal at :data:`FIT_LEVELS` (``python -m monai_probreg.fitting`` re-samples at the fitted pair and
+refits, :mod:`monai_probreg.fitting.calibration_probes`).
 
-A third number says how the intervals are read. The calibrated std ranks the errors only weakly (Spearman 0.02-0.12
-on held-out LPBA40 subjects and synthetic subjects), so the error over the std is a Gaussian of uncertain variance:
-heavier-tailed than a Gaussian, and one scale cannot cover both the 68% and the 95% level (bundle 0.20.0's Gaussian
-fit: 72% and 91% held out). The intervals are therefore Student-t (``interval_dof`` degrees of freedom, fitted with
-the scale; None = Gaussian, as sidecars before bundle 0.21.0 read):
+A third number says how the intervals are read. The calibrated std ranks the errors only weakly, so the error over
+the std is a Gaussian of uncertain variance: heavier-tailed than a Gaussian, and one scale cannot cover both the 68%
+and the 95% level. The intervals are therefore Student-t (``interval_dof`` degrees of freedom, fitted with the
+scale; None = Gaussian):
 
     p-interval of a component  =  +- interval_z(p, interval_dof) * sigma_calibrated
 
 (:func:`monai_probreg.metrics.calibration.interval_z`). The std maps and the samples stay the calibrated Gaussian
 posterior's; only the width of an interval at a given level follows the fitted tails.
 They are stored next to the weights they belong to, as ``<weights stem>.calibration.json``, with the weights'
-SHA-256 so that a retrained model is never paired with an old calibration (a sidecar without ``bias_fraction``, from
-before it existed, reads as 0). Raw (uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``, Gaussian
-intervals (``interval_dof = None``).
+SHA-256 so that a retrained model is never paired with an old calibration; a field an older sidecar lacks reads as
+its neutral value (``bias_fraction`` 0, ``refinement`` None, ``interval_dof`` None). Raw (uncalibrated) values:
+``std_scale = 1``, ``bias_fraction = 0``, Gaussian intervals (``interval_dof = None``). Held-out coverage and how well
+the std ranks the errors: ``benchmarks/uncertainty_calibration.py``.
 """
 
 from __future__ import annotations
@@ -110,9 +108,9 @@ class CalibrationRecord:
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe
-    # that mean; {} = the network's own mean; None = not recorded (sidecars written before bundle 0.18.0)
+    # that mean; {} = the network's own mean; None = not recorded (an older sidecar)
     refinement: dict | None = None
-    # Student-t degrees of freedom of the intervals; None: Gaussian (and every sidecar before bundle 0.21.0)
+    # Student-t degrees of freedom of the intervals; None: Gaussian (also an older sidecar without the field)
     interval_dof: float | None = None
 
 

@@ -5,7 +5,7 @@
   the bias term (:mod:`monai_probreg.uncertainty.calibration`) raises it more where the mean velocity is long.
 - ``displacement_std``: sqrt(sum_c var_c) of K displacements drawn from the calibrated posterior, in voxels of
   the image grid: the radius-like spread of where each voxel maps. On held-out LPBA40 subjects its coverage is
-  reported by ``benchmarks/uncertainty_calibration.py`` (README, "Uncertainty").
+  reported by ``benchmarks/uncertainty_calibration.py``.
 - ``label_entropy`` (when moving labels are given): entropy (nats) of the moving labels warped nearest-neighbour
   by each of the K sampled displacements: 0 where every sample gives the same label, log K at most.
 

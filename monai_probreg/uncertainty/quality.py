@@ -5,39 +5,37 @@ range the fit saw (a linear model must not extrapolate: a registration better al
 any training pair, e.g. after the command line's full affine, is predicted as the best of them, not beyond) and
 standardised with the training set's mean and spread:
 
-- predicted Dice: ridge regression of the actual mean Dice;
+- predicted Dice: ridge regression of the actual mean Dice (on the fit's data set's scale: a ranking elsewhere);
 - failure probability: L2-regularised logistic regression of "failed", where a registration *failed* when its Dice
   is below the Dice before the deformable step (the affine alone) or below no registration + ``FAILURE_MARGIN``
-  (the issue "Uncertainty that warns": the definition the detector is scored on).
+  (the definition the detector is scored on).
 
 Whose features: the *network's* registration, before any test-time refinement (the "witness"). Refinement
 (:mod:`monai_probreg.engines.refinement`) maximises the pair's local NCC, so the refined registration looks alike
-even when the input was wrong: with the features of refined registrations, a scan whose orientation header was turned
-by 180 degrees was registered to Dice 0.002 with failure probability 0.000, and a refit on refined registrations did
-not recover those cases (docs/uncertainty.md). The network's own registration, which the refinement starts from and is
-pulled towards, still shows the failure; so the models read its features, and are fitted on the outcome (Dice,
-failed) of the registration the user gets (the refined one, for the shipped default).
+even when the input was wrong (a scan whose orientation header was turned by 180 degrees), and a fit on refined
+registrations' features does not see those failures. The network's own registration, which the refinement starts
+from and is pulled towards, still shows the failure; so the models read its features, and are fitted on the outcome
+(Dice, failed) of the registration the user gets (the refined one, for the shipped default).
 
 A registration gets a warning when its failure probability is at least the model's ``threshold``, or when the
 deformable step the user gets lowered the local similarity of the pair by more than ``lncc_drop_margin``
 (``lncc_after < lncc_before - margin`` of the *answer*'s features: the registration moved the images apart, which no
-optimiser of its own loss would do). The margin
-keeps a registration that changes almost nothing (a scan onto a near copy of itself) from warning or not by the
-rounding of the UNet's arithmetic (bf16 on CPUs with native bf16, fp32 elsewhere): ``benchmarks/lncc_margin.py``
-measures both precisions (docs/uncertainty.md). That rule is not fitted: the clipping above hides such a case from
-the linear models whenever the pair is more alike than any training pair (a scan registered to a copy of itself, the
-demo's synthetic subject); ``benchmarks/failure_detection.py`` counts how often the drop occurs among its failures and
-its normal registrations (docs/uncertainty.md). Both models are fitted by ``python -m monai_probreg.fitting``
-(:mod:`monai_probreg.fitting.quality_fit`) on *training* subjects only (normal pairs and a failure set: wrong
-orientations, cropped field of view, a missing block, heavy noise and bias, inverted contrast), through both paths
-that compute the features (the bundle's, on the dataset grid, and the whole command's, affine stage and model grid
-included, with headers as they are and turned), and stored next to the
-weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration. The entropy feature is a
-calibrated one, and the sidecar keeps the calibration it was computed with at the fit (``entropy_calibration``):
-every estimate computes it with that one, so a refitted posterior calibration (what the uncertainty maps show) leaves
-the estimate as it was validated; a sidecar without it (before bundle 0.19.0) reads the calibration in use, and is
-not used under the raw posterior (:func:`quality_model_for`). Written by hand: ten lines of closed-form ridge and
-Newton's method, where scikit-learn would be a dependency for two linear models.
+optimiser of its own loss would do). The margin keeps a registration that changes almost nothing (a scan onto a near
+copy of itself) from warning or not by the rounding of the UNet's arithmetic (bf16 on CPUs with native bf16, fp32
+elsewhere). That rule is not fitted: the clipping above hides such a case from the linear models whenever the pair
+is more alike than any training pair (a scan registered to a copy of itself, the demo's synthetic subject).
+
+Both models are fitted by ``python -m monai_probreg.fitting`` (:mod:`monai_probreg.fitting.quality_fit`) on
+*training* subjects only (normal pairs and a failure set: wrong orientations, cropped field of view, a missing block,
+heavy noise and bias, inverted contrast), through both paths that compute the features (the bundle's, on the dataset
+grid, and the whole command's, affine stage and model grid included, with headers as they are and turned), and
+stored next to the weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration. The
+entropy feature is a calibrated one, and the sidecar keeps the calibration it was computed with at the fit
+(``entropy_calibration``): every estimate computes it with that one, so a refitted posterior calibration (what the
+uncertainty maps show) leaves the estimate as it was validated; an older sidecar without it reads the calibration in
+use, and is not used under the raw posterior (:func:`quality_model_for`). Written by hand: ten lines of closed-form
+ridge and Newton's method, where scikit-learn would be a dependency for two linear models. How well it predicts and
+warns, on validation subjects: ``benchmarks/failure_detection.py``.
 """
 
 from __future__ import annotations
@@ -79,7 +77,7 @@ RIDGE = 1e-2  # L2 penalty of both fits, on standardised features (numerical saf
 NEWTON_STEPS = 50  # logistic fit: Newton iterations (converges in < 15 on the failure set)
 DEFAULT_THRESHOLD = 0.5  # failure probability from which a registration is flagged
 LNCC_DROP_MARGIN = 0.002  # local-NCC drop beyond which the deformable step "made the images less alike" (module
-# docstring; benchmarks/lncc_margin.py: above bf16's effect, below the failure set's drops)
+# docstring): above what bf16 moves, below the failure set's drops (experiments/lncc_margin.py measures both)
 
 
 def failed(dice: float, dice_before: float, dice_identity: float, margin: float = FAILURE_MARGIN) -> bool:

@@ -3,8 +3,8 @@
 glibc's ``malloc`` serves every allocation above its mmap threshold (at most 32 MB) with a new ``mmap`` and gives
 it back with ``munmap`` on ``free``. One registration at 160 x 192 x 224 allocates and frees many such buffers
 (the full-resolution UNet activations, sampling grids, fields), so each call faults in their pages afresh, each
-one zeroed by the kernel: on the 2-core machines of the README, about a fifth of the call
-(``benchmarks/speed_compare.py``: 0.88 s in the "memory reuse off" row, 0.71 s with reuse, in one run).
+one zeroed by the kernel: a noticeable share of the call on a CPU (``benchmarks/speed_compare.py``'s "memory reuse
+off" row against "ours, mean").
 :func:`reuse_freed_memory` sets ``mallopt(M_MMAP_MAX, 0)`` (every allocation from the heap) and ``mallopt(M_TRIM_THRESHOLD, INT_MAX)`` (freed heap memory stays in the process), so
 from the second pair on the same pages serve the same buffers. The arithmetic is untouched.
 

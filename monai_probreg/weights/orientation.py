@@ -8,9 +8,9 @@ indices becomes one towards lower indices); log-variances are even and only thei
 mirroring, the converted network ``f'`` satisfies ``f'(M x) = M f(x)`` for every stride-1 layer exactly; stride-2
 convolutions on even sizes sample the mirrored grid one voxel off (and no shift repairs it: nearest upsampling
 would then be off instead), so the whole UNet is equivariant only approximately: a warm start, to be fine-tuned.
-``tests/weights/test_orientation.py`` measures both on a small random network (1.3% relative velocity error). A trained
+``tests/weights/test_orientation.py`` pins both on a small random network. A trained
 network is far more sensitive to that phase: converted weights score well below the original on the turned images and
-need a short fine-tuning to recover (the LPBA40 header fix: bundle docs, "Orientation fix").
+need a short fine-tuning to recover (the LPBA40 header fix: docs/changelog.md).
 
 No library offers this for arbitrary state dicts (it is written here by hand); it is ``torch.flip`` on every
 convolution kernel plus a sign on the velocity head.

@@ -125,16 +125,18 @@ def _stream_length(path: Path) -> int:
     return total
 
 
-def check_nifti_header(path: str | os.PathLike, role: str, limit: int | None = None) -> nib.Nifti1Image:
+def check_nifti_header(
+    path: str | os.PathLike, role: str, limit: int | None = None, vector: bool = False
+) -> nib.Nifti1Image:
     """Open a NIfTI file with nibabel and check its header: size and voxel limit first (nothing else is read for a
     refused size), then voxel type, affine and byte count (a ``.nii.gz`` is streamed through once for this; no voxel
-    array is built)."""
+    array is built). ``vector``: a vector image (a displacement field), whose grid is its first three axes."""
     path = Path(path)
     try:
         image = nib.load(str(path))
     except _READ_ERRORS + (nib.filebasedimages.ImageFileError,) as err:
         raise corrupt_file_error(path, role, err) from None
-    check_size(image.shape, path, role, limit)
+    check_size(image.shape[:3] if vector else image.shape, path, role, limit)
     try:
         stored = _stream_length(path)
     except _READ_ERRORS as err:

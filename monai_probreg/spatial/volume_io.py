@@ -33,6 +33,7 @@ import nibabel as nib
 import numpy as np
 
 from monai_probreg.spatial.checks import (
+    check_finite,
     check_image_values,
     check_label_values,
     check_nifti_header,
@@ -50,6 +51,8 @@ __all__ = [
     "LPS_TO_RAS",
     "read_image",
     "read_label",
+    "read_volume",
+    "read_field",
     "check_same_grid",
     "volume_to_itk",
     "volume_from_itk",
@@ -205,17 +208,23 @@ def _read(path: str | os.PathLike, role: str, dtype: type) -> Volume:
             f"{role} {str(path)!r}: has {components} values per voxel (vector or RGB image); need a scalar 3-D volume"
         )
     check_size(sizes, path, role)
+    image = _itk_read(path, role, itk.Image[pixel, 3])
+    if nifti is not None:
+        check_nifti_voxels(nifti, path, role)
+    return volume_from_itk(image, str(path))
+
+
+def _itk_read(path: Path, role: str, image_type: type) -> itk.Image:
+    """The voxels by ITK's reader, and a non-degenerate geometry."""
     try:
-        reader = itk.ImageFileReader[itk.Image[pixel, 3]].New(FileName=str(path))
+        reader = itk.ImageFileReader[image_type].New(FileName=str(path))
         reader.Update()
     except RuntimeError as err:
         raise InputError(f"{role} {str(path)!r}: could not read the voxels ({itk_error_message(err)})") from None
-    if nifti is not None:
-        check_nifti_voxels(nifti, path, role)
-    volume = volume_from_itk(reader.GetOutput(), str(path))
-    if not np.all(np.isfinite(volume.index_to_lps)) or abs(np.linalg.det(volume.index_to_lps[:3, :3])) < 1e-12:
+    index_to_lps = geometry_of(reader.GetOutput())
+    if not np.all(np.isfinite(index_to_lps)) or abs(np.linalg.det(index_to_lps[:3, :3])) < 1e-12:
         raise InputError(f"{role} {str(path)!r}: the header's geometry is degenerate (spacing/direction)")
-    return volume
+    return reader.GetOutput()
 
 
 def read_image(path: str | os.PathLike, role: str = "image") -> Volume:
@@ -234,6 +243,44 @@ def read_label(path: str | os.PathLike, role: str = "label map") -> Volume:
     volume = _read(path, role, np.float64)
     check_label_values(volume.array, path, role)
     return Volume(volume.array.astype(np.int32), volume.index_to_lps, volume.path)
+
+
+def read_volume(path: str | os.PathLike, role: str = "image", dtype: type = np.float32) -> Volume:
+    """Any 3-D scalar volume (an image, a label map, a mask, a reference grid) with its geometry, as ``dtype``
+    (np.float32, or np.float64, which keeps integers up to 2^53 exact): :func:`read_image`'s checks and its reading
+    path, but a constant volume is accepted."""
+    volume = _read(path, role, dtype)
+    check_finite(volume.array, path, role)
+    return volume
+
+
+def read_field(path: str | os.PathLike, role: str = "displacement field") -> Volume:
+    """A displacement field file, read as ITK reads it (so as ANTs does) -> :class:`Volume` of (I, J, K, 3) float32.
+
+    A field is an ITK vector image with 3 components per voxel, in LPS mm: ``warp.nii.gz``, ANTs' ``*Warp.nii.gz``.
+    In NIfTI the vector is dimension 5 with the intent "vector" (1007: LPS components, what ITK, ANTs and this
+    package write) or "displacement vector" (1006: ITK 5.4 reads RAS components and turns them into LPS). Refused,
+    with one line naming the file: what :func:`read_image` refuses, and a file that is not a 3-D field of
+    3-vectors (a scalar image, another vector length, a NIfTI vector without an intent, which ITK reads as 5-D)."""
+    path = Path(path)
+    sizes, components = _header(path, role)
+    if components != 3 or len(sizes) != 3:
+        got = f"{components} value{'s' if components != 1 else ''} per voxel on a {len(sizes)}-D grid {tuple(sizes)}"
+        hint = ""
+        if components == 1 and len(sizes) > 3 and is_nifti(path):
+            hint = "; a NIfTI field holds its vectors in dimension 5 with the intent 'vector' (1007), as ANTs writes"
+        raise InputError(
+            f"{role} {str(path)!r}: not a displacement field: expected 3 values per voxel (a vector in LPS mm) on "
+            f"a 3-D grid, got {got}{hint}"
+        )
+    check_size(sizes, path, role)
+    nifti = check_nifti_header(path, role, vector=True) if is_nifti(path) else None
+    image = _itk_read(path, role, itk.Image[itk.Vector[itk.F, 3], 3])
+    if nifti is not None:
+        check_nifti_voxels(nifti, path, role)  # truncation, NaN, which ITK's reader hides
+    array = np.ascontiguousarray(itk.array_from_image(image).transpose(2, 1, 0, 3), dtype=np.float32)
+    check_finite(array, path, role)
+    return Volume(array, geometry_of(image), str(path))
 
 
 def check_same_grid(label: Volume, image: Volume, label_role: str = "label map", image_role: str = "image") -> None:

@@ -17,6 +17,7 @@ DOCS = sorted((ROOT / "docs").glob("*.md"))
 LINKED_DOCS = [README, *DOCS, ROOT / "bundle" / "docs" / "README.md"]
 OPTION_DOCS = [README, *DOCS]
 SUBCOMMANDS = ("register-batch", "register", "demo")  # longest first: "register" is a prefix of "register-batch"
+COMMANDS = (*SUBCOMMANDS, "apply")  # SUBCOMMANDS share the option table; apply has options of its own
 MAX_README_LINES = 150  # a product page read in five minutes (issue #51); the rest lives in docs/
 CI_MARKER = "<!-- ci:test-command -->"
 
@@ -25,7 +26,7 @@ INLINE_CODE = re.compile(r"`[^`\n]*`")
 MD_LINK = re.compile(r"!?\[[^\]\n]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 IMG_SRC = re.compile(r"<img\b[^>]*\bsrc\s*=\s*[\"']([^\"']+)[\"']", re.IGNORECASE)
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9]*(?:-[a-z0-9]+)*(?![\w])")
-COMMAND = re.compile(r"\bmonai-probreg\s+(" + "|".join(SUBCOMMANDS) + r")\b")
+COMMAND = re.compile(r"\bmonai-probreg\s+(" + "|".join(COMMANDS) + r")\b")
 
 
 def _rel(path: Path) -> str:
@@ -119,7 +120,7 @@ def help_options() -> dict[str, set[str]]:
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     return {
         name: {s for a in sub.choices[name]._actions for s in a.option_strings if s.startswith("--")}
-        for name in SUBCOMMANDS
+        for name in COMMANDS
     }
 
 

@@ -214,10 +214,12 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from monai_probreg.cli.apply import add_apply_parser
+
     parser = argparse.ArgumentParser(
         prog="monai-probreg", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    commands = parser.add_subparsers(dest="command", required=True, metavar="{register,register-batch,demo}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="{register,register-batch,demo,apply}")
     one = commands.add_parser(
         "register",
         help="register one scan to the fixed image",
@@ -262,6 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_common(demo)
     demo.set_defaults(samples=None)  # None: monai_probreg.cli.demo.DEMO_SAMPLES (imported when the demo runs)
+    add_apply_parser(commands)
     return parser
 
 
@@ -527,6 +530,12 @@ def _register_batch(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _apply(args: argparse.Namespace) -> int:
+    from monai_probreg.cli.apply import run_apply
+
+    return run_apply(args)
+
+
 @contextlib.contextmanager
 def _voxel_limit(limit: int | None) -> Iterator[None]:
     """``--max-voxels``: the limit of :mod:`monai_probreg.spatial.checks` for this call only (restored afterwards)."""
@@ -555,7 +564,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ.setdefault("KMP_WARNINGS", "0")
     try:
         with _voxel_limit(args.max_voxels):
-            command = {"register": _register, "register-batch": _register_batch, "demo": _demo}[args.command]
+            command = {"register": _register, "register-batch": _register_batch, "demo": _demo, "apply": _apply}[
+                args.command
+            ]
             return command(args)
     except KeyboardInterrupt:
         print(

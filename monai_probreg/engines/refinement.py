@@ -9,8 +9,10 @@ mean):
     L(mu) = image_weight * D(moving o exp(mu), fixed)  +  lambda / 2 * mu^T L mu / N_velocity
             + posterior_weight / 2 * mean((mu - mu_net)^2 / sigma_net^2)
 
-with Adam, on the grid the network sees (its ``network_size``, else the input grid), the velocity on the network's
-velocity grid or a finer one (``velocity_grid_factor``). ``D`` is MONAI's local
+with Adam, the velocity on the network's velocity grid or a finer one (``velocity_grid_factor``), the images compared
+on the grid the network sees (its ``network_size``, else the input grid) for the first ``coarse_iterations`` steps
+and on a grid ``image_grid_factor`` times finer for the rest (coarse to fine: the coarse steps cost a fraction of the
+finer ones; ``benchmarks/refinement_speed.py``). ``D`` is MONAI's local
 normalised cross-correlation by default (``image_loss="lncc"``, per-voxel mean in [-1, 0]; it does not assume the two
 scans share an intensity scale, and it scored better than the alternative on training pairs), or the model's own
 Gaussian likelihood ``||fixed - moving o exp(mu)||^2 / (2 sigma^2) / N_image`` (``"gaussian"``: the terms of the
@@ -28,10 +30,8 @@ output grid, the change is first given up only around the folded voxels (``fold_
 there, blended into the refined one over 1, 2, 4, ... velocity cells, :func:`local_blend`), then halved as a whole
 (``fold_backtracks`` times at most), and the network's registration itself is returned when nothing is fold-free: a
 user asking for refinement never gets a folded warp the network alone would not have given. The folds are few and
-local (tens of voxels of a head), so halving the whole change threw away much of the gain on whole-head pairs: on
-heads rendered from SynthSeg's training label maps, 0.631 Dice with halving alone, 0.647 with the local step first
-(one pair 0.527 -> 0.592; LPBA40 pairs, which do not fold, unchanged: ``benchmarks/refinement_levers.py``,
-docs/accuracy.md).
+local (tens of voxels of a head), so halving the whole change threw away much of the gain on whole-head pairs
+(``benchmarks/refinement_levers.py``, docs/accuracy.md).
 
 ``RefinementSettings()`` does not refine (``num_iterations = 0``): the steps come from the bundle's
 ``refine_iterations`` and the command line's ``--refine`` (the shipped configs refine; 0 gives the network alone).
@@ -92,14 +92,15 @@ class RefinementSettings:
         network's grid, does not apply as it is.
     image_grid_factor: the images of the loss live on a grid this many times finer than the network's (1: its
         ``network_size``; 2: twice finer, at most the images' own grid). The velocity grid does not change; the LNCC
-        window (``lncc_kernel_size``) is in voxels of that finer grid. 2 scored higher than 1 on training pairs
-        (LPBA40 +0.005 Dice, synthetic heads +0.03) at 5-6 times the refinement's time, 2-3 times the whole
-        command's (``benchmarks/refinement_levers.py``, docs/accuracy.md); the shipped configs use 2 (since bundle
-        0.18.0), which their calibration and quality model are fitted for. The dataclass default stays 1, the cheaper
-        form.
+        window (``lncc_kernel_size``) is in voxels of that finer grid. 2 scored higher than 1 on training pairs, most
+        on whole-head synthetic ones, at several times the cost of a step (``benchmarks/refinement_levers.py``,
+        docs/accuracy.md); the shipped configs use 2 for their last steps (``coarse_iterations``), which their
+        calibration and quality model are fitted for. The dataclass default stays 1, the cheaper form.
     coarse_iterations: of the ``num_iterations`` steps, the first this many compare the images on the network's
         grid (``image_grid_factor`` 1, eight times fewer voxels in 3-d), the rest on the ``image_grid_factor`` grid:
-        a coarse-to-fine schedule (0: every step on the finer grid).
+        a coarse-to-fine schedule (0: every step on the finer grid). More coarse steps with the last ones finer kept
+        the Dice of every finer step on training pairs and left less of the network's invented displacement on a
+        scan onto its own copy, at a fraction of the time (``benchmarks/refinement_levers.py``, docs/speed.md).
     coarse_lncc_kernel_size: the LNCC window of those coarse steps, in voxels of the network's grid (odd; None:
         ``lncc_kernel_size``, a window ``image_grid_factor`` times wider than the finer grid's).
     symmetric_start: start from (and pull towards) ``(mu(moving, fixed) - mu(fixed, moving)) / 2``, the network's

@@ -1,18 +1,21 @@
-"""MONAI's local normalised cross-correlation with a rectangular window, its window sums taken by pooling on large grids.
+"""MONAI's local normalised cross-correlation with a rectangular window, its window sums computed faster on a CPU.
 
-``BoxLNCCLoss`` is :class:`monai.losses.LocalNormalizedCrossCorrelationLoss` (``kernel_type="rectangular"``): the same
-formula, the same zero padding at the borders, the same ``smooth_nr`` / ``smooth_dr`` and reductions, so the same
-values (tested against MONAI's to float rounding, 1-d to 3-d, values and gradients). Only the five window sums differ
-in how they are computed, and only on grids of at least ``POOLED_FROM_VOXELS``: there MONAI's
-``separable_filtering`` (a 1-d convolution per axis of each one-channel tensor) slows down much more than linearly on a
-CPU, and ``avg_pool`` along one axis at a time over the stacked tensors (a fixed target's two sums outside autograd)
-is faster, forward and backward (``benchmarks/lncc_speed.py``, 1 thread: 3.1x at 160 x 192 x 160, 1.6x at
-120 x 144 x 120, 1.2x at 96 x 112 x 96; MONAI's is faster at the network's 80 x 96 x 80, 0.22 s against 0.28 s).
-Below it, MONAI's own ``forward`` runs. The test-time refinement (:mod:`monai_probreg.engines.refinement`) evaluates
-this loss and its gradient at every step, on a grid twice finer than the network's with ``image_grid_factor`` 2.
-Written by hand for that reason only: neither MONAI nor torch offers the pooled form. (A box filter by cumulative
-sums was tried in a scratch check: faster on small grids, but float32 cancellation put its gradient far from MONAI's
-on a real brain pair.)
+Two forms of the same loss (MONAI's formula, zero padding at the borders, ``smooth_nr`` / ``smooth_dr``; tested against
+:class:`monai.losses.LocalNormalizedCrossCorrelationLoss` to float rounding, 1-d to 3-d, values and gradients):
+
+- :class:`BoxLNCCLoss`, a drop-in for MONAI's (any pair, autograd): on grids of at least ``POOLED_FROM_VOXELS`` its
+  five window sums are taken by ``avg_pool`` along one axis at a time over the stacked tensors (a fixed target's two
+  outside autograd), where MONAI's ``separable_filtering`` (a 1-d convolution per axis of each one-channel tensor)
+  slows down much more than linearly on a CPU; below it, MONAI's own ``forward`` (``experiments/lncc_speed.py``).
+- :class:`FixedImageLNCC`, for a loop that compares many warped images with one fixed image (the test-time
+  refinement, :mod:`monai_probreg.engines.refinement`): the fixed image's sums once, three window sums forward and
+  three backward with the gradient written by hand, by doubling sums (:func:`box_sum`) in one zero-bordered buffer,
+  and optionally only inside the box where a window can add to the loss (:func:`support_box`)
+  (``benchmarks/refinement_speed.py`` times each lever against autograd through MONAI's form).
+
+Written by hand for speed only: neither MONAI nor torch offers these forms. (A box filter by cumulative sums was tried
+in a scratch check: float32 cancellation put its gradient far from MONAI's on a real brain pair; the doubling sums
+add the same terms as the window and cancel nothing.)
 """
 
 from __future__ import annotations
@@ -32,8 +35,8 @@ __all__ = [
     "support_box",
 ]
 
-# spatial voxels from which the window sums are pooled (MONAI's separable convolution below): the crossover measured
-# by benchmarks/lncc_speed.py on a CPU lies between 80 x 96 x 80 (0.61M voxels, 0.8x) and 96 x 112 x 96 (1.03M, 1.2x)
+# spatial voxels from which BoxLNCCLoss pools its window sums (MONAI's separable convolution below): the crossover
+# measured by experiments/lncc_speed.py on a CPU
 POOLED_FROM_VOXELS = 800_000
 
 _AVG_POOL = {1: F.avg_pool1d, 2: F.avg_pool2d, 3: F.avg_pool3d}

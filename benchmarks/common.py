@@ -8,6 +8,7 @@ antspyx are imported by the functions that use them, so the light scripts (``ddp
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import tempfile
@@ -41,9 +42,15 @@ SHARED_DATA = REPO.parent / "shared" / "data"  # the data sets live next to the 
 DEFAULT_DATASET = SHARED_DATA / "lpba40"  # ../shared/data/lpba40 from the repository root (preprocessed, labelled)
 DEFAULT_NATIVE = SHARED_DATA / "lpba40-native"  # the same subjects as scanned (native grids and headers)
 DEFAULT_OUT = REPO / "benchmarks" / "results"
-# refinement steps of the "ours + refinement" / default rows (settings chosen on training pairs; evaluate.yaml's
-# refine_iterations); accuracy_table.py and end_to_end.py report the same default
-DEFAULT_REFINE_ITERATIONS = 10
+# refinement steps of the "ours + refinement" / default rows: the bundle's own (inference.yaml's refine_iterations,
+# the one home of the default; read as text, so importing this module stays light)
+DEFAULT_REFINE_ITERATIONS = int(
+    re.search(
+        r"^refine_iterations:\s*(\d+)",
+        (REPO / "bundle" / "configs" / "inference.yaml").read_text(encoding="utf-8"),
+        re.MULTILINE,
+    ).group(1)
+)
 ANTS_INSTALL_HINT = "pip install -e '.[bench]'"  # antspyx is the optional extra "bench" (pyproject.toml)
 
 

@@ -129,7 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         model = load_model(model_file=model_file)
         for steps in args.refine:
             options = RegistrationOptions(
-                samples=args.samples, refinement=dataclasses.replace(model.refinement, num_iterations=steps)
+                samples=args.samples, refinement=model.refinement.with_fields(num_iterations=steps)
             )
             name = f"{model.model_file.name}" + (f" + refine {steps}" if steps else "")
             cases = {"identity": one_case(model, fixed, 0, IDENTITY, options)}

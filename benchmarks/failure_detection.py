@@ -47,7 +47,6 @@ where it stopped. A log made under other settings (weights, refinement, calibrat
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import math
@@ -320,7 +319,7 @@ def _main(argv=None) -> int:
         calibration = calibration_for(model_file)
         refinement = evaluate.get_parsed_content("refinement")
         if args.refine is not None:
-            refinement = dataclasses.replace(refinement, num_iterations=args.refine)
+            refinement = refinement.with_fields(num_iterations=args.refine)
         print(
             f"registrations: the network's mean{' refined' if refinement.enabled else ''} "
             f"({refinement.num_iterations} refinement steps)",

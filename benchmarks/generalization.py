@@ -395,7 +395,7 @@ def _options(model, refine: dict, seed: int, samples: bool = False) -> Registrat
     return dataclasses.replace(
         base,
         affine=dataclasses.replace(base.affine, seed=seed),
-        refinement=dataclasses.replace(model.refinement, **refine),
+        refinement=model.refinement.with_fields(**refine),
     )
 
 

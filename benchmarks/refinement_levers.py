@@ -139,7 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             fixed = prepare_fixed(fixed_image, fixed_label)
             for variant, fields in variants.items():
                 options = RegistrationOptions(qc=False, inverse=False, maps=False)
-                options = dataclasses.replace(options, refinement=dataclasses.replace(model.refinement, **fields))
+                options = dataclasses.replace(options, refinement=model.refinement.with_fields(**fields))
                 out = Path(tmp) / f"{name}_{variant}".replace(" ", "_").replace(">", "")
                 start = time.perf_counter()
                 summary = register_scan(model, fixed, moving, out, moving_label, options)

@@ -24,7 +24,6 @@ neighbour), to see what a faster variant costs. ``--profile`` prints torch's pro
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import sys
@@ -104,7 +103,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     network = model.network
     settings = {AUTOGRAD: model.refinement, SHIPPED: model.refinement}
     settings.update(
-        {name: dataclasses.replace(model.refinement, **fields) for name, fields in map(parse_variant, args.variants)}
+        {name: model.refinement.with_fields(**fields) for name, fields in map(parse_variant, args.variants)}
     )
     times: dict[str, list[float]] = {name: [] for name in settings}
     dice: dict[str, list[float]] = {name: [] for name in settings}

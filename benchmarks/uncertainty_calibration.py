@@ -36,7 +36,6 @@ cases (:mod:`monai_probreg.fitting.calibration_probes`) and by the same fit.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -255,7 +254,7 @@ def main(argv=None) -> int:
     if args.refine is not None:
         if args.refine < 0:
             raise SystemExit(f"--refine must be >= 0 steps; got {args.refine}")
-        refinement = dataclasses.replace(refinement, num_iterations=args.refine)
+        refinement = refinement.with_fields(num_iterations=args.refine)
     print(
         f"calibrating the {'refined mean' if refinement.enabled else 'network mean'} "
         f"({refinement.num_iterations} refinement steps)",

@@ -411,7 +411,7 @@ def _with_refinement(options, model, iterations: int | None):
     if iterations is None:
         return options
     try:
-        refinement = model.refinement.with_iterations(iterations)
+        refinement = model.refinement.with_fields(num_iterations=iterations)
     except ValueError as err:
         raise InputError(f"--refine: {err}") from None
     return dataclasses.replace(options, refinement=refinement)

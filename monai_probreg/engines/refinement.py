@@ -172,6 +172,14 @@ class RefinementSettings:
         fine = self.num_iterations - self.coarse_iterations
         return replace(self, num_iterations=num_iterations, coarse_iterations=max(num_iterations - fine, 0))
 
+    def with_fields(self, **fields: object) -> RefinementSettings:
+        """``dataclasses.replace`` of these settings, except that a ``num_iterations`` given without
+        ``coarse_iterations`` keeps the schedule's finer steps last (:meth:`with_iterations`): the one way the
+        command, the fitting and the benchmarks change a number of steps."""
+        if "num_iterations" in fields and "coarse_iterations" not in fields:
+            return replace(self.with_iterations(fields.pop("num_iterations")), **fields)
+        return replace(self, **fields)
+
     def as_dict(self) -> dict[str, float | int | str]:
         """The settings by name, for summaries."""
         return asdict(self)

@@ -75,7 +75,7 @@ def command_cases(
     model = dataclasses.replace(loaded, quality=neutral)
     fixed = prepare_fixed(index.atlas_image, index.atlas_label, model.divisor)
     # None: the command's default path (the config's refinement)
-    refinement = None if refine is None else dataclasses.replace(model.refinement, num_iterations=refine)
+    refinement = None if refine is None else model.refinement.with_fields(num_iterations=refine)
     started = None if log is None else log.header.get("command_refinement")
     differ = {} if started is None else model.refinement.differences(started)
     if differ:  # inference.yaml changed since the run started

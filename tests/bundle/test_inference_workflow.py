@@ -85,10 +85,10 @@ def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
     default = parser.get_parsed_content("inferer").refinement
-    # the shipped default path: 10 steps of 0.3 with a quarter of the pull (bundle 0.20.0), the loss images twice
-    # finer, the library's other defaults
+    # the shipped default path: 20 steps of 0.3 with a quarter of the pull, the first 18 on the network's grid and the
+    # last 2 with the loss images twice finer, the library's other defaults
     expected = RefinementSettings(
-        num_iterations=parser["refine_iterations"], learning_rate=0.3, posterior_weight=0.25, image_grid_factor=2
+        num_iterations=20, learning_rate=0.3, posterior_weight=0.25, image_grid_factor=2, coarse_iterations=18
     )
     assert default.enabled and default == expected and parser["refine_image_grid_factor"] == 2
     parser = ConfigParser()
@@ -97,10 +97,15 @@ def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     assert not parser.get_parsed_content("inferer").refinement.enabled
     parser = ConfigParser()
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    parser["refine_iterations"] = 1  # fewer steps than the finer ones: every step finer
+    assert parser.get_parsed_content("inferer").refinement.coarse_iterations == 0
+    parser = ConfigParser()
+    parser.read_config(str(BUNDLE_DIR / "configs" / config))
     parser["refine_iterations"], parser["refine_prior_lambda"] = 20, 3.0
     parser["refine_image_loss"], parser["refine_image_weight"], parser["refine_fold_backtracks"] = "gaussian", 1.0, 0
     refinement = parser.get_parsed_content("inferer").refinement
     assert refinement.enabled and refinement.num_iterations == 20 and refinement.prior_lambda == 3.0
+    assert refinement.coarse_iterations == 20 - parser["refine_fine_iterations"]  # the finer steps stay last
     assert (refinement.image_loss, refinement.image_weight, refinement.fold_backtracks) == ("gaussian", 1.0, 0)
     parser["refine_fold_local_steps"], parser["refine_image_grid_factor"] = 2, 1
     refinement = parser.get_parsed_content("inferer", lazy=False).refinement

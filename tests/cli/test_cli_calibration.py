@@ -71,10 +71,11 @@ def test_calibrated_by_default_raw_on_request(scene):
     assert rc == 0 and summary["model"]["posterior_std_scale"] == SCALE
     # this sidecar was fitted around the network's mean ({}); the run refines as the configs do by default
     assert summary["model"]["calibration_refinement_differs_from_fit"] == {
-        "num_iterations": [0, 10],
+        "num_iterations": [0, 20],
         "learning_rate": [0.1, 0.06],  # the shipped 0.3 on the tiny bundle's 16^3 grid (conftest.tiny_bundle)
         "posterior_weight": [1.0, 0.25],
         "image_grid_factor": [1, 2],
+        "coarse_iterations": [0, 18],
     }
     rc, summary, raw = _register(scene, "raw", "--raw-uncertainty")
     assert rc == 0 and summary["model"]["posterior_std_scale"] == 1.0
@@ -86,7 +87,10 @@ def test_calibrated_by_default_raw_on_request(scene):
         rc, summary, _ = _register(scene, "calibrated_around_this")
         assert rc == 0 and summary["model"]["calibration_refinement_differs_from_fit"] == {}
         rc, summary, _ = _register(scene, "network_alone", "--refine", "0")
-        assert rc == 0 and summary["model"]["calibration_refinement_differs_from_fit"] == {"num_iterations": [10, 0]}
+        assert rc == 0 and summary["model"]["calibration_refinement_differs_from_fit"] == {
+            "num_iterations": [20, 0],
+            "coarse_iterations": [18, 0],
+        }
     finally:
         save_calibration(weights, SCALE, ["synthetic"], 2)
     # same seeded samples, std scaled by 4 in velocity: the displacement spread grows by about 4

@@ -537,3 +537,14 @@ def test_a_number_of_steps_keeps_the_schedules_finer_steps_last():
     assert RefinementSettings(num_iterations=10).with_iterations(4) == RefinementSettings(num_iterations=4)
     with pytest.raises(ValueError, match="num_iterations"):
         schedule.with_iterations(-1)
+
+
+def test_fields_replaced_with_a_number_of_steps_keep_the_finer_steps_last():
+    schedule = RefinementSettings(num_iterations=10, coarse_iterations=8)
+    assert schedule.with_fields(num_iterations=4, prior_lambda=2.0) == RefinementSettings(
+        num_iterations=4, coarse_iterations=2, prior_lambda=2.0
+    )
+    assert schedule.with_fields(num_iterations=4, coarse_iterations=1).coarse_iterations == 1  # given: as given
+    assert schedule.with_fields(adam_eps=1e-5) == RefinementSettings(
+        num_iterations=10, coarse_iterations=8, adam_eps=1e-5
+    )

@@ -60,6 +60,13 @@ def test_package_version_matches_the_installed_package(metadata):
     assert metadata["required_packages_version"]["monai-probreg"] == monai_probreg.__version__
 
 
+def test_the_package_version_is_the_bundle_release(metadata):
+    """One version: the package's (pyproject reads monai_probreg.__version__) is the bundle's release."""
+    assert metadata["version"] == monai_probreg.__version__
+    assert 'version = { attr = "monai_probreg.__version__" }' in (ROOT / "pyproject.toml").read_text()
+    assert next(iter(metadata["changelog"])) == metadata["version"]  # the newest release has its changelog line
+
+
 # --- large_files.yml: the model zoo's list of the shipped weights -----------------------------------------------------
 BUNDLE = ROOT / "bundle"
 

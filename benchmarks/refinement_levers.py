@@ -56,11 +56,11 @@ IDENTITY = "identity"  # the name prefix of those cases
 # name -> RefinementSettings fields replaced in the bundle's settings
 VARIANTS = {
     "network": {"num_iterations": 0},
-    "x10, halving guard only": {"num_iterations": 10, "fold_local_steps": 0},
-    "x10 (default)": {"num_iterations": 10},
-    "x20": {"num_iterations": 20},
-    "x30": {"num_iterations": 30},
-    "2mm x10": {"num_iterations": 10, "velocity_grid_factor": 2},
+    "shipped": {},
+    "x10 all finer": {"num_iterations": 10, "coarse_iterations": 0},
+    "x10 all finer, halving guard only": {"num_iterations": 10, "coarse_iterations": 0, "fold_local_steps": 0},
+    "c28of30": {"num_iterations": 30, "coarse_iterations": 28},
+    "2mm x10": {"num_iterations": 10, "coarse_iterations": 0, "velocity_grid_factor": 2},
 }
 
 

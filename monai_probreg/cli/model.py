@@ -18,7 +18,7 @@ from torch import nn
 
 import monai_probreg
 from monai_probreg.engines.refinement import RefinementSettings
-from monai_probreg.uncertainty.calibration import calibration_record_for
+from monai_probreg.uncertainty.calibration import RAW, Calibration, calibration_record_for
 from monai_probreg.uncertainty.quality import QualityModel, load_quality_model, quality_model_for
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.provenance import file_sha256
@@ -41,16 +41,26 @@ class LoadedModel:
     device: torch.device
     model_file: Path
     config_file: Path
-    std_scale: float = (
-        1.0  # posterior std calibration of these weights (1 = raw), see monai_probreg.uncertainty.calibration
-    )
-    bias_fraction: float = 0.0  # the calibration's bias term of the velocity posterior (0 = raw)
-    interval_dof: float | None = None  # the calibration's Student-t dof of the intervals (None = Gaussian, raw)
+    # the posterior calibration of these weights in use (monai_probreg.uncertainty.calibration; 1, 0 and Gaussian
+    # intervals: the raw posterior), whole: the scale, the bias term and the intervals' Student-t dof
+    calibration: Calibration = RAW
     refinement: RefinementSettings = field(default_factory=RefinementSettings)  # the config's ``refinement``
     weights_sha256: str = ""  # of model_file: which weights made a result (summary.json's reproducibility record)
     quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
     # the refinement settings the calibration was fitted around ({}: the network's mean); None: raw, or not recorded
     calibration_refinement: dict | None = None
+
+    @property
+    def std_scale(self) -> float:
+        return self.calibration.std_scale
+
+    @property
+    def bias_fraction(self) -> float:
+        return self.calibration.bias_fraction
+
+    @property
+    def interval_dof(self) -> float | None:
+        return self.calibration.interval_dof
 
 
 def load_model(
@@ -115,9 +125,7 @@ def load_model(
         torch.device(device),
         weights,
         config,
-        1.0 if record is None else record.std_scale,
-        0.0 if record is None else record.bias_fraction,
-        None if record is None else record.interval_dof,
+        RAW if record is None else Calibration(record.std_scale, record.bias_fraction, record.interval_dof),
         refinement=refinement,
         weights_sha256=file_sha256(weights),
         quality=quality_model,

@@ -278,8 +278,7 @@ def _run_model(
             posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
         )
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
-            in_use = Calibration(model.std_scale, model.bias_fraction, model.interval_dof)
-            maps.entropy = _entropy(model, output.velocity_mean, output.velocity_log_var, shape, in_use)
+            maps.entropy = _entropy(model, output.velocity_mean, output.velocity_log_var, shape, model.calibration)
     if samples:
         with _timed(timings, "samples", report):
             sampled = posterior_maps(

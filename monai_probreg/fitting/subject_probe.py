@@ -69,13 +69,7 @@ def subject_errors(
     """(std, error, |deformable displacement|), each (3, N) mm: the registration of ``case`` by the command's path
     with its posterior calibrated by ``calibration`` (``refinement``: the model's own when None), ``samples``
     posterior samples (seeded by the case)."""
-    model = dataclasses.replace(
-        model,
-        std_scale=calibration.std_scale,
-        bias_fraction=calibration.bias_fraction,
-        interval_dof=calibration.interval_dof,
-        quality=None,
-    )
+    model = dataclasses.replace(model, calibration=calibration, quality=None)
     options = RegistrationOptions(
         samples=samples,
         seed=case.seed,

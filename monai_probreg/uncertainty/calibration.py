@@ -59,6 +59,7 @@ __all__ = [
     "FIT_LEVELS",
     "INTERVAL_DOFS",
     "Calibration",
+    "RAW",
     "CalibrationRecord",
     "calibrate_log_var",
     "check_calibration",
@@ -89,6 +90,9 @@ class Calibration(NamedTuple):
     std_scale: float
     bias_fraction: float
     interval_dof: float | None = None  # Student-t dof of the intervals; None: Gaussian
+
+
+RAW = Calibration(1.0, 0.0, None)  # the raw posterior: no scale, no bias term, Gaussian intervals
 
 
 @dataclass(frozen=True)

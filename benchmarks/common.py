@@ -35,6 +35,7 @@ __all__ = [
     "ants_register",
     "run_command",
     "parse_variant",
+    "write_report",
 ]
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,3 +161,17 @@ def ants_register(
         displacement = torch.from_numpy(np.ascontiguousarray(field.numpy(), dtype=np.float32))  # (X, Y, Z, 3)
     labels = torch.from_numpy(np.rint(warped.numpy())).to(torch.int16)[None, None]
     return labels, displacement.movedim(-1, 0)[None], runtime
+
+
+def write_report(out_dir: Path, name: str, result: dict[str, Any], lines: Sequence[str]) -> Path:
+    """``result`` with the library versions and the table ``lines`` (``markdown``) written atomically to
+    ``out_dir/name.json``, the table printed: how a benchmark reports."""
+    import json
+
+    from monai_probreg.utils.files import write_text
+    from monai_probreg.utils.provenance import library_versions
+
+    result = {**result, "versions": library_versions(), "markdown": "\n".join(lines)}
+    path = write_text(Path(out_dir) / f"{name}.json", json.dumps(result, indent=2) + "\n")
+    print(f"\n{result['markdown']}\n\nwrote {path}", flush=True)
+    return path

@@ -31,13 +31,11 @@ from pathlib import Path
 import itk
 import nibabel as nib
 import numpy as np
-from common import DEFAULT_DATASET, DEFAULT_OUT, run_command
+from common import DEFAULT_DATASET, DEFAULT_OUT, run_command, write_report
 
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.spatial.physical import apply_affine, field_from_itk, grid_points
 from monai_probreg.spatial.volume_io import read_image, read_label
-from monai_probreg.utils.files import write_text
-from monai_probreg.utils.provenance import library_versions
 
 TURN_AXIS_RAS = (1.0, 2.0, 3.0)  # an oblique axis (normalised): the turn is not about one image axis
 SHIFT_DIRECTION_RAS = (2.0, -1.0, 2.0)  # the shift's direction (normalised)
@@ -147,16 +145,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"| {r['case']} | {r['median_error_mm']:.3f} | {r['p95_error_mm']:.3f} | {r['warning'] or 'none'} | "
             f"{r['num_folded']} | {r['refine_s']:.1f} | {r['command_s']:.1f} |"
         )
-    result = {
-        "rows": rows,
-        "degrees": args.degrees,
-        "shift_mm": args.shift_mm,
-        "threads": args.threads,
-        "versions": library_versions(),
-        "markdown": "\n".join(lines),
-    }
-    path = write_text(args.out_dir / "identity_cases.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{result['markdown']}\n\nwrote {path}", flush=True)
+    result = {"rows": rows, "degrees": args.degrees, "shift_mm": args.shift_mm, "threads": args.threads}
+    write_report(args.out_dir, "identity_cases", result, lines)
     return 0
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import tempfile
 import time
@@ -33,7 +32,7 @@ from pathlib import Path
 import itk
 import numpy as np
 import torch
-from common import parse_variant
+from common import parse_variant, write_report
 from generalization import dice, synthetic_head
 
 from monai_probreg.cli.model import load_model
@@ -41,8 +40,6 @@ from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, regis
 from monai_probreg.data.label_synthesis import ASEG_LABELS
 from monai_probreg.spatial.physical import field_from_itk
 from monai_probreg.spatial.volume_io import read_label
-from monai_probreg.utils.files import write_text
-from monai_probreg.utils.provenance import library_versions
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
@@ -167,10 +164,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"| {variant} | {variants[variant]} | {fmt(row['lpba40'])} | {fmt(row['synthetic'])} | "
             f"{fmt(row['identity'])} | {row['num_folding']} | {fmt(row['refine_s'])} |"
         )
-    result = {"variants": variants, "rows": rows, "threads": args.threads, "versions": library_versions()}
-    result["markdown"] = "\n".join(lines)
-    path = write_text(args.out_dir / "refinement_levers.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{result['markdown']}\n\nwrote {path}", flush=True)
+    write_report(
+        args.out_dir, "refinement_levers", {"variants": variants, "rows": rows, "threads": args.threads}, lines
+    )
     return 0
 
 

@@ -24,7 +24,6 @@ neighbour), to see what a faster variant costs. ``--profile`` prints torch's pro
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -34,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from common import DEFAULT_DATASET, DEFAULT_OUT, parse_variant
+from common import DEFAULT_DATASET, DEFAULT_OUT, parse_variant, write_report
 
 from monai_probreg.blocks.warp import warp_box, warp_image, warp_labels
 from monai_probreg.cli.model import load_model
@@ -44,8 +43,6 @@ from monai_probreg.losses.lncc import BoxLNCCLoss, FixedImageLNCC, support_box
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.volume_io import read_image, read_label
-from monai_probreg.utils.files import write_text
-from monai_probreg.utils.provenance import library_versions
 
 REPEATS = 3
 PAIRS = ("S11:S14", "S16:S21", "S28:S29")  # moving:fixed, validation subjects (train.yaml's val_ids)
@@ -96,7 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     if not (args.dataset_dir / "images").is_dir():
-        print(f"skipped: {args.dataset_dir}/images not found (LPBA40 is needed)", flush=True)
+        print(f"skipped: dataset not found at {args.dataset_dir}", flush=True)
         return 0
     torch.set_num_threads(args.threads)
     model = load_model()
@@ -142,10 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     first = next(iter(levers.values()))
     lines += [f"| {name} | {sec:.3f} | {first / sec:.1f} |" for name, sec in levers.items()]
     result = {"rows": rows, "image_term_s": levers, "pairs": args.pairs, "threads": args.threads}
-    result["versions"] = library_versions()
-    result["markdown"] = "\n".join(lines)
-    path = write_text(args.out_dir / "refinement_speed.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{result['markdown']}\n\nwrote {path}", flush=True)
+    write_report(args.out_dir, "refinement_speed", result, lines)
     return 0
 
 

@@ -21,6 +21,7 @@ from bench_helpers import REPO
         "benchmarks/uncertainty_calibration",
         "benchmarks/failure_detection",
         "benchmarks/robustness",
+        "benchmarks/refinement_speed",
         "experiments/affine_levers",
         "experiments/uncertainty_ceiling",
         "experiments/lncc_margin",

@@ -160,7 +160,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="refine the posterior mean for this pair with N optimiser steps (test-time refinement: "
-        "about 15 s for the demo on a 2-core CPU); default: the config's refine_iterations (10: on); 0 = the "
+        "about 5 s for the demo on a 2-core CPU); default: the config's refine_iterations (20: on); 0 = the "
         "network alone",
     )
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")

@@ -338,20 +338,21 @@ def refine_registration(
         start, log_var = resize_displacement(start, grid), resize_log_var(log_var, grid)
         size = tuple(max(int(s), g) for s, g in zip(size, grid))
         coarse = tuple(max(int(s), g) for s, g in zip(coarse, grid))
-    terms: dict[tuple[int, ...], _ImageTerm] = {}  # the image term on each grid of the schedule, built once
+    # the image term of each (grid, window) of the schedule, built once (the coarse grid can be the finer one)
+    terms: dict[tuple[tuple[int, ...], int], _ImageTerm] = {}
     velocity = start.clone().requires_grad_(True)
     optimiser = torch.optim.Adam([velocity], lr=settings.learning_rate, eps=settings.adam_eps)
     with torch.enable_grad():
         for iteration in range(settings.num_iterations):
             is_coarse = iteration < settings.coarse_iterations
             grid = coarse if is_coarse else size
-            if grid not in terms:
+            kernel = (settings.coarse_lncc_kernel_size if is_coarse else None) or settings.lncc_kernel_size
+            if (grid, kernel) not in terms:
                 images = (_on_grid(t.detach().clone().float(), grid) for t in (moving, fixed))
-                kernel = settings.coarse_lncc_kernel_size if is_coarse else None
-                terms[grid] = _ImageTerm(network, *images, settings, kernel or settings.lncc_kernel_size)
+                terms[grid, kernel] = _ImageTerm(network, *images, settings, kernel)
             optimiser.zero_grad(set_to_none=True)
             displacement = network.velocity_to_displacement(velocity, grid)
-            loss = settings.image_weight * terms[grid](displacement) + kl_loss(velocity, log_var)
+            loss = settings.image_weight * terms[grid, kernel](displacement) + kl_loss(velocity, log_var)
             if settings.posterior_weight > 0:  # (mu - mu_net)^2 / sigma_net^2, mean over the velocity grid
                 pull = ((velocity - start).square() * log_var.neg().exp()).mean()
                 loss = loss + 0.5 * settings.posterior_weight * pull

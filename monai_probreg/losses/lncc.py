@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from monai.losses import LocalNormalizedCrossCorrelationLoss
 from torch import Tensor, nn
+from torch.autograd.function import once_differentiable
 
 __all__ = [
     "POOLED_FROM_VOXELS",
@@ -169,6 +170,7 @@ class _FixedLNCCFunction(torch.autograd.Function):
         return ncc.sum().neg()
 
     @staticmethod
+    @once_differentiable  # the hand-written gradient is not itself differentiable: a double backward is refused
     def backward(ctx, grad_output):  # type: ignore[override]
         pred, target, t_sum, ratio, ncc, p_var, p_avg, p_free = ctx.saved_tensors
         channels, volume = pred.shape[1], float(ctx.kernel_size ** (pred.ndim - 2))
@@ -203,7 +205,8 @@ class FixedImageLNCC(nn.Module):
     ``region``: compare only inside a box of the target (``(starts, stops)`` per spatial axis, from
     :func:`support_box`): a window with no nonzero target voxel adds exactly 0 to the loss and its gradient, so the
     loss over a box that holds every such window (the target's nonzero voxels and twice the window's radius around
-    them) equals the loss over the whole grid; the mean still divides by the whole grid's voxel count.
+    them: ``support_box(target, margin=2 * (kernel_size // 2))``) equals the loss over the whole grid; the mean still
+    divides by the whole grid's voxel count. A smaller margin gives another loss (windows cut by the box's edge).
     Written by hand: MONAI's LNCC recomputes the target's sums and differentiates through autograd.
     """
 
@@ -246,7 +249,8 @@ class FixedImageLNCC(nn.Module):
             )
         radius = self.kernel_size // 2
         padded = [pred.shape[0], 3 * pred.shape[1], *(n + 2 * radius for n in pred.shape[2:])]
-        if self._buffer is None or list(self._buffer.shape) != padded or self._buffer.dtype != pred.dtype:
+        buffer = self._buffer
+        if buffer is None or list(buffer.shape) != padded or (buffer.dtype, buffer.device) != (pred.dtype, pred.device):
             self._buffer = pred.new_zeros(padded)  # the borders stay zero: only the interior is ever written
         total = _FixedLNCCFunction.apply(
             pred,

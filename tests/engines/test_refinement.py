@@ -548,3 +548,19 @@ def test_fields_replaced_with_a_number_of_steps_keep_the_finer_steps_last():
     assert schedule.with_fields(adam_eps=1e-5) == RefinementSettings(
         num_iterations=10, coarse_iterations=8, adam_eps=1e-5
     )
+
+
+def test_a_coarse_window_is_not_used_by_finer_steps_on_the_same_grid():
+    """With no finer grid (image_grid_factor 1: the coarse grid is the finer one), the coarse steps' window is theirs
+    alone: the finer steps compare with lncc_kernel_size, so the schedule differs from the coarse window throughout."""
+    net = _identity_net(2)
+    moving, fixed = _pair((32, 48), axis=1)
+    start = register_pair(net, moving, fixed)
+    base = {"num_iterations": 12, "learning_rate": 0.1, "prior_lambda": 10.0, "posterior_weight": 0.0}
+
+    def refined(**kwargs):
+        return refine_registration(net, moving, fixed, start, RefinementSettings(**base, **kwargs)).velocity_mean
+
+    mixed = refined(coarse_iterations=6, coarse_lncc_kernel_size=5)
+    assert not torch.allclose(mixed, refined(lncc_kernel_size=5))
+    assert not torch.allclose(mixed, refined())

@@ -194,3 +194,21 @@ def test_fixed_image_lncc_names_the_expected_shape():
     loss = FixedImageLNCC(torch.rand(1, 1, 8, 9), 3, region=((1, 2), (7, 9)))
     with pytest.raises(ValueError, match=r"expected pred of shape \(1, 1, 6, 7\)"):
         loss(torch.rand(1, 1, 8, 9))
+
+
+def test_fixed_image_lncc_keeps_its_answers_when_called_again():
+    """The window sums' buffer is kept between calls: a second call (another pred, then the first again) gives the
+    first call's value and gradient; a double backward is refused (the gradient is written by hand)."""
+    pred, target = _pair(SHAPES[3])
+    other, _ = _pair(SHAPES[3], seed=1)
+    loss = FixedImageLNCC(target, 3)
+    first = pred.clone().requires_grad_(True)
+    value = loss(first)
+    (gradient,) = torch.autograd.grad(value, first)
+    loss(other.clone().requires_grad_(True))
+    again = pred.clone().requires_grad_(True)
+    torch.testing.assert_close(loss(again), value, rtol=0, atol=0)
+    (twice,) = torch.autograd.grad(loss(again), again, create_graph=True)
+    torch.testing.assert_close(twice, gradient, rtol=0, atol=0)
+    with pytest.raises(RuntimeError):
+        torch.autograd.grad(twice.sum(), again)

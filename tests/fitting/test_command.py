@@ -224,10 +224,5 @@ def test_the_defaults_are_the_settings_of_the_shipped_sidecars():
     assert calibration["num_samples"] == args.samples
     assert quality["fitted_on"] == training[: args.train_subjects]
     shipped = stages.bundle_parser(REPO / "bundle", ["evaluate.yaml"]).get_parsed_content("refinement").as_dict()
+    assert calibration["refinement"] == quality["refinement"]
     assert calibration["refinement"] == {k: shipped[k] for k in calibration["refinement"]}  # settings added later aside
-    # bundle 0.22.0 ships 0.21.0's quality model (docs/uncertainty.md): the refinement its sidecar records is the one
-    # its committed benchmark records were made with, and it differs from the shipped one only in the schedule
-    records = json.loads((REPO / "benchmarks" / "results" / "failure_detection.json").read_text())
-    assert quality["refinement"] == records["refinement"]
-    differs = {k for k, v in quality["refinement"].items() if shipped[k] != v}
-    assert differs == {"num_iterations"} and shipped["coarse_iterations"] > 0

@@ -14,7 +14,9 @@ of the pairs reported:
 
 The image term's levers alone, on the first pair's images and a smooth random displacement (forward and backward,
 median of ``REPEATS``): MONAI's LNCC by autograd over the whole grid, :class:`FixedImageLNCC` over the whole grid,
-and over the box around the fixed image's nonzero voxels (what the refinement runs).
+and over the box around the fixed image's nonzero voxels (what the refinement runs). The integration's squarings on
+the velocity grid (forward and backward, median of ``SQUARING_REPEATS``), ``grid_sample`` as one piece (one thread)
+against split over the threads (the shipped path, :data:`~monai_probreg.blocks.warp.MIN_POINTS_PER_THREAD`).
 
 Also the mean Dice over the 56 structures after each variant (labels warped by its displacement, nearest
 neighbour), to see what a faster variant costs. ``--profile`` prints torch's profiler table of one shipped refinement
@@ -37,6 +39,7 @@ import torch
 import torch.nn.functional as F
 from common import DEFAULT_DATASET, DEFAULT_OUT, parse_variant, write_report
 
+from monai_probreg.blocks import warp
 from monai_probreg.blocks.warp import warp_box, warp_image, warp_labels
 from monai_probreg.cli.model import load_model
 from monai_probreg.engines.refinement import refine_registration
@@ -47,6 +50,7 @@ from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.volume_io import read_image, read_label
 
 REPEATS = 3
+SQUARING_REPEATS = 10
 PAIRS = ("S11:S14", "S16:S21", "S28:S29")  # moving:fixed, validation subjects (train.yaml's val_ids)
 AUTOGRAD = "0.21.0 steps, MONAI path (fast_sampling=False)"
 FORMER_STEPS = "0.21.0 steps"
@@ -87,6 +91,26 @@ def image_term_levers(moving: torch.Tensor, fixed: torch.Tensor, kernel_size: in
     return seconds
 
 
+def squaring_levers(network: torch.nn.Module, velocity: torch.Tensor) -> dict[str, float]:
+    """Seconds (median of SQUARING_REPEATS) of the integration of ``velocity`` (the network's, on its velocity grid)
+    forward and backward, as each refinement step runs it, with ``grid_sample`` run as one piece (one thread) and
+    split over the threads (:func:`~monai_probreg.blocks.warp.split_grid_sample`, the shipped path)."""
+    seconds = {}
+    for name, minimum in (("one piece (one thread)", 2**62), ("split over the threads", warp.MIN_POINTS_PER_THREAD)):
+        shipped, warp.MIN_POINTS_PER_THREAD = warp.MIN_POINTS_PER_THREAD, minimum
+        try:
+            spans = []
+            for _ in range(SQUARING_REPEATS + 1):  # the first: warm-up
+                v = velocity.detach().clone().requires_grad_(True)
+                start = time.perf_counter()
+                network.velocity_to_displacement(v, tuple(v.shape[2:])).square().sum().backward()
+                spans.append(time.perf_counter() - start)
+        finally:
+            warp.MIN_POINTS_PER_THREAD = shipped
+        seconds[name] = statistics.median(spans[1:])
+    return seconds
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET)
@@ -115,6 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         output = register_pair(network, moving, fixed)
         if n == 0:  # warm-up: first calls allocate and pick kernels; the image term's levers on this pair
             levers = image_term_levers(moving, fixed, model.refinement.lncc_kernel_size)
+            squaring = squaring_levers(network, output.velocity_mean)
             refine_registration(network, moving, fixed, output, model.refinement)
             if args.profile:
                 from torch.profiler import ProfilerActivity, profile
@@ -143,7 +168,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines += ["", "| image term (forward + backward, 1 mm grid) | s | x faster |", "|---|---|---|"]
     first = next(iter(levers.values()))
     lines += [f"| {name} | {sec:.3f} | {first / sec:.1f} |" for name, sec in levers.items()]
-    result = {"rows": rows, "image_term_s": levers, "pairs": args.pairs, "threads": args.threads}
+    lines += ["", "| the integration's squarings (forward + backward, velocity grid) | s | x faster |", "|---|---|---|"]
+    first = next(iter(squaring.values()))
+    lines += [f"| {name} | {sec:.4f} | {first / sec:.1f} |" for name, sec in squaring.items()]
+    result = {
+        "rows": rows,
+        "image_term_s": levers,
+        "squaring_s": squaring,
+        "pairs": args.pairs,
+        "threads": args.threads,
+    }
     write_report(args.out_dir, "refinement_speed", result, lines)
     return 0
 

@@ -48,9 +48,10 @@ __all__ = [
     "SpatialTransformer",
 ]
 
-# Fewest sampled points worth a thread of their own in split_grid_sample: below this (a 40^3 grid) the extra
-# grid_sample calls cost more than they save.
-MIN_POINTS_PER_THREAD = 65_536
+# Fewest sampled points worth a thread of their own in split_grid_sample: below this (a 20^3 grid) the extra
+# grid_sample calls cost more than they save. The velocity grid's squarings (40 x 48 x 40 points) gain from the split,
+# backward most (benchmarks/refinement_speed.py, "the integration's squaring").
+MIN_POINTS_PER_THREAD = 8_192
 
 
 def identity_grid(spatial_shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor:

@@ -54,6 +54,7 @@ from monai_probreg.losses.likelihood import IMAGE_LOSSES, make_image_loss
 from monai_probreg.losses.lncc import FixedImageLNCC, support_box
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
+from monai_probreg.uncertainty.quality_features import local_ncc
 
 __all__ = ["LATER_SETTINGS", "RefinementSettings", "local_blend", "refine_registration"]
 
@@ -112,6 +113,13 @@ class RefinementSettings:
         of LNCC's variance floor (nearly flat windows, where the images give no evidence) moves the velocity as far
         as a real one: a scan onto a copy of itself then ends displaced. Where the gradient is well below this value
         the step shrinks in proportion (torch's default, 1e-8, leaves no such floor).
+    similarity_guard: keep no deformation that leaves the images less alike than none: when the registration (after
+        the fold guard) has a lower local NCC with the fixed image than the moving image itself has (the quality
+        estimate's measure, :func:`~monai_probreg.uncertainty.quality_features.local_ncc`), the deformation is given
+        up and the identity returned (zero velocity mean, the affine alone on the command line). A scan onto a copy
+        of itself has nothing to register, and every step there only moves tissue the network invents; on pairs
+        with something to register the deformable step always raised the local NCC (``benchmarks/identity_cases.py``,
+        ``benchmarks/failure_detection.py``). False: the refined (or fold-guarded) registration whatever it scores.
     """
 
     num_iterations: int = 0
@@ -130,6 +138,7 @@ class RefinementSettings:
     symmetric_start: bool = False
     coarse_lncc_kernel_size: int | None = None
     adam_eps: float = 1e-8
+    similarity_guard: bool = False
 
     def __post_init__(self) -> None:
         for name in ("num_iterations", "fold_backtracks", "fold_local_steps", "coarse_iterations"):
@@ -151,8 +160,9 @@ class RefinementSettings:
             _check_integer("coarse_lncc_kernel_size", self.coarse_lncc_kernel_size, minimum=3)
             if self.coarse_lncc_kernel_size % 2 == 0:
                 raise ValueError(f"coarse_lncc_kernel_size must be odd; got {self.coarse_lncc_kernel_size!r}")
-        if not isinstance(self.symmetric_start, bool):
-            raise ValueError(f"symmetric_start must be True or False; got {self.symmetric_start!r}")
+        for name in ("symmetric_start", "similarity_guard"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False; got {getattr(self, name)!r}")
         if self.coarse_iterations > self.num_iterations:
             raise ValueError(
                 f"coarse_iterations must be at most num_iterations ({self.num_iterations}); "
@@ -202,7 +212,13 @@ class RefinementSettings:
 
 # settings added after records of fitted sidecars existed, each with the default that runs the refinement exactly as
 # it ran before the setting existed (RefinementSettings.differences reads a record without them as these)
-LATER_SETTINGS = {"coarse_iterations": 0, "symmetric_start": False, "coarse_lncc_kernel_size": None, "adam_eps": 1e-8}
+LATER_SETTINGS = {
+    "coarse_iterations": 0,
+    "symmetric_start": False,
+    "coarse_lncc_kernel_size": None,
+    "adam_eps": 1e-8,
+    "similarity_guard": False,
+}
 
 
 def _check_integer(name: str, value: object, minimum: int) -> None:
@@ -367,6 +383,8 @@ def refine_registration(
             return output
         mean, displacement = guarded
         warped = warp_image(moving, displacement, padding_mode=network.padding_mode, fast=network.fast_sampling)
+        if settings.similarity_guard:
+            mean, displacement, warped = _similarity_guard(moving, fixed, mean, displacement, warped)
         inverse = warped_fixed = None
         if output.inverse_displacement is not None:
             inverse = network.velocity_to_displacement(-mean, full)
@@ -374,6 +392,23 @@ def refine_registration(
     return RegistrationOutput(
         warped, displacement, mean, mean, log_var.to(output.velocity_log_var.dtype), inverse, warped_fixed
     )
+
+
+def _similarity_guard(
+    moving: Tensor, fixed: Tensor, mean: Tensor, displacement: Tensor, warped: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """(mean, displacement, warped) with the identity (zeros, the moving image itself) for every item of the batch
+    whose ``warped`` is less alike ``fixed`` than ``moving`` is (:func:`local_ncc` of the first channel)."""
+    before = local_ncc(moving[:, :1], fixed[:, :1])
+    after = local_ncc(warped[:, :1], fixed[:, :1])
+    give_up = (after < before).to(mean.device)
+    if not bool(give_up.any()):
+        return mean, displacement, warped
+
+    def keep(t: Tensor, instead: Tensor) -> Tensor:
+        return torch.where(give_up.view(-1, *[1] * (t.ndim - 1)), instead.to(t.dtype), t)
+
+    return keep(mean, torch.zeros_like(mean)), keep(displacement, torch.zeros_like(displacement)), keep(warped, moving)
 
 
 def resize_log_var(log_var: Tensor, spatial_size: Sequence[int]) -> Tensor:

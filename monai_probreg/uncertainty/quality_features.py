@@ -31,7 +31,7 @@ from torch import Tensor
 
 from monai_probreg.metrics.jacobian import jacobian_determinant
 
-__all__ = ["FOREGROUND_LEVEL", "LNCC_KERNEL", "QualityFeatures", "quality_features"]
+__all__ = ["FOREGROUND_LEVEL", "LNCC_KERNEL", "QualityFeatures", "local_ncc", "quality_features"]
 
 FOREGROUND_LEVEL = 0.05  # fixed-input intensity (of [0, 1]) above which a voxel is foreground (brain or head)
 LNCC_KERNEL = 5  # local NCC window, voxels of the half-resolution grid (about VoxelMorph's 9 at full)
@@ -64,6 +64,31 @@ def _check(name: str, value: Tensor, shape: tuple[int, ...], channels: int | Non
             f"{name} must have shape {expected} (the fixed grid{', one channel per axis' if channels else ''}"
             f"); got {tuple(value.shape)}"
         )
+
+
+def local_ncc(images: Tensor, fixed: Tensor) -> Tensor:
+    """The features' local NCC of each image with its fixed image: (B,) mean local NCC of ``images`` and ``fixed``
+    (B, 1, *S, intensities in [0, 1]) in a :data:`LNCC_KERNEL` window on the grid halved by 2x2x2 averaging, over the
+    foreground of ``fixed`` (above :data:`FOREGROUND_LEVEL`; all voxels when it has none). The one rule for "how alike
+    are two images" of the quality estimate and of the refinement's similarity guard (``engines/refinement.py``).
+    Without gradients."""
+    if images.shape != fixed.shape or images.ndim not in (4, 5) or images.shape[1] != 1:
+        raise ValueError(
+            f"images and fixed must both have shape (B, 1, *S) with 2 or 3 spatial axes; got {tuple(images.shape)} "
+            f"and {tuple(fixed.shape)}"
+        )
+    dims = images.ndim - 2
+    with torch.no_grad():
+        lncc = LocalNormalizedCrossCorrelationLoss(spatial_dims=dims, kernel_size=LNCC_KERNEL, reduction="none")
+        pool = torch.nn.functional.avg_pool3d if dims == 3 else torch.nn.functional.avg_pool2d
+        half_images, half_fixed = (pool(x.float(), 2, ceil_mode=True) for x in (images, fixed))
+        values = []
+        for image, reference, full in zip(half_images, half_fixed, fixed):
+            mask = pool((full > FOREGROUND_LEVEL).float()[None], 2, ceil_mode=True)[0, 0] > 0.5
+            if not bool(mask.any()):
+                mask = torch.ones_like(mask)
+            values.append(-lncc(image[None], reference[None])[0, 0][mask].mean())
+        return torch.stack(values)
 
 
 @torch.inference_mode()
@@ -108,14 +133,7 @@ def quality_features(
             f"the fixed image has {int(mask.sum())} voxels above {FOREGROUND_LEVEL} of its [0, 1] range; "
             f"quality features need at least {_MIN_FOREGROUND}"
         )
-    lncc = LocalNormalizedCrossCorrelationLoss(spatial_dims=dims, kernel_size=LNCC_KERNEL, reduction="none")
-    pool = torch.nn.functional.avg_pool3d if dims == 3 else torch.nn.functional.avg_pool2d
-    half = [pool(x[None, None], 2, ceil_mode=True) for x in (moving, warped, fixed)]
-    half_mask = pool(mask[None, None].float(), 2, ceil_mode=True)[0, 0] > 0.5
-    if not bool(half_mask.any()):
-        half_mask = torch.ones_like(half_mask)
-    lncc_before = -lncc(half[0], half[2])[0, 0][half_mask].mean()
-    lncc_after = -lncc(half[1], half[2])[0, 0][half_mask].mean()
+    lncc_before, lncc_after = local_ncc(torch.stack([moving, warped])[:, None], fixed.expand(2, 1, *shape))
     length_mm = (displacement * spacing_t.view(dims, *([1] * dims))).square().sum(0).sqrt()
     det = (jacobian_determinant(displacement[None])[0] if jacobian is None else torch.as_tensor(jacobian).float())[mask]
     positive = det[det > 0]

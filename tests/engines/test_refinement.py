@@ -4,6 +4,7 @@ consistency of the returned fields, the network left as it was, the engine and b
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -96,6 +97,8 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
         ("coarse_iterations", 1),  # more than num_iterations (0)
         ("symmetric_start", 1),
         ("symmetric_start", "yes"),
+        ("similarity_guard", 1),
+        ("similarity_guard", "true"),
         ("adam_eps", 0.0),
         ("adam_eps", -1e-8),
         ("adam_eps", "1e-8"),
@@ -564,3 +567,45 @@ def test_a_coarse_window_is_not_used_by_finer_steps_on_the_same_grid():
     mixed = refined(coarse_iterations=6, coarse_lncc_kernel_size=5)
     assert not torch.allclose(mixed, refined(lncc_kernel_size=5))
     assert not torch.allclose(mixed, refined())
+
+
+def test_the_similarity_guard_gives_the_identity_for_a_scan_onto_a_copy_of_itself():
+    """A pair of copies: the network invents a displacement and the refinement, pulled towards it, keeps some; every
+    deformation leaves the copies less alike than none, so the guard returns the identity (zero velocity mean and
+    displacement, the moving image itself); without the guard the invented displacement stays."""
+    net = _trained_like_net(2)
+    image, _ = _pair((32, 48), axis=0)
+    output = register_pair(net, image, image)
+    settings = RefinementSettings(num_iterations=3, learning_rate=0.1)
+    unguarded = refine_registration(net, image, image, output, settings)
+    assert unguarded.displacement.abs().max() > 0.05
+    guarded = refine_registration(net, image, image, output, replace(settings, similarity_guard=True))
+    assert not guarded.displacement.any() and not guarded.velocity_mean.any()
+    torch.testing.assert_close(guarded.warped, image, rtol=0, atol=0)
+    torch.testing.assert_close(guarded.velocity_log_var, unguarded.velocity_log_var)
+
+
+@pytest.mark.parametrize(("shape", "axis"), [((32, 48), 1), ((32, 32, 48), 0)])
+def test_the_similarity_guard_keeps_a_deformation_that_makes_the_images_more_alike(shape, axis):
+    """A pair with something to register (a known shift): the guarded refinement is the unguarded one, bit for bit."""
+    net = _identity_net(len(shape))
+    moving, fixed = _pair(shape, axis)
+    output = register_pair(net, moving, fixed)
+    settings = RefinementSettings(num_iterations=20, learning_rate=0.1, posterior_weight=0.0)
+    unguarded = refine_registration(net, moving, fixed, output, settings)
+    guarded = refine_registration(net, moving, fixed, output, replace(settings, similarity_guard=True))
+    assert guarded.displacement.abs().max() > 0.5
+    torch.testing.assert_close(guarded.displacement, unguarded.displacement, rtol=0, atol=0)
+
+
+def test_the_similarity_guard_decides_for_each_pair_of_a_batch():
+    """A batch of a shifted pair and a pair of copies: the first keeps its deformation, the second gets the identity."""
+    net = _trained_like_net(2)
+    moving, fixed = _pair((32, 48), axis=1)
+    moving, fixed = torch.cat([moving, fixed]), torch.cat([fixed, fixed])
+    output = register_pair(net, moving, fixed)
+    settings = RefinementSettings(num_iterations=20, learning_rate=0.1, posterior_weight=0.0, similarity_guard=True)
+    refined = refine_registration(net, moving, fixed, output, settings)
+    assert refined.displacement[0].abs().max() > 0.5
+    assert not refined.displacement[1].any()
+    torch.testing.assert_close(refined.warped[1], fixed[1], rtol=0, atol=0)

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from monai_probreg.uncertainty.quality_features import FOREGROUND_LEVEL, quality_features
+from monai_probreg.uncertainty.quality_features import FOREGROUND_LEVEL, local_ncc, quality_features
 
 
 def _blob(shape, centre=(0.2, -0.1, 0.05)):
@@ -101,3 +101,24 @@ def test_an_empty_fixed_image_is_refused():
     empty = torch.zeros(12, 14, 10)
     with pytest.raises(ValueError, match="voxels above"):
         quality_features(empty, empty, empty, torch.zeros((3, 12, 14, 10)), empty)
+
+
+@pytest.mark.parametrize("shape", [(20, 24, 18), (28, 24)])
+def test_the_local_ncc_of_a_batch_is_each_items_and_the_features(shape):
+    """local_ncc ranks a copy above a shifted copy, item by item of a batch, and is what the features report."""
+    fixed = _blob(shape)
+    shifted = torch.roll(fixed, 3, dims=0)
+    values = local_ncc(torch.stack([fixed, shifted])[:, None], fixed.expand(2, 1, *shape))
+    assert values.shape == (2,) and values[0] > values[1]
+    features = quality_features(shifted, fixed, fixed, torch.zeros((len(shape), *shape)), torch.zeros(shape))
+    assert features.lncc_before == pytest.approx(float(values[1]), abs=1e-6)
+    assert features.lncc_after == pytest.approx(float(values[0]), abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("images", "fixed"),
+    [((1, 1, 8, 8, 8), (1, 1, 8, 8, 9)), ((1, 2, 8, 8, 8), (1, 2, 8, 8, 8)), ((8, 8, 8), (8, 8, 8))],
+)
+def test_the_local_ncc_names_shapes_it_cannot_compare(images, fixed):
+    with pytest.raises(ValueError, match="images and fixed"):
+        local_ncc(torch.rand(images), torch.rand(fixed))

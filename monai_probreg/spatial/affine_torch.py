@@ -44,6 +44,7 @@ from monai.transforms import GaussianSmooth, ScaleIntensityRangePercentiles
 from monai.utils import convert_to_tensor
 
 from monai_probreg.blocks.grid_coords import index_to_grid_matrix
+from monai_probreg.blocks.warp import split_grid_sample
 from monai_probreg.spatial.affine_settings import AffineResult, AffineSettings, StageReport
 from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.spatial.volume_io import Volume
@@ -218,7 +219,8 @@ class _Level:
         full = self.lps_to_normalised @ matrix
         normalised = self.points @ full[:3, :3].T + full[:3, 3]
         grid = normalised.to(torch.float32).view(1, -1, 1, 1, 3)  # already in grid_sample's (x, y, z) order
-        sampled = F.grid_sample(self.moving, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+        # over the CPU threads (one grid_sample call runs a single item on one thread); the same samples
+        sampled = split_grid_sample(self.moving, grid, mode="bilinear", padding_mode="zeros")
         return -mutual_information(sampled.view(-1), self.fixed_bins, self.bins)
 
 

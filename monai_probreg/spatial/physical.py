@@ -29,9 +29,9 @@ from __future__ import annotations
 import itk
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from monai_probreg.blocks.grid_coords import index_to_grid_matrix
+from monai_probreg.blocks.warp import split_grid_sample
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = [
@@ -168,7 +168,7 @@ def compose_inverse(
         first_row = np.eye(4)
         first_row[0, 3] = start  # slab index (r, j, k) -> moving index (start + r, j, k)
         grid = torch.from_numpy(index_map(slab, normalise @ first_row)).float()
-        values = F.grid_sample(source, grid[None], mode="bilinear", padding_mode="border", align_corners=True)[0]
+        values = split_grid_sample(source, grid[None], mode="bilinear", padding_mode="border")[0]  # all threads
         out[start : start + slab[0]] = values.permute(1, 2, 3, 0) + torch.from_numpy(index_map(slab, shift @ first_row))
     return out.numpy()
 

@@ -20,9 +20,9 @@ from collections.abc import Iterator
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from monai_probreg.blocks.grid_coords import index_to_grid
+from monai_probreg.blocks.warp import split_grid_sample
 from monai_probreg.spatial.physical import apply_affine
 from monai_probreg.spatial.volume_io import Volume
 
@@ -89,7 +89,7 @@ def sample_linear(
     out = torch.empty((int(np.prod(query_shape[:-1])), source.shape[1]), dtype=torch.float64)
     for start, index_part in _index_chunks(points, volume, index, chunk):
         grid = index_to_grid(index_part, sizes).view(1, -1, 1, 1, 3)  # blocks.grid_coords: normalised, xyz order
-        values = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        values = split_grid_sample(source, grid, mode="bilinear", padding_mode="border")  # on all threads
         out[start : start + len(index_part)] = values[0, :, :, 0, 0].T
         if outside == "fill":
             out[start : start + len(index_part)][~_inside(index_part, data.shape[:3])] = fill

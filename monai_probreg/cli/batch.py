@@ -54,6 +54,7 @@ class BatchItem(NamedTuple):
     name: str  # output folder out/<name>/ and the row's "scan"
     moving: Path
     moving_label: Path | None = None
+    moving_mask: Path | None = None  # its cost-function mask (--moving-mask-dir), or None
 
 
 class BatchRow(NamedTuple):
@@ -123,7 +124,15 @@ def _register_one(
         path = initial_transform_for(initial_transforms, item.name)
         options = replace(options, initial=InitialTransform.read(path, initial_use))
     summary = register_scan(
-        model, fixed, item.moving, out / item.name, item.moving_label, options, overwrite, report=report
+        model,
+        fixed,
+        item.moving,
+        out / item.name,
+        item.moving_label,
+        options,
+        overwrite,
+        report=report,
+        moving_mask_path=item.moving_mask,
     )
     dice, quality = summary["dice"] or {}, summary.get("quality") or {}
     return BatchRow(

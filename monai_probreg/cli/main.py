@@ -243,6 +243,34 @@ def _add_initial_transform(reg: argparse._ArgumentGroup, batch: bool = False) ->
     )
 
 
+def _add_masks(reg: argparse._ArgumentGroup, batch: bool = False) -> None:
+    """``--fixed-mask`` and the moving scan's mask (``--moving-mask``; a folder of them in a batch): cost-function
+    masks, ANTs' ``antsRegistration -x [fixedMask,movingMask]`` (:mod:`monai_probreg.spatial.masks`); register and
+    register-batch only (the demo makes its own subject); in the "registration" group ``reg``."""
+    reg.add_argument(
+        "--fixed-mask",
+        metavar="FM",
+        help="cost-function mask of the fixed image (same grid; nonzero = inside, as ANTs): the affine metric and "
+        "the refinement compare the images only inside it, and it replaces the fixed image's support as the brain "
+        "mask (dilated by --brain-mask-margin)",
+    )
+    if batch:
+        reg.add_argument(
+            "--moving-mask-dir",
+            metavar="D",
+            help="folder of moving masks named like their scans (same grid; nonzero = inside; a scan without one "
+            "is registered without): points mapped outside a scan's mask are left out of the affine metric and the "
+            "refinement",
+        )
+    else:
+        reg.add_argument(
+            "--moving-mask",
+            metavar="MM",
+            help="cost-function mask of the moving scan (same grid; nonzero = inside, as ANTs): points mapped "
+            "outside it (a lesion, an artefact) are left out of the affine metric and the refinement",
+        )
+
+
 def build_parser() -> argparse.ArgumentParser:
     from monai_probreg.cli.apply import add_apply_parser
 
@@ -258,7 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     one.add_argument("--moving", required=True, metavar="M", help="the scan to register (NIfTI, NRRD, MHA...)")
     one.add_argument("--moving-label", metavar="L", help="its label map (same grid): warped_label.nii.gz and Dice")
-    _add_initial_transform(_add_common(one))
+    reg = _add_common(one)
+    _add_initial_transform(reg)
+    _add_masks(reg)
     many = commands.add_parser(
         "register-batch",
         help="register many scans to one fixed image",
@@ -278,7 +308,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="D",
         help="folder of label maps named like their scans (a scan without one is registered without labels)",
     )
-    _add_initial_transform(_add_common(many), batch=True)
+    reg = _add_common(many)
+    _add_initial_transform(reg, batch=True)
+    _add_masks(reg, batch=True)
     demo = commands.add_parser(
         "demo",
         help="register a synthetic subject with a known answer and score it",
@@ -298,7 +330,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _batch_items(args: argparse.Namespace) -> list[tuple[str, Path, Path | None]]:
+def _named_like(folder: str | None, sid: str) -> Path | None:
+    """The file of ``folder`` named like scan ``sid`` (an image suffix), or None (no folder, or no such file)."""
+    from monai_probreg.utils.files import IMAGE_SUFFIXES
+
+    if not folder:
+        return None
+    return next((m for m in (Path(folder) / (sid + ext) for ext in IMAGE_SUFFIXES) if m.is_file()), None)
+
+
+def _batch_items(args: argparse.Namespace) -> list[tuple[str, Path, Path | None, Path | None]]:
     from monai_probreg.utils.errors import InputError
     from monai_probreg.utils.files import IMAGE_SUFFIXES, file_stem
 
@@ -316,11 +357,7 @@ def _batch_items(args: argparse.Namespace) -> list[tuple[str, Path, Path | None]
                 "outputs would collide"
             )
         seen[sid] = path
-        label = None
-        if args.moving_label_dir:
-            matches = [Path(args.moving_label_dir) / (sid + ext) for ext in IMAGE_SUFFIXES]
-            label = next((m for m in matches if m.is_file()), None)
-        items.append((sid, path, label))
+        items.append((sid, path, _named_like(args.moving_label_dir, sid), _named_like(args.moving_mask_dir, sid)))
     return items
 
 
@@ -464,7 +501,13 @@ def _setup(args: argparse.Namespace):
 
         args.fixed = str(mni152_template_path())
     margin = DEFAULT_MARGIN_MM if args.brain_mask_margin is None else args.brain_mask_margin
-    fixed = prepare_fixed(args.fixed, args.fixed_label, model.divisor, None if args.no_brain_mask else margin)
+    fixed = prepare_fixed(
+        args.fixed,
+        args.fixed_label,
+        model.divisor,
+        None if args.no_brain_mask else margin,
+        getattr(args, "fixed_mask", None),  # the demo has no --fixed-mask
+    )
     if args.affine_backend == "itk" and _affine_stage_runs(args):
         load_itk_modules()  # several seconds, paid once per batch, outside the timed stages
     return model, fixed
@@ -531,7 +574,7 @@ def _register(args: argparse.Namespace) -> int:
     from monai_probreg.cli.pipeline import register_scan
 
     options = _options(args)
-    _require_files(args, ["--moving", "--moving-label", "--fixed", "--fixed-label"])
+    _require_files(args, ["--moving", "--moving-label", "--fixed", "--fixed-label", "--fixed-mask", "--moving-mask"])
     check_output_dir(args.out, args.overwrite)  # fail before loading anything
     start = time.perf_counter()
     model, fixed = _setup(args)
@@ -546,6 +589,7 @@ def _register(args: argparse.Namespace) -> int:
         options,
         args.overwrite,
         report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"),
+        moving_mask_path=args.moving_mask,
     )
     return _print_result(args, summary)
 
@@ -581,8 +625,12 @@ def _register_batch(args: argparse.Namespace) -> int:
     from monai_probreg.cli.output_dir import check_output_dir
 
     options = _options(args)
-    _require_files(args, ["--fixed", "--fixed-label"])
-    items = [BatchItem(sid, path, label) for sid, path, label in _batch_items(args)]
+    _require_files(args, ["--fixed", "--fixed-label", "--fixed-mask"])
+    if args.moving_mask_dir is not None and not Path(args.moving_mask_dir).is_dir():
+        from monai_probreg.utils.errors import InputError
+
+        raise InputError(f"--moving-mask-dir {args.moving_mask_dir!r}: expected a folder, got no such folder")
+    items = [BatchItem(*item) for item in _batch_items(args)]
     out = Path(args.out)
     for item in items:  # fail fast on what is cheap to check and would hit every scan
         check_output_dir(out / item.name, args.overwrite)

@@ -7,11 +7,14 @@ Stages, timed under these names in ``summary.json["timings_s"]``:
   torch by default, or ITK), started from an earlier registration's affine or replaced by it
   (:class:`InitialTransform`);
 - ``resample``: the moving scan onto the fixed grid through the affine (one linear interpolation, the scan's
-  minimum outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`), percentile
+  minimum outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`: the fixed
+  image's support or the ``--fixed-mask``, dilated by a margin), percentile
   intensity scaling to [0, 1] exactly as in training (:mod:`monai_probreg.spatial.intensity`), then onto the model grid
   (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS, padded to the bundle's divisor);
 - ``model``: the network's posterior mean velocity -> displacement and the warped scan (network, integration, warp);
-- ``refine``: with ``refinement`` enabled, that mean refined for the pair (:mod:`monai_probreg.engines.refinement`);
+- ``refine``: with ``refinement`` enabled, that mean refined for the pair (:mod:`monai_probreg.engines.refinement`),
+  its image term inside the cost-function masks when given (``--fixed-mask``, ``--moving-mask``:
+  :mod:`monai_probreg.spatial.masks`, which the affine metric heeds too);
 - ``maps``: the inverse displacement (``exp(-v)``; unless ``inverse`` is off), Jacobian, velocity entropy;
 - ``samples``: with ``samples = K >= 2``, K posterior samples -> displacement standard deviation;
 - ``compose``: affine + deformable -> one field fixed -> moving and its inverse (:mod:`monai_probreg.spatial.physical`);
@@ -54,7 +57,7 @@ from monai_probreg.cli.output_dir import (
     write_volume,
 )
 from monai_probreg.cli.qc import QCData, save_qc
-from monai_probreg.engines.refinement import RefinementSettings, refine_registration
+from monai_probreg.engines.refinement import RefinementMasks, RefinementSettings, refine_registration
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.calibration import interval_z
 from monai_probreg.metrics.dice import label_dice, mean_dice
@@ -62,8 +65,9 @@ from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
 from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.spatial.affine import AffineResult, AffineSettings, align
 from monai_probreg.spatial.affine_torch import FixedSamples, fixed_samples
-from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask, hide_outside
+from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, dilated_mask, fixed_brain_mask, hide_outside
 from monai_probreg.spatial.intensity import normalise_intensity
+from monai_probreg.spatial.masks import MASK_LEVEL, mask_record, read_mask
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import (
     compose_forward,
@@ -107,6 +111,7 @@ class FixedSpace:
     brain_mask: np.ndarray | None = None  # where the moving scan stays visible (monai_probreg.spatial.brain_mask)
     brain_mask_margin_mm: float | None = None  # its margin; None = no mask
     affine_samples: dict[AffineSettings, FixedSamples] = field(default_factory=dict, repr=False)  # samples_for's
+    mask: Volume | None = None  # --fixed-mask (bool, the fixed grid): where the metrics look (spatial.masks)
 
     @functools.cached_property
     def itk_image(self) -> itk.Image:
@@ -118,7 +123,9 @@ class FixedSpace:
         if settings.backend != "torch":
             return None
         if settings not in self.affine_samples:
-            self.affine_samples[settings] = fixed_samples(self.image, settings)
+            self.affine_samples[settings] = fixed_samples(
+                self.image, settings, None if self.mask is None else self.mask.array
+            )
         return self.affine_samples[settings]
 
     @functools.cached_property
@@ -133,19 +140,35 @@ def prepare_fixed(
     label_path: str | os.PathLike | None = None,
     divisor: int = 16,
     brain_mask_margin_mm: float | None = DEFAULT_MARGIN_MM,
+    mask_path: str | os.PathLike | None = None,
 ) -> FixedSpace:
     """``brain_mask_margin_mm``: hide the moving scan outside the fixed image's support dilated by this many mm
-    (:mod:`monai_probreg.spatial.brain_mask`); None: show the network the whole moving scan."""
+    (:mod:`monai_probreg.spatial.brain_mask`); None: show the network the whole moving scan. ``mask_path``: the
+    fixed image's cost-function mask (``--fixed-mask``, :mod:`monai_probreg.spatial.masks`), which is also the
+    support that margin dilates (in place of the voxels above the image's minimum)."""
     image = read_image(path, "--fixed")
     label = None
     if label_path is not None:
         label = read_label(label_path, "--fixed-label")
         check_same_grid(label, image, "--fixed-label", "--fixed")
+    fixed_mask = None if mask_path is None else read_mask(mask_path, "--fixed-mask", image, "--fixed")
     grid = ModelGrid.for_volume(image, divisor)
     ids = [int(v) for v in np.unique(label.array) if v != 0] if label is not None else []
-    mask = None if brain_mask_margin_mm is None else fixed_brain_mask(image.array, image.spacing, brain_mask_margin_mm)
+    if brain_mask_margin_mm is None:
+        mask = None
+    elif fixed_mask is None:
+        mask = fixed_brain_mask(image.array, image.spacing, brain_mask_margin_mm)
+    else:
+        mask = dilated_mask(fixed_mask.array, image.spacing, brain_mask_margin_mm)
     return FixedSpace(
-        image, label, grid, grid.to_model(normalise_intensity(image.array)), ids, mask, brain_mask_margin_mm
+        image,
+        label,
+        grid,
+        grid.to_model(normalise_intensity(image.array)),
+        ids,
+        mask,
+        brain_mask_margin_mm,
+        mask=fixed_mask,
     )
 
 
@@ -304,6 +327,7 @@ def _run_model(
     spacing: np.ndarray,
     timings: dict,
     report: Callable | None,
+    masks: RefinementMasks | None = None,
 ) -> _ModelMaps:
     shape, samples, seed = moving_input.shape, options.samples, options.seed
     moving_t = torch.from_numpy(moving_input)[None, None].to(model.device)
@@ -314,7 +338,11 @@ def _run_model(
     if options.refinement.enabled:
         with _timed(timings, "refine", report), eval_mode(model.network):
             network_output = output if model.quality is not None else None  # kept only for the quality estimate
-            output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement)
+            if masks is not None:
+                masks = RefinementMasks(
+                    *(None if m is None else torch.from_numpy(m)[None, None].to(model.device) for m in masks)
+                )
+            output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement, masks)
     with _timed(timings, "maps", report):
         inverse = None
         if options.inverse:
@@ -525,6 +553,24 @@ class Registered(NamedTuple):
     variance_axes: np.ndarray
 
 
+def _model_grid_masks(
+    fixed: FixedSpace, moving_mask: Volume | None, affine_index: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None] | None:
+    """The refinement's masks on the model grid, float32 0/1 (:class:`~monai_probreg.engines.refinement.RefinementMasks`
+    as arrays), or None without any: the fixed mask re-indexed (exact; the padding outside), the moving mask carried
+    onto the fixed grid through the affine as the scan is (linear, 0 beyond its grid, inside from
+    :data:`~monai_probreg.spatial.masks.MASK_LEVEL`)."""
+    if fixed.mask is None and moving_mask is None:
+        return None
+    grid = fixed.grid
+    fixed_part = None if fixed.mask is None else grid.to_model(fixed.mask.array.astype(np.float32))
+    moving_part = None
+    if moving_mask is not None:
+        on_fixed = sample_linear(moving_mask.with_array(moving_mask.array.astype(np.float32)), None, index=affine_index)
+        moving_part = grid.to_model((on_fixed >= MASK_LEVEL).astype(np.float32))
+    return fixed_part, moving_part
+
+
 def _registered(fixed: FixedSpace, affine: AffineResult, composed: _Composed, model_maps: _ModelMaps) -> Registered:
     grid = fixed.grid
     variance = None if model_maps.variance is None else grid.to_fixed(np.moveaxis(model_maps.variance, 0, -1))
@@ -635,6 +681,7 @@ def register_scan(
     report: Callable[[str, float], None] | None = None,
     check: Callable[[Registered], dict] | None = None,
     extra_outputs: Mapping[str, Callable[[Path], object]] | None = None,
+    moving_mask_path: str | os.PathLike | None = None,
 ) -> dict:
     """Register ``moving_path`` to ``fixed`` and write every output into ``out_dir`` (all or nothing).
 
@@ -642,7 +689,8 @@ def register_scan(
     demo``'s synthetic subject): the "read" stage then only takes it. ``report(stage, seconds)`` is called after each
     stage. ``check(registered)``: a caller's check of the result (:class:`Registered`), whose keys are added to the
     summary; ``extra_outputs``: file name -> writer of that file (given its path in the staging folder), written
-    with the others. Returns the summary written to ``summary.json``.
+    with the others. ``moving_mask_path``: the moving scan's cost-function mask (``--moving-mask``, on its grid;
+    :mod:`monai_probreg.spatial.masks`), or None. Returns the summary written to ``summary.json``.
     Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
     """
     options = options or RegistrationOptions()
@@ -656,6 +704,9 @@ def register_scan(
         moving_label = read_label(moving_label_path, "--moving-label") if moving_label_path is not None else None
         if moving_label is not None:
             check_same_grid(moving_label, moving, "--moving-label", "--moving")
+        moving_mask = None
+        if moving_mask_path is not None:
+            moving_mask = read_mask(moving_mask_path, "--moving-mask", moving, "--moving")
     initial = options.initial
     with _timed(timings, "affine", report):
         if initial is not None and initial.use == "as-affine":
@@ -670,6 +721,8 @@ def register_scan(
                 fixed.itk_image if options.affine.backend == "itk" else None,
                 fixed.samples_for(options.affine),
                 None if initial is None else initial.matrix,
+                fixed.mask,
+                moving_mask,
             )
     with _timed(timings, "resample", report):
         affine_index = mapped_index(fixed.image.shape, fixed.image.index_to_lps, moving.index_to_lps, affine.matrix)
@@ -678,7 +731,8 @@ def register_scan(
             sample_linear(moving, None, fill=background, index=affine_index), fixed.brain_mask, background
         )
         moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
-    model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report)
+        masks = _model_grid_masks(fixed, moving_mask, affine_index)
+    model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report, masks)
     quality = None
     if model.quality is not None:  # weights without a quality model: no stage, "quality": null
         with _timed(timings, "quality", report):
@@ -743,9 +797,13 @@ def register_scan(
                 else {
                     "margin_mm": fixed.brain_mask_margin_mm,
                     "fraction_of_fixed_grid": round(float(fixed.brain_mask.mean()), 4),
+                    "support": "the fixed image above its minimum" if fixed.mask is None else "--fixed-mask",
                 },
             },
             "timings_s": timings,
+            # the cost-function masks (--fixed-mask, --moving-mask): where the affine metric and the refinement's
+            # image term looked; null each without one
+            "masks": {"fixed": mask_record(fixed.mask), "moving": mask_record(moving_mask)},
             "affine": {
                 **affine.summary(),
                 "settings": options.affine.as_dict() if options.affine else None,

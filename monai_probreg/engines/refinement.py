@@ -33,6 +33,10 @@ user asking for refinement never gets a folded warp the network alone would not 
 local (tens of voxels of a head), so halving the whole change threw away much of the gain on whole-head pairs
 (``benchmarks/refinement_levers.py``, docs/accuracy.md).
 
+Cost-function masks (:class:`RefinementMasks`, ``refine_registration``'s ``masks``; the command's ``--fixed-mask``
+and ``--moving-mask``): the image term summed only over the fixed mask's voxels whose warped position falls inside
+the moving mask, ``sum(w * d) / N``; None: every voxel, the same computation as before masks existed.
+
 ``RefinementSettings()`` does not refine (``num_iterations = 0``): the steps come from the bundle's
 ``refine_iterations`` and the command line's ``--refine`` (the shipped configs refine; 0 gives the network alone).
 """
@@ -41,6 +45,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -50,13 +55,48 @@ from torch import Tensor
 from monai_probreg.blocks.integration import resize_displacement
 from monai_probreg.blocks.warp import warp_box, warp_image
 from monai_probreg.losses.kl import LaplacianKLLoss
-from monai_probreg.losses.likelihood import IMAGE_LOSSES, make_image_loss
+from monai_probreg.losses.likelihood import IMAGE_LOSSES, GaussianImageLoss, make_image_loss
 from monai_probreg.losses.lncc import FixedImageLNCC, support_box
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
 from monai_probreg.uncertainty.quality_features import local_ncc
 
-__all__ = ["LATER_SETTINGS", "RefinementSettings", "local_blend", "refine_registration"]
+__all__ = [
+    "LATER_SETTINGS",
+    "MASK_LEVEL",
+    "RefinementMasks",
+    "RefinementSettings",
+    "local_blend",
+    "refine_registration",
+]
+
+# a mask resampled linearly onto the loss's grid is inside where it is at least this (the command carries the moving
+# mask onto the fixed grid with the same rule, monai_probreg.spatial.masks.MASK_LEVEL)
+MASK_LEVEL = 0.5
+
+
+class RefinementMasks(NamedTuple):
+    """Cost-function masks of the refinement's image term (:mod:`monai_probreg.spatial.masks`), on the grid of the
+    images given to :func:`refine_registration` (B, 1, *S), 1 inside and 0 outside, or None each.
+
+    ``fixed``: the voxels of the fixed grid where the image term is evaluated; ``moving``: the moving image's mask on
+    the same grid (before the deformation), warped with the current displacement at every step (linearly, 0 beyond
+    the grid; no gradient through it): a voxel whose warped position falls outside it is left out. On the loss's grid
+    (coarser or finer than the images') each mask is resampled linearly and thresholded at :data:`MASK_LEVEL`
+    (binary there); the warped moving mask is then fractional across its edge. The image term is
+    ``sum(w * d) / N`` over the loss's grid, ``w`` the product of the two and ``d`` the per-voxel term (the local NCC
+    by :class:`~monai_probreg.losses.lncc.FixedImageLNCC`'s weights): a voxel inside both counts as without masks.
+    Not a :class:`RefinementSettings` field: the settings are the method, recorded in fitted sidecars; the masks are
+    the pair's data."""
+
+    fixed: Tensor | None = None
+    moving: Tensor | None = None
+
+    def on_grid(self, size: tuple[int, ...]) -> RefinementMasks:
+        """Both masks on the loss's grid ``size`` (linear, then :data:`MASK_LEVEL`)."""
+        return RefinementMasks(
+            *(None if m is None else (_on_grid(m.float(), size) >= MASK_LEVEL).float() for m in self)
+        )
 
 
 @dataclass(frozen=True)
@@ -291,10 +331,17 @@ class _ImageTerm:
     :func:`make_image_loss` over the whole grid."""
 
     def __init__(
-        self, network: ProbRegNet, moving: Tensor, fixed: Tensor, settings: RefinementSettings, kernel_size: int
+        self,
+        network: ProbRegNet,
+        moving: Tensor,
+        fixed: Tensor,
+        settings: RefinementSettings,
+        kernel_size: int,
+        masks: RefinementMasks | None = None,
     ) -> None:
         self.network, self.moving = network, moving
         self.lncc = None
+        self.masks = masks if masks is not None and (masks.fixed is not None or masks.moving is not None) else None
         if settings.image_loss == "lncc" and network.fast_sampling:
             # windows with no nonzero fixed voxel add 0: the box holds the nonzero voxels and every window that
             # reaches them (one radius) with whole windows of their own (a second radius)
@@ -302,21 +349,56 @@ class _ImageTerm:
             self.lncc = FixedImageLNCC(fixed, kernel_size, region=region)
         else:
             self.fixed = fixed
-            self.loss = make_image_loss(settings.image_loss, moving.ndim - 2, settings.image_sigma, kernel_size, "mean")
+            # with masks, the per-voxel term (weighted below); without, the loss as it always was
+            reduction = "mean" if self.masks is None or settings.image_loss == "gaussian" else "none"
+            self.loss = make_image_loss(
+                settings.image_loss, moving.ndim - 2, settings.image_sigma, kernel_size, reduction
+            )
+            self.image_sigma = settings.image_sigma
+
+    def _weight(self, displacement: Tensor, crop: bool) -> Tensor | None:
+        """The masks' per-voxel weight for ``displacement`` (on the box of the LNCC's region when ``crop``): the fixed
+        mask times the moving mask warped by the displacement (no gradient through either); None without masks."""
+        if self.masks is None:
+            return None
+        fixed, moving = self.masks
+        weight = None if fixed is None else (self.lncc.crop(fixed) if crop else fixed)
+        if moving is not None:
+            with torch.no_grad():  # the mask says which voxels count; it is not a term to optimise
+                if crop:
+                    origin = self.lncc.region[0]
+                    warped = warp_box(moving, self.lncc.crop(displacement).detach(), origin, padding_mode="zeros")
+                else:
+                    warped = warp_image(moving, displacement.detach(), padding_mode="zeros")
+            weight = warped if weight is None else weight * warped
+        return weight
 
     def __call__(self, displacement: Tensor) -> Tensor:
         net = self.network
         if self.lncc is None:
             warped = warp_image(self.moving, displacement, padding_mode=net.padding_mode, fast=net.fast_sampling)
-            return self.loss(warped, self.fixed)
+            if self.masks is None:
+                return self.loss(warped, self.fixed)
+            if isinstance(self.loss, GaussianImageLoss):  # its per-voxel term: the squared difference / (2 sigma^2)
+                per_voxel = (self.fixed - warped).square() / (2.0 * self.image_sigma**2)
+            else:
+                per_voxel = self.loss(warped, self.fixed)
+            return (per_voxel * self._weight(displacement, crop=False)).sum() / per_voxel.numel()
         if self.lncc.region is None:
-            return self.lncc(warp_image(self.moving, displacement, padding_mode=net.padding_mode))
+            warped = warp_image(self.moving, displacement, padding_mode=net.padding_mode)
+            return self.lncc(warped) if self.masks is None else self.lncc(warped, self._weight(displacement, False))
         origin = self.lncc.region[0]
-        return self.lncc(warp_box(self.moving, self.lncc.crop(displacement), origin, padding_mode=net.padding_mode))
+        warped = warp_box(self.moving, self.lncc.crop(displacement), origin, padding_mode=net.padding_mode)
+        return self.lncc(warped) if self.masks is None else self.lncc(warped, self._weight(displacement, True))
 
 
 def refine_registration(
-    network: ProbRegNet, moving: Tensor, fixed: Tensor, output: RegistrationOutput, settings: RefinementSettings
+    network: ProbRegNet,
+    moving: Tensor,
+    fixed: Tensor,
+    output: RegistrationOutput,
+    settings: RefinementSettings,
+    masks: RefinementMasks | None = None,
 ) -> RegistrationOutput:
     """Refine ``output.velocity_mean`` (from ``network(moving, fixed)`` in eval mode) for this pair.
 
@@ -325,7 +407,8 @@ def refine_registration(
     bidirectional network) recomputed from it on the same image grids; ``velocity_log_var`` is the network's, on the
     velocity grid of the refined mean (the network's, or ``velocity_grid_factor`` times finer, resized by
     :func:`resize_log_var`). ``output`` itself when the fold guard finds no fold-free fraction of the change. The
-    network is not changed.
+    network is not changed. ``masks``: the image term's cost-function masks (:class:`RefinementMasks`, on the images'
+    grid; the similarity guard compares inside them too), or None: every voxel, exactly as without the argument.
     Gradients are needed, so it cannot run under ``torch.inference_mode()``.
     """
     if not settings.enabled:
@@ -336,6 +419,14 @@ def refine_registration(
         raise ValueError(
             f"moving and fixed must have the same shape; got {tuple(moving.shape)} and {tuple(fixed.shape)}"
         )
+    for name, mask in zip(RefinementMasks._fields, masks or ()):
+        if mask is not None and (
+            mask.shape[0] != moving.shape[0] or mask.shape[1] != 1 or mask.shape[2:] != moving.shape[2:]
+        ):
+            raise ValueError(
+                f"masks.{name}: expected shape {(moving.shape[0], 1, *moving.shape[2:])} (the images' grid), got "
+                f"{tuple(mask.shape)}"
+            )
     if output.velocity_mean.shape[0] != moving.shape[0]:
         raise ValueError(
             f"output is for a batch of {output.velocity_mean.shape[0]}; got images of batch {moving.shape[0]}"
@@ -365,7 +456,8 @@ def refine_registration(
             kernel = (settings.coarse_lncc_kernel_size if is_coarse else None) or settings.lncc_kernel_size
             if (grid, kernel) not in terms:
                 images = (_on_grid(t.detach().clone().float(), grid) for t in (moving, fixed))
-                terms[grid, kernel] = _ImageTerm(network, *images, settings, kernel)
+                on_grid = None if masks is None else masks.on_grid(grid)
+                terms[grid, kernel] = _ImageTerm(network, *images, settings, kernel, on_grid)
             optimiser.zero_grad(set_to_none=True)
             displacement = network.velocity_to_displacement(velocity, grid)
             loss = settings.image_weight * terms[grid, kernel](displacement) + kl_loss(velocity, log_var)
@@ -384,7 +476,7 @@ def refine_registration(
         mean, displacement = guarded
         warped = warp_image(moving, displacement, padding_mode=network.padding_mode, fast=network.fast_sampling)
         if settings.similarity_guard:
-            mean, displacement, warped = _similarity_guard(moving, fixed, mean, displacement, warped)
+            mean, displacement, warped = _similarity_guard(moving, fixed, mean, displacement, warped, masks)
         inverse = warped_fixed = None
         if output.inverse_displacement is not None:
             inverse = network.velocity_to_displacement(-mean, full)
@@ -395,12 +487,31 @@ def refine_registration(
 
 
 def _similarity_guard(
-    moving: Tensor, fixed: Tensor, mean: Tensor, displacement: Tensor, warped: Tensor
+    moving: Tensor,
+    fixed: Tensor,
+    mean: Tensor,
+    displacement: Tensor,
+    warped: Tensor,
+    masks: RefinementMasks | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(mean, displacement, warped) with the identity (zeros, the moving image itself) for every item of the batch
-    whose ``warped`` is less alike ``fixed`` than ``moving`` is (:func:`local_ncc` of the first channel)."""
-    before = local_ncc(moving[:, :1], fixed[:, :1])
-    after = local_ncc(warped[:, :1], fixed[:, :1])
+    whose ``warped`` is less alike ``fixed`` than ``moving`` is (:func:`local_ncc` of the first channel), compared
+    inside the masks when given (the fixed mask and the moving mask, unwarped before, warped after): an artefact the
+    masks leave out must not decide the guard either."""
+    if masks is None or (masks.fixed is None and masks.moving is None):
+        before = local_ncc(moving[:, :1], fixed[:, :1])
+        after = local_ncc(warped[:, :1], fixed[:, :1])
+    else:
+        fixed_mask = (
+            torch.ones_like(fixed[:, :1], dtype=torch.bool) if masks.fixed is None else masks.fixed >= MASK_LEVEL
+        )
+        moving_before = moving_after = fixed_mask
+        if masks.moving is not None:
+            moving_before = fixed_mask & (masks.moving >= MASK_LEVEL)
+            warped_mask = warp_image(masks.moving.float(), displacement, padding_mode="zeros")
+            moving_after = fixed_mask & (warped_mask >= MASK_LEVEL)
+        before = local_ncc(moving[:, :1], fixed[:, :1], moving_before)
+        after = local_ncc(warped[:, :1], fixed[:, :1], moving_after)
     give_up = (after < before).to(mean.device)
     if not bool(give_up.any()):
         return mean, displacement, warped

@@ -149,10 +149,11 @@ class BoxLNCCLoss(LocalNormalizedCrossCorrelationLoss):
 class _FixedLNCCFunction(torch.autograd.Function):
     """-sum of the local NCC of ``pred`` against a fixed target whose window sums are given, with its gradient by
     hand (see :class:`FixedImageLNCC`). Inputs: pred (B, C, *S); target, t_sum, t_var of the same shape; ``buffer``
-    (B, 3 C, *(S + 2 r)) zero-bordered scratch for the window sums; returns the sum over every voxel of -ncc."""
+    (B, 3 C, *(S + 2 r)) zero-bordered scratch for the window sums; ``weight``: None, or per-voxel weights
+    broadcastable to pred (no gradient); returns the sum over every voxel of -ncc (times its weight)."""
 
     @staticmethod
-    def forward(ctx, pred, target, t_sum, t_var, kernel_size, smooth_dr, buffer):  # type: ignore[override]
+    def forward(ctx, pred, target, t_sum, t_var, kernel_size, smooth_dr, buffer, weight=None):  # type: ignore[override]
         channels, volume = pred.shape[1], float(kernel_size ** (pred.ndim - 2))
         p_part, p2_part, tp_part = _interior(buffer, kernel_size).split(channels, dim=1)
         p_part.copy_(pred)
@@ -166,8 +167,10 @@ class _FixedLNCCFunction(torch.autograd.Function):
         ratio = cross / (t_var * p_var)  # d ncc / d cross = 2 * ratio
         ncc = cross * ratio
         ctx.save_for_backward(pred, target, t_sum, ratio, ncc, p_var, p_avg, p_raw > smooth_dr)
-        ctx.kernel_size, ctx.buffer = kernel_size, buffer
-        return ncc.sum().neg()
+        ctx.kernel_size, ctx.buffer, ctx.weight = kernel_size, buffer, weight
+        if weight is None:
+            return ncc.sum().neg()
+        return (ncc * weight).sum().neg()
 
     @staticmethod
     @once_differentiable  # the hand-written gradient is not itself differentiable: a double backward is refused
@@ -180,10 +183,15 @@ class _FixedLNCCFunction(torch.autograd.Function):
         d_tp, d_p2, d_p = _interior(ctx.buffer, ctx.kernel_size).split(channels, dim=1)
         torch.mul(ratio, 2.0, out=d_tp)
         torch.where(p_free, -ncc / p_var, torch.zeros_like(ncc), out=d_p2)
+        if ctx.weight is not None:
+            # a window's terms count as much as its centre voxel's weight (before the box sums spread them over its
+            # voxels); d/dP is linear in the other two, so it follows from them
+            d_tp.mul_(ctx.weight)
+            d_p2.mul_(ctx.weight)
         torch.sub(-d_tp * (t_sum / volume), 2.0 * d_p2 * p_avg, out=d_p)
         b_tp, b_p2, b_p = padded_box_sum(ctx.buffer, ctx.kernel_size).split(channels, dim=1)
         grad = (target * b_tp + 2.0 * pred * b_p2 + b_p).mul_(grad_output.neg())
-        return grad, None, None, None, None, None, None
+        return grad, None, None, None, None, None, None, None
 
 
 def _interior(buffer: Tensor, kernel_size: int) -> Tensor:
@@ -199,8 +207,14 @@ class FixedImageLNCC(nn.Module):
     three backward, where autograd through the pooled form takes five forward and three twice as slow backward).
     Same values and gradients as :class:`BoxLNCCLoss` to float rounding (tests/losses/test_lncc.py).
 
-    ``forward(pred)`` (the target's shape, or the shape of ``region``'s box when given) -> -mean of the local NCC
-    over the target's voxels.
+    ``forward(pred, weight=None)`` (the target's shape, or the shape of ``region``'s box when given) -> -mean of the
+    local NCC over the target's voxels. ``weight``: per-voxel weights (broadcastable to ``pred``, e.g. (B, 1, *S);
+    a cost-function mask, :mod:`monai_probreg.spatial.masks`), no gradient through them: the loss is
+    ``-sum(weight * ncc) / N``, N the whole grid's voxel count as without weights (a voxel of weight 1 counts as it
+    does unweighted, one of weight 0 not at all, and the image term keeps its scale against the refinement's other
+    terms rather than growing as the mask shrinks); None: the unweighted loss, computed exactly as before weights
+    existed. In the backward pass each window's derivative terms are multiplied by its centre voxel's weight before
+    the box sums.
 
     ``region``: compare only inside a box of the target (``(starts, stops)`` per spatial axis, from
     :func:`support_box`): a window with no nonzero target voxel adds exactly 0 to the loss and its gradient, so the
@@ -241,12 +255,18 @@ class FixedImageLNCC(nn.Module):
         """``image`` on the target's grid (any channels) -> its part inside ``region`` (itself when None)."""
         return image if self.region is None else image[_box_slices(image, self.region)]
 
-    def forward(self, pred: Tensor) -> Tensor:
+    def forward(self, pred: Tensor, weight: Tensor | None = None) -> Tensor:
         if pred.shape[2:] != self.target.shape[2:] or pred.shape[:2] != self.target.shape[:2]:
             raise ValueError(
                 f"expected pred of shape {tuple(self.target.shape)} (the target's, inside region); "
                 f"got {tuple(pred.shape)}"
             )
+        if weight is not None:
+            if not _broadcasts_to(weight.shape, pred.shape):
+                raise ValueError(
+                    f"expected a weight broadcastable to pred's shape {tuple(pred.shape)}, got {tuple(weight.shape)}"
+                )
+            weight = weight.detach().to(pred.dtype)
         radius = self.kernel_size // 2
         padded = [pred.shape[0], 3 * pred.shape[1], *(n + 2 * radius for n in pred.shape[2:])]
         buffer = self._buffer
@@ -260,8 +280,17 @@ class FixedImageLNCC(nn.Module):
             self.kernel_size,
             self.smooth_dr,
             self._buffer,
+            weight,
         )
         return total / self.num_elements
+
+
+def _broadcasts_to(shape: torch.Size, target: torch.Size) -> bool:
+    """Whether a tensor of ``shape`` broadcasts to ``target`` without growing it."""
+    try:
+        return torch.broadcast_shapes(shape, target) == target
+    except RuntimeError:  # torch's word for "cannot broadcast"
+        return False
 
 
 def _box_slices(image: Tensor, region: tuple[tuple[int, ...], tuple[int, ...]]) -> tuple[slice, ...]:

@@ -31,6 +31,10 @@ registration differ (by a fraction of a millimetre of translation on a native LP
 ``deterministic=True`` (the default) computes the metric in one work unit; the image pyramid and everything else
 stay multi-threaded.
 
+Masks (``--fixed-mask``, ``--moving-mask``; :mod:`monai_probreg.spatial.masks`): the metric's fixed and moving image
+masks, as antsRegistration's ``-x`` sets them: sample points outside the fixed mask, and those mapped outside the
+moving mask, are left out.
+
 The result maps a point of the **fixed** space to the **moving** space (LPS mm), ``A(p) = M p + offset``: the
 transform ``itk.ResampleImageFilter`` and ``antsApplyTransforms`` use to bring the moving image onto the fixed grid.
 """
@@ -93,11 +97,18 @@ def _run_stage(
     iterations: tuple[int, ...],
     settings: AffineSettings,
     moving_initial: itk.Transform | None = None,
+    masks: tuple[itk.SpatialObject | None, itk.SpatialObject | None] = (None, None),
 ) -> StageReport:
     """Optimise ``transform`` in place with one multi-resolution ImageRegistrationMethodv4 run; ``moving_initial``:
-    a fixed transform applied after it (module docstring)."""
+    a fixed transform applied after it (module docstring); ``masks``: the metric's fixed and moving masks
+    (:func:`_mask_object`), or None each."""
     metric = itk.MattesMutualInformationImageToImageMetricv4[_image_type(), _image_type()].New()
     metric.SetNumberOfHistogramBins(settings.histogram_bins)
+    fixed_mask, moving_mask = masks
+    if fixed_mask is not None:  # the sample points inside it only (the registration method drops the others)
+        metric.SetFixedImageMask(fixed_mask)
+    if moving_mask is not None:  # a sample mapped outside it is dropped
+        metric.SetMovingImageMask(moving_mask)
     metric.SetUseMovingImageGradientFilter(False)  # gradients on the fly at the samples, as antsRegistration does
     metric.SetUseFixedImageGradientFilter(False)
     if settings.deterministic:  # thread-order reduction of its derivative otherwise (module docstring)
@@ -157,17 +168,45 @@ def align(
     fixed_itk: itk.Image | None = None,
     samples: FixedSamples | None = None,
     initial: np.ndarray | None = None,
+    fixed_mask: Volume | None = None,
+    moving_mask: Volume | None = None,
 ) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` with the backend of ``settings`` (module
     docstring). Prepared once for a batch, or None: ``fixed_itk``, ``fixed`` converted for ITK (ITK backend);
-    ``samples``, :func:`~monai_probreg.spatial.affine_torch.fixed_samples` of ``fixed`` and ``settings`` (torch).
-    ``initial`` (4, 4), fixed LPS -> moving LPS: the transform both stages start from, or None (the initializer)."""
+    ``samples``, :func:`~monai_probreg.spatial.affine_torch.fixed_samples` of ``fixed``, ``settings`` and
+    ``fixed_mask`` (torch). ``initial`` (4, 4), fixed LPS -> moving LPS: the transform both stages start from, or None
+    (the initializer). ``fixed_mask``, ``moving_mask``: boolean volumes on each image's grid
+    (:mod:`monai_probreg.spatial.masks`), or None: the metric evaluated inside the first, at points mapped inside the
+    second (ITK's metric masks; the torch backend weighs by the second)."""
     settings = settings or AffineSettings()
     if settings.backend == "torch":
-        return register_affine_torch(fixed, moving, settings, samples, initial)
+        return register_affine_torch(
+            fixed,
+            moving,
+            settings,
+            samples,
+            initial,
+            None if fixed_mask is None else fixed_mask.array,
+            None if moving_mask is None else moving_mask.array,
+        )
     return register_affine(
-        fixed_itk if fixed_itk is not None else volume_to_itk(fixed), volume_to_itk(moving), settings, initial
+        fixed_itk if fixed_itk is not None else volume_to_itk(fixed),
+        volume_to_itk(moving),
+        settings,
+        initial,
+        (_mask_object(fixed_mask), _mask_object(moving_mask)),
     )
+
+
+def _mask_object(mask: Volume | None) -> itk.SpatialObject | None:
+    """A boolean mask volume as the ``ImageMaskSpatialObject`` ITK's metrics take (inside: nonzero voxels, looked up
+    at a point's nearest voxel), or None."""
+    if mask is None:
+        return None
+    spatial = itk.ImageMaskSpatialObject[3].New()
+    spatial.SetImage(volume_to_itk(mask, np.uint8))
+    spatial.Update()
+    return spatial
 
 
 def register_affine(
@@ -175,9 +214,11 @@ def register_affine(
     moving: itk.Image,
     settings: AffineSettings | None = None,
     initial: np.ndarray | None = None,
+    masks: tuple[itk.SpatialObject | None, itk.SpatialObject | None] = (None, None),
 ) -> AffineResult:
     """The ITK backend: rigid then affine registration of ``moving`` to ``fixed`` (``itk.Image[itk.F, 3]`` with
-    their geometry), started by the initializer or from ``initial`` (4, 4, fixed LPS -> moving LPS).
+    their geometry), started by the initializer or from ``initial`` (4, 4, fixed LPS -> moving LPS); ``masks``: the
+    metric's fixed and moving masks (``ImageMaskSpatialObject``), or None each.
 
     Returns the fixed -> moving transform (module docstring). Deterministic for given inputs and settings.
     """
@@ -198,14 +239,16 @@ def register_affine(
         rigid.SetTranslation([0.0, 0.0, 0.0])
         moving_initial = affine_to_itk(initial)
     start = affine_from_itk(rigid) if initial is None else np.asarray(initial, dtype=np.float64)
-    stages = [_run_stage("rigid", fixed, moving, rigid, settings.rigid_iterations, settings, moving_initial)]
+    stages = [_run_stage("rigid", fixed, moving, rigid, settings.rigid_iterations, settings, moving_initial, masks)]
     result: itk.Transform = rigid
     if not settings.rigid_only:
         affine = itk.AffineTransform[itk.D, 3].New()
         affine.SetCenter(rigid.GetCenter())
         affine.SetMatrix(rigid.GetMatrix())
         affine.SetTranslation(rigid.GetTranslation())
-        stages.append(_run_stage("affine", fixed, moving, affine, settings.affine_iterations, settings, moving_initial))
+        stages.append(
+            _run_stage("affine", fixed, moving, affine, settings.affine_iterations, settings, moving_initial, masks)
+        )
         result = affine
     center = np.asarray(result.GetCenter(), dtype=np.float64)
     if initial is None:

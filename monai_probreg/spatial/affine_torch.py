@@ -25,7 +25,11 @@ The method, stage by stage as ``antsRegistration -t Rigid -t Affine`` (and the I
   the line search sees one deterministic function (ITK's backend: conjugate gradient, golden-section search);
 - **metric**: negative mutual information of the intensities (each image scaled to [0, 1] between its
   ``LOWER/UPPER_PERCENTILE`` percentiles) at the sample points, moving sampled by trilinear interpolation; a
-  sample mapped outside the moving grid sees the moving image's background (0 after scaling).
+  sample mapped outside the moving grid sees the moving image's background (0 after scaling);
+- **masks** (``--fixed-mask``, ``--moving-mask``; :mod:`monai_probreg.spatial.masks`): the sample points drawn
+  inside the fixed mask only (:func:`fixed_samples`), each weighted in the histogram by the moving mask at its mapped
+  point (:func:`mutual_information`'s ``weights``); each image's intensity percentiles and centre of mass (the
+  ``"moments"`` start) are those of its voxels inside its mask, so that what is left out moves neither.
 
 Deterministic: a seeded sample and torch's CPU kernels (no atomic reductions; the histogram is a ``bincount``)
 give the same transform on every run with the same inputs and settings; another thread count changes the matrix
@@ -56,6 +60,10 @@ __all__ = ["FixedSamples", "fixed_samples", "mutual_information", "register_affi
 LBFGS_HISTORY = 10  # L-BFGS's memory (curvature pairs)
 GRADIENT_TOLERANCE = 1e-9  # stop a level when the metric's gradient (per mm) or its change falls below these
 CHANGE_TOLERANCE = 1e-12
+_TINY = torch.finfo(torch.float64).tiny  # keeps log(0) finite in the histogram
+# a coarse pyramid level's block is inside the fixed mask when at least this fraction of its voxels is (the mask's
+# majority; a mask smaller than every block falls back to the blocks it touches)
+MASK_BLOCK_FRACTION = 0.5
 
 
 def rotation_matrix(rotation: torch.Tensor) -> torch.Tensor:
@@ -80,7 +88,9 @@ def _cubic_bspline(x: torch.Tensor) -> torch.Tensor:
     return torch.where(a < 1, inner, outer)
 
 
-def mutual_information(moving: torch.Tensor, fixed_bins: torch.Tensor, bins: int) -> torch.Tensor:
+def mutual_information(
+    moving: torch.Tensor, fixed_bins: torch.Tensor, bins: int, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """Mutual information (nats) of moving intensities in [0, 1] (N,) and fixed bin indices (N,), differentiable in
     the moving intensities: a joint histogram with Mattes et al.'s Parzen windows (cubic B-spline for the moving
     image, zero order for the fixed), as ITK's Mattes metric.
@@ -89,29 +99,43 @@ def mutual_information(moving: torch.Tensor, fixed_bins: torch.Tensor, bins: int
     (O(N x bins) per evaluation, too slow for an optimiser's inner loop) and a differentiable ``index_add`` into the
     histogram is slower still; here each sample adds to the 4 bins its window covers (``bincount``) and the
     gradient is the exact one, ``dMI/dJ[a, b] = (log p[a, b] - log p_moving[b]) / N`` chained through the window
-    weights (each sample's weights sum to 1, so the other terms of dMI/dJ cancel)."""
+    weights (each sample's weights sum to 1, so the other terms of dMI/dJ cancel).
+
+    ``weights`` (N,) in [0, 1], no gradient: each sample's share of the histogram (the moving mask at its mapped
+    point, :mod:`monai_probreg.spatial.masks`), normalised by their sum W in place of N; None: all 1 (N)."""
     position = 1 + torch.clamp(moving, 0, 1) * (bins - 4)  # in [1, bins - 3]: the 4 bins stay inside
     covered = (torch.floor(position).long() - 1)[:, None] + torch.arange(4)  # (N, 4) moving bins
     weight = _cubic_bspline(position[:, None] - covered.to(position.dtype))  # (N, 4), differentiable
     index = fixed_bins[:, None] * bins + covered
+    if weights is not None:  # the samples' shares: no gradient through the mask
+        weight = weight * weights.detach().to(weight.dtype)[:, None]
     with torch.no_grad():
+        # every sample outside the moving mask: an empty histogram (MI 0, no gradient), not a division by 0
+        total = moving.numel() if weights is None else max(float(weights.detach().double().sum()), _TINY)
         joint = (
             torch.bincount(index.reshape(-1), weights=weight.detach().reshape(-1).double(), minlength=bins * bins).view(
                 bins, bins
             )
-            / moving.numel()
+            / total
         )
-        tiny = torch.finfo(torch.float64).tiny
-        log_joint = torch.log(joint + tiny)
-        log_moving = torch.log(joint.sum(dim=0, keepdim=True) + tiny)
-        log_fixed = torch.log(joint.sum(dim=1, keepdim=True) + tiny)
+        log_joint = torch.log(joint + _TINY)
+        log_moving = torch.log(joint.sum(dim=0, keepdim=True) + _TINY)
+        log_fixed = torch.log(joint.sum(dim=1, keepdim=True) + _TINY)
         value = (joint * (log_joint - log_fixed - log_moving)).sum()
-        slope = ((log_joint - log_moving) / moving.numel()).to(weight.dtype).reshape(-1)
+        slope = ((log_joint - log_moving) / total).to(weight.dtype).reshape(-1)
     linear = (slope[index] * weight).sum()  # its gradient is MI's; its value is taken away again
     return value.to(moving.dtype) + linear - linear.detach()
 
 
-def _scaled(volume: Volume) -> torch.Tensor:
+def _scaled(volume: Volume, mask: np.ndarray | None = None) -> torch.Tensor:
+    """``volume`` scaled to [0, 1] between its LOWER/UPPER_PERCENTILE percentiles, clipped; with ``mask`` (bool,
+    the volume's grid), the percentiles of the voxels inside it: a bright part the mask leaves out (an artefact)
+    would otherwise squeeze what the metric compares into a few histogram bins."""
+    if mask is not None:
+        values = np.asarray(volume.array, np.float32)
+        low, high = np.percentile(values[np.asarray(mask, bool)], [LOWER_PERCENTILE, UPPER_PERCENTILE])
+        if high > low:
+            return torch.from_numpy(np.clip((values - low) / (high - low), 0.0, 1.0).astype(np.float32))
     scale = ScaleIntensityRangePercentiles(
         lower=LOWER_PERCENTILE, upper=UPPER_PERCENTILE, b_min=0.0, b_max=1.0, clip=True
     )
@@ -169,21 +193,38 @@ class FixedSamples(NamedTuple):
     level_mm: list[float]
 
 
-def fixed_samples(fixed: Volume, settings: AffineSettings) -> FixedSamples:
+def fixed_samples(fixed: Volume, settings: AffineSettings, mask: np.ndarray | None = None) -> FixedSamples:
     """Per level of ``settings``: the fixed image averaged over blocks of ``shrink`` voxels and smoothed by
     ``sigma_mm``; ``sampling_percentage`` of its voxels (at most ``max_samples``) drawn by a generator seeded with
-    ``settings.seed``, and the bin of each (zero-order window, as Mattes et al. and ITK)."""
+    ``settings.seed``, and the bin of each (zero-order window, as Mattes et al. and ITK).
+
+    ``mask`` (the fixed grid's shape, bool; ``--fixed-mask``): the points are drawn among the level's blocks inside
+    it (at least :data:`MASK_BLOCK_FRACTION` of the block's voxels; the full-resolution level: the mask's voxels),
+    ``sampling_percentage`` of those (the density of the unmasked metric, where ITK samples the whole grid and drops
+    the points outside). None: the whole grid, as before masks existed (the same points)."""
     generator = torch.Generator().manual_seed(int(settings.seed))
-    image = _scaled(fixed)
-    centre = torch.from_numpy(_centre(image, fixed.index_to_lps, settings.initializer == "moments"))
+    image = _scaled(fixed, mask)
+    inside = None if mask is None else torch.from_numpy(np.asarray(mask, dtype=np.float32))
+    # the moments of what the metric sees: a bright part the mask leaves out would move the start towards it
+    moments = image if inside is None else image * inside
+    centre = torch.from_numpy(_centre(moments, fixed.index_to_lps, settings.initializer == "moments"))
     samples = FixedSamples(centre, [], [], [])
     bins = settings.histogram_bins
     for shrink, sigma in zip(settings.shrink_factors, settings.smoothing_sigmas_mm):
         level, grid = _pooled(image, fixed.index_to_lps, (int(shrink),) * 3, float(sigma))
         values = level.reshape(-1)
-        count = max(1, round(settings.sampling_percentage * values.numel()))
+        candidates = None
+        if inside is not None:
+            fraction = _pooled(inside, fixed.index_to_lps, (int(shrink),) * 3, 0.0)[0].reshape(-1)
+            candidates = torch.nonzero(fraction >= MASK_BLOCK_FRACTION).view(-1)
+            if candidates.numel() == 0:
+                candidates = torch.nonzero(fraction > 0).view(-1)
+        available = values.numel() if candidates is None else candidates.numel()
+        count = max(1, round(settings.sampling_percentage * available))
         count = count if settings.max_samples is None else min(count, settings.max_samples)
-        chosen = torch.randperm(values.numel(), generator=generator)[:count]
+        chosen = torch.randperm(available, generator=generator)[:count]
+        if candidates is not None:
+            chosen = candidates[chosen]
         index = torch.stack(torch.unravel_index(chosen, level.shape), dim=-1).to(torch.float64)
         g = torch.from_numpy(grid)
         samples.points.append(index @ g[:3, :3].T + g[:3, 3])
@@ -206,11 +247,16 @@ class _Level:
         moving_image: torch.Tensor,
         sigma_mm: float,
         bins: int,
+        moving_mask: torch.Tensor | None = None,
     ) -> None:
         factors = tuple(max(1, int(level_mm // s)) for s in moving.spacing)
         moving_level, moving_grid = _pooled(moving_image, moving.index_to_lps, factors, sigma_mm)
         self.points, self.fixed_bins = points, fixed_bins
         self.moving = moving_level[None, None]
+        # the moving mask on the same blocks (the fraction of each inside; not smoothed): sampled with the image
+        self.moving_mask = None
+        if moving_mask is not None:
+            self.moving_mask = _pooled(moving_mask, moving.index_to_lps, factors, 0.0)[0][None, None]
         lps_to_index = torch.from_numpy(np.linalg.inv(moving_grid))
         # LPS -> grid_sample's normalised coordinates, in its (x, y, z) order (blocks.grid_coords)
         self.lps_to_normalised = index_to_grid_matrix([int(n) for n in moving_level.shape]) @ lps_to_index
@@ -223,7 +269,14 @@ class _Level:
         grid = normalised.to(torch.float32).view(1, -1, 1, 1, 3)  # already in grid_sample's (x, y, z) order
         # over the CPU threads (one grid_sample call runs a single item on one thread); the same samples
         sampled = split_grid_sample(self.moving, grid, mode="bilinear", padding_mode="zeros")
-        return -mutual_information(sampled.view(-1), self.fixed_bins, self.bins)
+        if self.moving_mask is None:
+            return -mutual_information(sampled.view(-1), self.fixed_bins, self.bins)
+        # the moving mask at the same points, linearly (0 beyond the moving grid): each sample's share of the
+        # histogram, 0 outside the mask, 1 inside, between across its edge, so the metric stays continuous for the
+        # line search where ITK's dropping of the points outside would jump; no gradient through it
+        with torch.no_grad():
+            weights = split_grid_sample(self.moving_mask, grid.detach(), mode="bilinear", padding_mode="zeros")
+        return -mutual_information(sampled.view(-1), self.fixed_bins, self.bins, weights.view(-1))
 
 
 def _optimise(
@@ -267,17 +320,22 @@ def register_affine_torch(
     settings: AffineSettings,
     samples: FixedSamples | None = None,
     initial: np.ndarray | None = None,
+    fixed_mask: np.ndarray | None = None,
+    moving_mask: np.ndarray | None = None,
 ) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` (module docstring). Returns the fixed -> moving
     transform; the ITK transform in the result is an ``AffineTransform`` centred on the fixed image's centre.
-    ``samples``: :func:`fixed_samples` of ``fixed`` and ``settings`` when the caller has them (a batch), else made.
-    ``initial`` (4, 4), fixed LPS -> moving LPS: start from it instead of the centres (module docstring)."""
-    samples = samples if samples is not None else fixed_samples(fixed, settings)
+    ``samples``: :func:`fixed_samples` of ``fixed``, ``settings`` and ``fixed_mask`` when the caller has them (a
+    batch), else made. ``initial`` (4, 4), fixed LPS -> moving LPS: start from it instead of the centres (module
+    docstring). ``fixed_mask``, ``moving_mask``: bool arrays on each image's grid, or None
+    (:mod:`monai_probreg.spatial.masks`): the sample points drawn inside the first, weighted by the second."""
+    samples = samples if samples is not None else fixed_samples(fixed, settings, fixed_mask)
     fixed_centre = samples.centre
-    moving_image = _scaled(moving)
+    moving_image = _scaled(moving, moving_mask)
+    moving_inside = None if moving_mask is None else torch.from_numpy(np.asarray(moving_mask, dtype=np.float32))
     radius = float(np.mean(np.asarray(fixed.shape) * fixed.spacing)) / 2  # mm: 1 unit of rotation = 1 mm there
     levels = [
-        _Level(points, bins, level_mm, moving, moving_image, float(sigma), settings.histogram_bins)
+        _Level(points, bins, level_mm, moving, moving_image, float(sigma), settings.histogram_bins, moving_inside)
         for points, bins, level_mm, sigma in zip(
             samples.points, samples.bins, samples.level_mm, settings.smoothing_sigmas_mm
         )
@@ -285,7 +343,8 @@ def register_affine_torch(
 
     bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)
     if initial is None:
-        moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, settings.initializer == "moments"))
+        moments = moving_image if moving_inside is None else moving_image * moving_inside  # as the fixed centre's
+        moving_centre = torch.from_numpy(_centre(moments, moving.index_to_lps, settings.initializer == "moments"))
 
         def matrix_of(linear: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
             # A(p) = L (p - c_fixed) + c_moving + t

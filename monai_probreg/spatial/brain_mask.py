@@ -6,7 +6,8 @@ A network trained on brain-to-brain pairs, shown a whole head against a brain, p
 image's own support says where the brain is: ``mask = dilate(fixed > min(fixed), margin_mm)``, and the moving scan
 on the fixed grid is set to its background value outside it before intensity scaling. For a fixed image with a head
 around the brain (no background at its minimum), the mask is the whole grid or the head: nothing of the brain is
-hidden.
+hidden. Given a fixed mask (``--fixed-mask``), its voxels are the support instead, dilated by the same margin
+(:func:`dilated_mask`).
 
 The dilation is a (separable) max-pool with a per-axis radius of ``ceil(margin_mm / spacing)`` voxels (a box, written
 here because the package does not otherwise depend on scipy.ndimage; a box of radius r contains the ball of radius
@@ -22,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["DEFAULT_MARGIN_MM", "fixed_brain_mask", "hide_outside"]
+__all__ = ["DEFAULT_MARGIN_MM", "dilated_mask", "fixed_brain_mask", "hide_outside"]
 
 DEFAULT_MARGIN_MM = 3.0  # room for the affine's residual error and for the brain's edge voxels
 
@@ -34,9 +35,18 @@ def fixed_brain_mask(
     when that is the whole grid (no background: nothing to hide)."""
     if array.ndim != 3 or len(spacing) != 3:
         raise ValueError(f"expected a 3-d image and 3 spacings; got shape {array.shape} and spacing {tuple(spacing)}")
+    return dilated_mask(array > array.min(), spacing, margin_mm)
+
+
+def dilated_mask(
+    support: np.ndarray, spacing: Sequence[float], margin_mm: float = DEFAULT_MARGIN_MM
+) -> np.ndarray | None:
+    """Boolean ``support`` (3-d) dilated by ``margin_mm`` (the module's box); None when that is the whole grid. The
+    brain mask of :func:`fixed_brain_mask`, or of a given fixed mask (``--fixed-mask``: its voxels are the support)."""
+    if support.ndim != 3 or len(spacing) != 3:
+        raise ValueError(f"expected a 3-d mask and 3 spacings; got shape {support.shape} and spacing {tuple(spacing)}")
     if not margin_mm >= 0:
         raise ValueError(f"margin_mm must be >= 0; got {margin_mm}")
-    support = array > array.min()
     if support.all():
         return None
     radius = [math.ceil(margin_mm / float(s) - 1e-9) for s in spacing]

@@ -283,14 +283,19 @@ def read_field(path: str | os.PathLike, role: str = "displacement field") -> Vol
     return Volume(array, geometry_of(image), str(path))
 
 
-def check_same_grid(label: Volume, image: Volume, label_role: str = "label map", image_role: str = "image") -> None:
+def check_same_grid(
+    label: Volume,
+    image: Volume,
+    label_role: str = "label map",
+    image_role: str = "image",
+    advice: str = "resample the labels onto their image first (nearest neighbour)",
+) -> None:
     """InputError unless ``label`` lies on ``image``'s grid (same shape, spacing, direction and origin, to
-    1e-4 relative and 1e-3 mm: header rounding, not a resampling)."""
+    1e-4 relative and 1e-3 mm: header rounding, not a resampling); ``advice`` ends the message (a mask's differs)."""
 
-    def fail(what: str) -> None:
+    def fail(difference: str) -> None:
         raise InputError(
-            f"{label_role} {label.path!r} is not on the grid of {image_role} {image.path!r}: {what}; "
-            "resample the labels onto their image first (nearest neighbour)"
+            f"{label_role} {label.path!r} is not on the grid of {image_role} {image.path!r}: {difference}; {advice}"
         )
 
     if label.shape != image.shape:

@@ -66,12 +66,13 @@ def _check(name: str, value: Tensor, shape: tuple[int, ...], channels: int | Non
         )
 
 
-def local_ncc(images: Tensor, fixed: Tensor) -> Tensor:
+def local_ncc(images: Tensor, fixed: Tensor, mask: Tensor | None = None) -> Tensor:
     """The features' local NCC of each image with its fixed image: (B,) mean local NCC of ``images`` and ``fixed``
     (B, 1, *S, intensities in [0, 1]) in a :data:`LNCC_KERNEL` window on the grid halved by 2x2x2 averaging, over the
     foreground of ``fixed`` (above :data:`FOREGROUND_LEVEL`; all voxels when it has none). The one rule for "how alike
     are two images" of the quality estimate and of the refinement's similarity guard (``engines/refinement.py``).
-    Without gradients."""
+    ``mask`` (B, 1, *S, bool): only its voxels too (the guard's cost-function masks; a halved voxel is inside when
+    most of it is), or None. Without gradients."""
     if images.shape != fixed.shape or images.ndim not in (4, 5) or images.shape[1] != 1:
         raise ValueError(
             f"images and fixed must both have shape (B, 1, *S) with 2 or 3 spatial axes; got {tuple(images.shape)} "
@@ -83,11 +84,16 @@ def local_ncc(images: Tensor, fixed: Tensor) -> Tensor:
         pool = torch.nn.functional.avg_pool3d if dims == 3 else torch.nn.functional.avg_pool2d
         half_images, half_fixed = (pool(x.float(), 2, ceil_mode=True) for x in (images, fixed))
         values = []
-        for image, reference, full in zip(half_images, half_fixed, fixed):
-            mask = pool((full > FOREGROUND_LEVEL).float()[None], 2, ceil_mode=True)[0, 0] > 0.5
-            if not bool(mask.any()):
-                mask = torch.ones_like(mask)
-            values.append(-lncc(image[None], reference[None])[0, 0][mask].mean())
+        masks = [None] * len(fixed) if mask is None else mask
+        for image, reference, full, given in zip(half_images, half_fixed, fixed, masks):
+            inside = pool((full > FOREGROUND_LEVEL).float()[None], 2, ceil_mode=True)[0, 0] > 0.5
+            if given is not None:
+                allowed = pool(given.float()[None], 2, ceil_mode=True)[0, 0] > 0.5
+                # the foreground inside the mask; the mask alone when they share nothing
+                inside = inside & allowed if bool((inside & allowed).any()) else allowed
+            if not bool(inside.any()):
+                inside = torch.ones_like(inside)
+            values.append(-lncc(image[None], reference[None])[0, 0][inside].mean())
         return torch.stack(values)
 
 

@@ -212,3 +212,64 @@ def test_fixed_image_lncc_keeps_its_answers_when_called_again():
     torch.testing.assert_close(twice, gradient, rtol=0, atol=0)
     with pytest.raises(RuntimeError):
         torch.autograd.grad(twice.sum(), again)
+
+
+# ------------------------------------------------------------------------ per-voxel weights (cost-function masks)
+WEIGHTED_SHAPES = {2: (1, 1, 13, 17), 3: (1, 1, 9, 11, 8)}  # small and asymmetric: a transposed axis would show
+
+
+def _weights(shape, seed=2):
+    """Weights (B, 1, *S) in [0, 1]: a hard 0/1 mask (an off-centre hole) times a soft ramp, so both a mask's edge
+    and fractional weights (a warped moving mask) are tested."""
+    generator = torch.Generator().manual_seed(seed)
+    weight = torch.rand((shape[0], 1, *shape[2:]), generator=generator, dtype=torch.float64)
+    weight[(slice(None), slice(None), *(slice(1, max(2, n // 2)) for n in shape[2:]))] = 0.0
+    return weight
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+@pytest.mark.parametrize("cropped", [False, True])
+def test_weighted_fixed_image_lncc_is_monais_per_voxel_ncc_times_the_weights(spatial_dims, cropped):
+    """-sum(w * ncc) / N, N the whole grid: MONAI's reduction='none' map times the weights, values and autograd
+    gradients (cropped: the weights of the box, the box holding every window that reaches a nonzero target voxel)."""
+    kernel_size = 3
+    pred, target = _zero_background(WEIGHTED_SHAPES[spatial_dims])
+    weight = _weights(pred.shape)
+    pred.requires_grad_(True)
+    per_voxel = LocalNormalizedCrossCorrelationLoss(spatial_dims, kernel_size, reduction="none")(pred, target)
+    monai = (per_voxel * weight).sum() / pred.numel()
+    region = support_box(target, margin=2 * (kernel_size // 2)) if cropped else None
+    loss = FixedImageLNCC(target, kernel_size, region=region)
+    ours = loss(loss.crop(pred), loss.crop(weight))
+    torch.testing.assert_close(ours, monai, rtol=1e-10, atol=1e-12)
+    (g_ours,) = torch.autograd.grad(ours, pred)
+    (g_monai,) = torch.autograd.grad(monai, pred)
+    torch.testing.assert_close(g_ours, g_monai, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+def test_weighted_fixed_image_lncc_passes_gradcheck(spatial_dims):
+    pred, target = _pair(WEIGHTED_SHAPES[spatial_dims])
+    weight = _weights(pred.shape)
+    loss = FixedImageLNCC(target, 3)
+    assert torch.autograd.gradcheck(lambda p: loss(p, weight), (pred.requires_grad_(True),))
+
+
+def test_unit_weights_give_the_unweighted_loss_exactly():
+    """Weights of 1 everywhere: bit for bit the unweighted value and gradient (x * 1 is exact); the unweighted call
+    itself takes the path it took before weights existed."""
+    pred, target = _pair(SHAPES[3])
+    loss = FixedImageLNCC(target, 3)
+    plain = pred.clone().requires_grad_(True)
+    ones = pred.clone().requires_grad_(True)
+    value, weighted = loss(plain), loss(ones, torch.ones(1, 1, *pred.shape[2:], dtype=pred.dtype))
+    torch.testing.assert_close(weighted, value, rtol=0, atol=0)
+    (g_plain,) = torch.autograd.grad(value, plain)
+    (g_ones,) = torch.autograd.grad(weighted, ones)
+    torch.testing.assert_close(g_ones, g_plain, rtol=0, atol=0)
+
+
+def test_fixed_image_lncc_names_a_bad_weight_shape():
+    loss = FixedImageLNCC(torch.rand(1, 1, 8, 9), 3)
+    with pytest.raises(ValueError, match=r"expected a weight broadcastable to pred's shape \(1, 1, 8, 9\), got"):
+        loss(torch.rand(1, 1, 8, 9), torch.rand(1, 1, 9, 8))

@@ -86,9 +86,14 @@ def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     parser.read_config(str(BUNDLE_DIR / "configs" / config))
     default = parser.get_parsed_content("inferer").refinement
     # the shipped default path: 20 steps of 0.3 with a quarter of the pull, the first 18 on the network's grid and the
-    # last 2 with the loss images twice finer, the library's other defaults
+    # last 2 with the loss images twice finer, the similarity guard on, the library's other defaults
     expected = RefinementSettings(
-        num_iterations=20, learning_rate=0.3, posterior_weight=0.25, image_grid_factor=2, coarse_iterations=18
+        num_iterations=20,
+        learning_rate=0.3,
+        posterior_weight=0.25,
+        image_grid_factor=2,
+        coarse_iterations=18,
+        similarity_guard=True,
     )
     assert default.enabled and default == expected and parser["refine_image_grid_factor"] == 2
     parser = ConfigParser()

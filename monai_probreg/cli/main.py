@@ -245,6 +245,7 @@ def _add_initial_transform(reg: argparse._ArgumentGroup, batch: bool = False) ->
 
 def build_parser() -> argparse.ArgumentParser:
     from monai_probreg.cli.apply import add_apply_parser
+    from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
     parser = argparse.ArgumentParser(
         prog="monai-probreg", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -288,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
         "and print how well the known transform was recovered: the displacement error in mm "
         "inside the brain before and after, and the coverage of the calibrated 95% interval. "
         "Outputs in DIR as register's, plus subject.nii.gz and true_warp.nii.gz; the scores in "
-        'DIR/summary.json["demo"]. --samples defaults to 16 here (as many as the shipped calibration was '
+        f'DIR/summary.json["demo"]. --samples defaults to {POSTERIOR_SAMPLES} here (as many as the calibration is '
         "fitted with).\n\n" + DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -1,6 +1,7 @@
 """``monai-probreg register-batch``: many scans, one model and fixed image; one bad scan never stops the batch.
 
-Each scan is registered by :func:`monai_probreg.cli.pipeline.register_scan` into ``out/<name>/`` (all or nothing). A scan
+Each scan is registered by :func:`monai_probreg.cli.pipeline.register_scan` into ``out/<name>/`` (all or nothing),
+with its own initial transform when a folder of them is given (:func:`initial_transform_for`). A scan
 that fails for any reason (a missing, damaged or odd file: :mod:`monai_probreg.spatial.checks`; or an error while
 registering) becomes a ``failed`` row with its one-line reason, and the next scan starts. ``out/batch_summary.csv``
 is rewritten atomically after every scan, so an interrupted batch (Ctrl-C: the scans not reached are listed as
@@ -14,11 +15,13 @@ import io
 import sys
 import traceback
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
 from monai_probreg.cli.model import LoadedModel
-from monai_probreg.cli.pipeline import FixedSpace, RegistrationOptions, register_scan
+from monai_probreg.cli.pipeline import FixedSpace, InitialTransform, RegistrationOptions, register_scan
+from monai_probreg.spatial.transform_files import AFFINE_SUFFIXES
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.files import write_text
 
@@ -27,6 +30,7 @@ __all__ = [
     "BatchItem",
     "BatchRow",
     "error_text",
+    "initial_transform_for",
     "write_batch_summary",
     "register_batch",
     "print_batch_table",
@@ -85,6 +89,23 @@ def write_batch_summary(path: str | Path, rows: Sequence[BatchRow]) -> Path:
     return write_text(path, table.getvalue())
 
 
+PREVIOUS_AFFINE = "affine.tfm"  # what an earlier run wrote into each scan's folder
+
+
+def initial_transform_for(folder: Path, name: str) -> Path:
+    """The scan ``name``'s affine in ``folder``: ``name`` with an affine file's suffix, or ``name/affine.tfm`` (an
+    earlier batch's output folder); InputError naming what was looked for when there is none, or several."""
+    candidates = [folder / f"{name}{suffix}" for suffix in AFFINE_SUFFIXES] + [folder / name / PREVIOUS_AFFINE]
+    found = [path for path in candidates if path.is_file()]
+    if len(found) != 1:
+        raise InputError(
+            f"--initial-transform {str(folder)!r}: expected one transform for scan {name!r} "
+            f"({', '.join(str(p.relative_to(folder)) for p in candidates)}), got "
+            + (", ".join(repr(str(p.relative_to(folder))) for p in found) if found else "none")
+        )
+    return found[0]
+
+
 def _register_one(
     model: LoadedModel,
     fixed: FixedSpace,
@@ -93,9 +114,14 @@ def _register_one(
     options: RegistrationOptions,
     overwrite: bool,
     report,
+    initial_transforms: Path | None = None,
+    initial_use: str | None = None,
 ) -> BatchRow:
     if not item.moving.is_file():  # one missing scan is that scan's failure, not the batch's
         raise InputError(f"--moving {str(item.moving)!r}: no such file")
+    if initial_transforms is not None:  # read here: one scan's bad transform is that scan's failure
+        path = initial_transform_for(initial_transforms, item.name)
+        options = replace(options, initial=InitialTransform.read(path, initial_use))
     summary = register_scan(
         model, fixed, item.moving, out / item.name, item.moving_label, options, overwrite, report=report
     )
@@ -122,9 +148,14 @@ def register_batch(
     overwrite: bool = False,
     quiet: bool = False,
     debug: bool = False,
+    initial_transforms: Path | None = None,
+    initial_use: str | None = None,
 ) -> list[BatchRow]:
     """Register every item; returns one row per item (failures included) and keeps out/batch_summary.csv current.
-    ``debug`` prints each failure's traceback to stderr. Ctrl-C writes the summary (the rest ``not run``), re-raises."""
+    ``debug`` prints each failure's traceback to stderr. Ctrl-C writes the summary (the rest ``not run``), re-raises.
+    ``initial_transforms``: a folder of each scan's initial transform (:func:`initial_transform_for`), used as
+    ``initial_use`` says (:class:`~monai_probreg.cli.pipeline.InitialTransform`); one transform for every scan comes
+    in ``options.initial`` instead."""
     from tqdm import tqdm
 
     out = Path(out)
@@ -142,6 +173,8 @@ def register_batch(
                     options,
                     overwrite,
                     report=lambda stage, s, n=item.name: bar.set_postfix_str(f"{n}: {stage} done"),
+                    initial_transforms=initial_transforms,
+                    initial_use=initial_use,
                 )
             except Exception as err:  # noqa: BLE001 - one scan's failure must not stop the batch
                 row = BatchRow(item.name, "failed", error=error_text(err))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import sys
 import time
@@ -33,6 +34,8 @@ field of view and intensity range; they should be skull-stripped T1-weighted bra
   monai-probreg register --moving sub01.nii.gz --moving-label sub01_seg.nii.gz \\
       --fixed atlas.nii.gz --fixed-label atlas_seg.nii.gz --samples 16 --out results/sub01
   monai-probreg register-batch --moving scans/ --fixed atlas.nii.gz --out results/
+  monai-probreg register --moving sub01.nii.gz --fixed atlas.nii.gz --initial-transform sub01_0GenericAffine.mat \\
+      --initial-transform-use as-affine --out results/sub01    # ANTs' affine (-r): as it is, or as a start
 
 Outputs (see DIR/README.txt): warped.nii.gz (moving on the fixed grid), warp.nii.gz and inverse_warp.nii.gz (ITK/ANTs
 displacement fields, LPS mm), affine.tfm, jacobian.nii.gz, entropy.nii.gz, displacement_std.nii.gz (--samples),
@@ -48,7 +51,8 @@ Exit status: 0 on success; 1 with one line "monai-probreg: error: ..." when an i
 """
 
 
-def _add_common(parser: argparse.ArgumentParser) -> None:
+def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
+    """The options every registering subcommand has; returns the "registration" group, for options of some."""
     io = parser.add_argument_group("inputs and outputs")
     io.add_argument(
         "--fixed",
@@ -163,6 +167,15 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
         "about 5 s for the demo on a 2-core CPU); default: the config's refine_iterations (20: on); 0 = the "
         "network alone",
     )
+    reg.add_argument(
+        "--smoothness",
+        type=float,
+        default=None,
+        metavar="S",
+        help="multiply the refinement's smoothness prior (the config's refine_prior_lambda) by S: above 1 a smoother "
+        "warp, below 1 a sharper one that follows the images more closely (docs/cli.md, its effect on LPBA40); "
+        "default 1; needs the refinement (not --refine 0)",
+    )
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     reg.add_argument(
         "--no-inverse",
@@ -211,10 +224,38 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     )
     model.add_argument("--quiet", action="store_true", help="print nothing but errors and the final summary")
     model.add_argument("--debug", action="store_true", help="show the full traceback of an unexpected error")
+    return reg
+
+
+def _add_initial_transform(reg: argparse._ArgumentGroup, batch: bool = False) -> None:
+    """``--initial-transform``: an earlier registration's affine (ANTs' ``-r``) in the "registration" group ``reg``;
+    register and register-batch only (the demo makes its own subject)."""
+    from monai_probreg.cli.pipeline import INITIAL_TRANSFORM_USES
+
+    reg.add_argument(
+        "--initial-transform",
+        metavar="T",
+        help="an earlier registration's affine, fixed -> moving as ITK and ANTs write it: an ITK transform file "
+        "(.tfm, .txt; e.g. our affine.tfm) or ANTs' .mat (*0GenericAffine.mat; antsRegistration's -r)"
+        + (
+            "; one file for every scan, or a folder holding one per scan, named like it (NAME.tfm, NAME.txt, "
+            "NAME.mat or NAME/affine.tfm: an earlier register-batch's --out)"
+            if batch
+            else ""
+        ),
+    )
+    reg.add_argument(
+        "--initial-transform-use",
+        choices=INITIAL_TRANSFORM_USES,
+        default=None,
+        help="start: the affine stage starts from it and refines it (default); as-affine: it is the affine, "
+        "the affine stage is skipped",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
     from monai_probreg.cli.apply import add_apply_parser
+    from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
     parser = argparse.ArgumentParser(
         prog="monai-probreg", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -228,7 +269,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     one.add_argument("--moving", required=True, metavar="M", help="the scan to register (NIfTI, NRRD, MHA...)")
     one.add_argument("--moving-label", metavar="L", help="its label map (same grid): warped_label.nii.gz and Dice")
-    _add_common(one)
+    _add_initial_transform(_add_common(one))
     many = commands.add_parser(
         "register-batch",
         help="register many scans to one fixed image",
@@ -248,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="D",
         help="folder of label maps named like their scans (a scan without one is registered without labels)",
     )
-    _add_common(many)
+    _add_initial_transform(_add_common(many), batch=True)
     demo = commands.add_parser(
         "demo",
         help="register a synthetic subject with a known answer and score it",
@@ -258,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
         "and print how well the known transform was recovered: the displacement error in mm "
         "inside the brain before and after, and the coverage of the calibrated 95% interval. "
         "Outputs in DIR as register's, plus subject.nii.gz and true_warp.nii.gz; the scores in "
-        'DIR/summary.json["demo"]. --samples defaults to 16 here (as many as the shipped calibration was '
+        f'DIR/summary.json["demo"]. --samples defaults to {POSTERIOR_SAMPLES} here (as many as the calibration is '
         "fitted with).\n\n" + DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -298,6 +339,43 @@ def _per_level(values: tuple[int, ...], levels: int) -> tuple[int, ...]:
     return tuple(values[:levels]) + (values[-1],) * max(0, levels - len(values))
 
 
+def _initial_use(args: argparse.Namespace) -> str | None:
+    """How ``--initial-transform`` is used (``start`` unless ``--initial-transform-use`` says otherwise), or None
+    without one (and on ``demo``, which has no such option)."""
+    from monai_probreg.cli.pipeline import INITIAL_TRANSFORM_USES
+
+    if getattr(args, "initial_transform", None) is None:
+        return None
+    return args.initial_transform_use or INITIAL_TRANSFORM_USES[0]
+
+
+def _affine_stage_runs(args: argparse.Namespace) -> bool:
+    return not args.no_affine and _initial_use(args) != "as-affine"
+
+
+def _initial_transform(args: argparse.Namespace):
+    """``--initial-transform`` read now, before the model loads (a batch's folder: per scan, by the batch), or None."""
+    from monai_probreg.cli.pipeline import InitialTransform
+    from monai_probreg.utils.errors import InputError
+
+    path = getattr(args, "initial_transform", None)
+    if path is None:
+        if getattr(args, "initial_transform_use", None) is not None:
+            raise InputError(
+                f"--initial-transform-use {args.initial_transform_use}: expected --initial-transform too (the use "
+                "of which transform?)"
+            )
+        return None
+    if args.no_affine:
+        raise InputError(
+            f"--initial-transform {path!r}: expected it or --no-affine, got both (--initial-transform-use as-affine "
+            "takes it as the affine without running the stage)"
+        )
+    if args.command == "register-batch" and Path(path).is_dir():
+        return None
+    return InitialTransform.read(path, _initial_use(args))
+
+
 def _options(args: argparse.Namespace):
     from monai_probreg.cli.pipeline import RegistrationOptions
     from monai_probreg.spatial.affine import AffineSettings
@@ -307,8 +385,13 @@ def _options(args: argparse.Namespace):
         raise InputError(f"--brain-mask-margin must be >= 0 mm; got {args.brain_mask_margin}")
     if args.refine is not None and args.refine < 0:
         raise InputError(f"--refine must be >= 0 optimiser steps (0 = off); got {args.refine}")
+    if args.smoothness is not None and not (math.isfinite(args.smoothness) and args.smoothness > 0):
+        raise InputError(f"--smoothness must be a number > 0 (1: the shipped prior); got {args.smoothness}")
+    if args.smoothness is not None and args.refine == 0:
+        raise InputError("--smoothness scales the refinement's prior: expected refinement on, got --refine 0")
+    initial = _initial_transform(args)
     affine = None
-    if not args.no_affine:
+    if _affine_stage_runs(args):
         if args.nondeterministic_affine and args.affine_backend != "itk":
             raise InputError(
                 "--nondeterministic-affine applies to --affine-backend itk only (the torch backend is "
@@ -359,6 +442,7 @@ def _options(args: argparse.Namespace):
         affine=affine,
         inverse=not args.no_inverse,
         maps=not args.no_maps,
+        initial=initial,
     )
 
 
@@ -396,24 +480,34 @@ def _setup(args: argparse.Namespace):
         args.fixed = str(mni152_template_path())
     margin = DEFAULT_MARGIN_MM if args.brain_mask_margin is None else args.brain_mask_margin
     fixed = prepare_fixed(args.fixed, args.fixed_label, model.divisor, None if args.no_brain_mask else margin)
-    if args.affine_backend == "itk" and not args.no_affine:
+    if args.affine_backend == "itk" and _affine_stage_runs(args):
         load_itk_modules()  # several seconds, paid once per batch, outside the timed stages
     return model, fixed
 
 
-def _with_refinement(options, model, iterations: int | None):
-    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps when given; without it the
-    options keep ``refinement=None``, which ``register_scan`` reads as the config's."""
+def _with_refinement(options, model, iterations: int | None, smoothness: float | None = None):
+    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps and ``--smoothness S`` (the
+    prior's ``prior_lambda`` times S) when given; without either the options keep ``refinement=None``, which
+    ``register_scan`` reads as the config's."""
     import dataclasses
 
     from monai_probreg.utils.errors import InputError
 
-    if iterations is None:
+    if iterations is None and smoothness is None:
         return options
-    try:
-        refinement = model.refinement.with_fields(num_iterations=iterations)
-    except ValueError as err:
-        raise InputError(f"--refine: {err}") from None
+    refinement = model.refinement
+    if iterations is not None:
+        try:
+            refinement = refinement.with_fields(num_iterations=iterations)
+        except ValueError as err:
+            raise InputError(f"--refine: {err}") from None
+    if smoothness is not None:
+        if not refinement.enabled:  # the config's refinement is off and --refine did not turn it on
+            raise InputError(
+                "--smoothness scales the refinement's prior: expected refinement on (the config's "
+                "refine_iterations or --refine N), got 0 steps"
+            )
+        refinement = refinement.with_fields(prior_lambda=refinement.prior_lambda * smoothness)
     return dataclasses.replace(options, refinement=refinement)
 
 
@@ -466,7 +560,7 @@ def _register(args: argparse.Namespace) -> int:
     check_output_dir(args.out, args.overwrite)  # fail before loading anything
     start = time.perf_counter()
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine)
+    options = _with_refinement(options, model, args.refine, args.smoothness)
     _say(args, f"model and fixed image ready in {time.perf_counter() - start:.1f} s")
     summary = register_scan(
         model,
@@ -492,7 +586,7 @@ def _demo(args: argparse.Namespace) -> int:
     check_output_dir(args.out, args.overwrite)
     start = time.perf_counter()
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine)
+    options = _with_refinement(options, model, args.refine, args.smoothness)
     _say(args, f"model and template ready in {time.perf_counter() - start:.1f} s")
     summary = run_demo(
         model,
@@ -518,8 +612,20 @@ def _register_batch(args: argparse.Namespace) -> int:
     for item in items:  # fail fast on what is cheap to check and would hit every scan
         check_output_dir(out / item.name, args.overwrite)
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine)
-    rows = register_batch(model, fixed, items, out, options, args.overwrite, quiet=args.quiet, debug=args.debug)
+    options = _with_refinement(options, model, args.refine, args.smoothness)
+    per_scan = args.initial_transform is not None and Path(args.initial_transform).is_dir()
+    rows = register_batch(
+        model,
+        fixed,
+        items,
+        out,
+        options,
+        args.overwrite,
+        quiet=args.quiet,
+        debug=args.debug,
+        initial_transforms=Path(args.initial_transform) if per_scan else None,
+        initial_use=_initial_use(args),
+    )
     print_batch_table(rows)
     failed = sum(row.status != "ok" for row in rows)
     if failed:

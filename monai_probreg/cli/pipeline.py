@@ -4,7 +4,8 @@ Stages, timed under these names in ``summary.json["timings_s"]``:
 
 - ``read``: read and validate the moving scan (and its labels) with their geometry (:mod:`monai_probreg.spatial.volume_io`);
 - ``affine``: rigid + affine registration of the raw moving scan to the fixed image (:mod:`monai_probreg.spatial.affine`:
-  torch by default, or ITK);
+  torch by default, or ITK), started from an earlier registration's affine or replaced by it
+  (:class:`InitialTransform`);
 - ``resample``: the moving scan onto the fixed grid through the affine (one linear interpolation, the scan's
   minimum outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`), percentile
   intensity scaling to [0, 1] exactly as in training (:mod:`monai_probreg.spatial.intensity`), then onto the model grid
@@ -66,6 +67,7 @@ from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, fixed_brain_mask
 from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import grid_points
+from monai_probreg.spatial.transform_files import read_initial_transform
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
 from monai_probreg.uncertainty.calibration import Calibration
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
@@ -76,7 +78,9 @@ from monai_probreg.utils.files import parallel_writes, write_text
 from monai_probreg.utils.provenance import library_versions
 
 __all__ = [
+    "INITIAL_TRANSFORM_USES",
     "FixedSpace",
+    "InitialTransform",
     "Registered",
     "RegistrationOptions",
     "prepare_fixed",
@@ -139,6 +143,44 @@ def prepare_fixed(
     )
 
 
+INITIAL_TRANSFORM_USES = ("start", "as-affine")  # the affine stage starts from it / it is the affine (no stage)
+
+
+@dataclass(frozen=True, eq=False)
+class InitialTransform:
+    """An earlier registration's affine (``--initial-transform``, ANTs' ``--initial-moving-transform``): ``matrix``
+    (4, 4), fixed LPS -> moving LPS, ITK's and ANTs' convention, as ``affine.tfm``; ``center``: its file's centre
+    (LPS mm; kept so that ``as-affine`` writes the file's own parameters back); ``use``: ``"start"``, the affine
+    stage starts from it (:func:`~monai_probreg.spatial.affine.align`'s ``initial``), or ``"as-affine"``, it is the
+    affine and no stage runs. Compared by identity (it holds arrays)."""
+
+    path: str
+    matrix: np.ndarray
+    center: np.ndarray
+    use: str = INITIAL_TRANSFORM_USES[0]
+
+    def __post_init__(self) -> None:
+        if self.use not in INITIAL_TRANSFORM_USES:
+            raise ValueError(f"use: expected one of {INITIAL_TRANSFORM_USES}, got {self.use!r}")
+
+    @classmethod
+    def read(
+        cls, path: str | os.PathLike, use: str = INITIAL_TRANSFORM_USES[0], role: str = "--initial-transform"
+    ) -> InitialTransform:
+        """The transform of an ITK (``.tfm``, ``.txt``) or ANTs (``.mat``) affine file; InputError (one line) for a
+        missing, unreadable, non-affine, not 3-D or singular one
+        (:func:`~monai_probreg.spatial.transform_files.read_initial_transform`)."""
+        affine = read_initial_transform(path, role)
+        return cls(str(path), affine.matrix, affine.center, use)
+
+    def summary(self) -> dict:
+        return {
+            "path": str(Path(self.path).resolve()),
+            "use": self.use,
+            "matrix_fixed_to_moving_lps": np.round(self.matrix, 6).tolist(),
+        }
+
+
 @dataclass(frozen=True)
 class RegistrationOptions:
     """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed (the
@@ -147,7 +189,9 @@ class RegistrationOptions:
     fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean, or None for the
     model's own (its config's ``refinement``: the default path, as ``monai-probreg register`` runs it);
     ``inverse``: compute and write the inverse field and the fixed labels in moving space; ``maps``: write the
-    Jacobian, entropy and std maps (their statistics stay in the summary either way)."""
+    Jacobian, entropy and std maps (their statistics stay in the summary either way); ``initial``: an earlier
+    registration's affine that the affine stage starts from (``use="start"``, with ``affine`` settings) or that is
+    the affine (``use="as-affine"``, with ``affine=None``), or None."""
 
     samples: int = 0
     seed: int = 0
@@ -156,11 +200,19 @@ class RegistrationOptions:
     maps: bool = True
     affine: AffineSettings | None = field(default_factory=AffineSettings)
     refinement: RefinementSettings | None = None
+    initial: InitialTransform | None = None
 
     def __post_init__(self) -> None:
         if self.samples == 1 or self.samples < 0:
             raise InputError(
                 f"--samples must be 0 (no sampling) or >= 2 (a standard deviation needs two); got {self.samples}"
+            )
+        if self.initial is not None and (self.initial.use == "start") != (self.affine is not None):
+            # settings recorded for a stage that does not run, or a start for a stage that is not there
+            raise ValueError(
+                f"initial transform used as {self.initial.use!r}: expected affine settings "
+                f"{'for the stage it starts' if self.initial.use == 'start' else 'None (no stage runs)'}, got "
+                f"{self.affine}"
             )
 
 
@@ -583,8 +635,11 @@ def register_scan(
         moving_label = read_label(moving_label_path, "--moving-label") if moving_label_path is not None else None
         if moving_label is not None:
             check_same_grid(moving_label, moving, "--moving-label", "--moving")
+    initial = options.initial
     with _timed(timings, "affine", report):
-        if options.affine is None:
+        if initial is not None and initial.use == "as-affine":
+            affine = AffineResult(initial.matrix, initial.center, initial.matrix, [])
+        elif options.affine is None:
             affine = AffineResult(np.eye(4), np.zeros(3), np.eye(4), [])
         else:
             affine = align(
@@ -593,6 +648,7 @@ def register_scan(
                 options.affine,
                 fixed.itk_image if options.affine.backend == "itk" else None,
                 fixed.samples_for(options.affine),
+                None if initial is None else initial.matrix,
             )
     with _timed(timings, "resample", report):
         background = float(moving.array.min())
@@ -670,7 +726,11 @@ def register_scan(
                 },
             },
             "timings_s": timings,
-            "affine": {**affine.summary(), "settings": options.affine.as_dict() if options.affine else None},
+            "affine": {
+                **affine.summary(),
+                "settings": options.affine.as_dict() if options.affine else None,
+                "initial_transform": None if initial is None else initial.summary(),
+            },
             "jacobian": {
                 "num_nonpositive": stats.num_folding,
                 "percent_nonpositive": stats.percent_folding,

@@ -13,6 +13,10 @@ Two stages, as ``antsRegistration`` runs them (``-t Rigid -t Affine``), each wit
    mass aligned (``"moments"``) or image centres (``"geometry"``);
 2. **affine** (``AffineTransform``, 12 parameters), started from the rigid result.
 
+Given an ``initial`` transform (an earlier registration's, ``--initial-transform``), the stages start from it as
+``antsRegistration -r`` does: it is ITK's moving initial transform, applied after the optimised one (``A = initial o
+S``), and the rigid stage starts from the identity about the fixed image's centre.
+
 Each stage: Mattes mutual information (intensity-scale invariant: raw scanner values need no normalisation), a
 multi-resolution pyramid (shrink factors of the fixed grid, Gaussian smoothing in mm), random metric sampling
 with a fixed seed, and antsRegistration's optimiser for linear stages: conjugate gradient with a
@@ -44,7 +48,7 @@ from monai_probreg.spatial.affine_settings import (
     rotation_angle_deg,
 )
 from monai_probreg.spatial.affine_torch import FixedSamples, register_affine_torch
-from monai_probreg.spatial.physical import affine_from_itk
+from monai_probreg.spatial.physical import affine_from_itk, affine_to_itk
 from monai_probreg.spatial.volume_io import Volume, volume_to_itk
 
 __all__ = [
@@ -88,8 +92,10 @@ def _run_stage(
     transform: itk.Transform,
     iterations: tuple[int, ...],
     settings: AffineSettings,
+    moving_initial: itk.Transform | None = None,
 ) -> StageReport:
-    """Optimise ``transform`` in place with one multi-resolution ImageRegistrationMethodv4 run."""
+    """Optimise ``transform`` in place with one multi-resolution ImageRegistrationMethodv4 run; ``moving_initial``:
+    a fixed transform applied after it (module docstring)."""
     metric = itk.MattesMutualInformationImageToImageMetricv4[_image_type(), _image_type()].New()
     metric.SetNumberOfHistogramBins(settings.histogram_bins)
     metric.SetUseMovingImageGradientFilter(False)  # gradients on the fly at the samples, as antsRegistration does
@@ -117,6 +123,8 @@ def _run_stage(
     registration.SetMetric(metric)
     registration.SetOptimizer(optimizer)
     registration.SetInitialTransform(transform)
+    if moving_initial is not None:
+        registration.SetMovingInitialTransform(moving_initial)
     registration.SetInPlace(True)
     registration.SetNumberOfLevels(len(settings.shrink_factors))
     registration.SetShrinkFactorsPerLevel([int(s) for s in settings.shrink_factors])
@@ -148,21 +156,28 @@ def align(
     settings: AffineSettings | None = None,
     fixed_itk: itk.Image | None = None,
     samples: FixedSamples | None = None,
+    initial: np.ndarray | None = None,
 ) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` with the backend of ``settings`` (module
     docstring). Prepared once for a batch, or None: ``fixed_itk``, ``fixed`` converted for ITK (ITK backend);
-    ``samples``, :func:`~monai_probreg.spatial.affine_torch.fixed_samples` of ``fixed`` and ``settings`` (torch)."""
+    ``samples``, :func:`~monai_probreg.spatial.affine_torch.fixed_samples` of ``fixed`` and ``settings`` (torch).
+    ``initial`` (4, 4), fixed LPS -> moving LPS: the transform both stages start from, or None (the initializer)."""
     settings = settings or AffineSettings()
     if settings.backend == "torch":
-        return register_affine_torch(fixed, moving, settings, samples)
+        return register_affine_torch(fixed, moving, settings, samples, initial)
     return register_affine(
-        fixed_itk if fixed_itk is not None else volume_to_itk(fixed), volume_to_itk(moving), settings
+        fixed_itk if fixed_itk is not None else volume_to_itk(fixed), volume_to_itk(moving), settings, initial
     )
 
 
-def register_affine(fixed: itk.Image, moving: itk.Image, settings: AffineSettings | None = None) -> AffineResult:
+def register_affine(
+    fixed: itk.Image,
+    moving: itk.Image,
+    settings: AffineSettings | None = None,
+    initial: np.ndarray | None = None,
+) -> AffineResult:
     """The ITK backend: rigid then affine registration of ``moving`` to ``fixed`` (``itk.Image[itk.F, 3]`` with
-    their geometry).
+    their geometry), started by the initializer or from ``initial`` (4, 4, fixed LPS -> moving LPS).
 
     Returns the fixed -> moving transform (module docstring). Deterministic for given inputs and settings.
     """
@@ -176,16 +191,24 @@ def register_affine(fixed: itk.Image, moving: itk.Image, settings: AffineSetting
     else:
         initializer.GeometryOn()
     initializer.InitializeTransform()
-    initial = affine_from_itk(rigid)
-    stages = [_run_stage("rigid", fixed, moving, rigid, settings.rigid_iterations, settings)]
+    moving_initial = None
+    if initial is not None:
+        # the initializer gave the fixed centre to rotate about; the shift between the centres is the initial
+        # transform's business now (module docstring)
+        rigid.SetTranslation([0.0, 0.0, 0.0])
+        moving_initial = affine_to_itk(initial)
+    start = affine_from_itk(rigid) if initial is None else np.asarray(initial, dtype=np.float64)
+    stages = [_run_stage("rigid", fixed, moving, rigid, settings.rigid_iterations, settings, moving_initial)]
     result: itk.Transform = rigid
     if not settings.rigid_only:
         affine = itk.AffineTransform[itk.D, 3].New()
         affine.SetCenter(rigid.GetCenter())
         affine.SetMatrix(rigid.GetMatrix())
         affine.SetTranslation(rigid.GetTranslation())
-        stages.append(_run_stage("affine", fixed, moving, affine, settings.affine_iterations, settings))
+        stages.append(_run_stage("affine", fixed, moving, affine, settings.affine_iterations, settings, moving_initial))
         result = affine
-    return AffineResult(
-        affine_from_itk(result), np.asarray(result.GetCenter(), dtype=np.float64), initial, stages, result
-    )
+    center = np.asarray(result.GetCenter(), dtype=np.float64)
+    if initial is None:
+        return AffineResult(affine_from_itk(result), center, start, stages, result)
+    # the composition as one matrix; its ITK form is built from it on first use (AffineResult.transform)
+    return AffineResult(start @ affine_from_itk(result), center, start, stages)

@@ -11,7 +11,9 @@ MONAI's ``GlobalMutualInformationLoss`` is too slow for an optimiser's inner loo
 The method, stage by stage as ``antsRegistration -t Rigid -t Affine`` (and the ITK backend) runs it:
 
 - **initialisation** (``"moments"``): the intensity centres of mass matched (ITK's ``CenteredTransformInitializer``
-  in moments mode); ``"geometry"``: the grid centres;
+  in moments mode); ``"geometry"``: the grid centres; or a given ``initial`` transform (an earlier registration's,
+  ``--initial-transform``), which both stages then refine by a map of the fixed space, ``A = initial o S``: what
+  ``antsRegistration -r`` does (its composite transform applies the stage's transform to a fixed point first);
 - **pyramid**: per level, both images averaged over blocks of about the level's voxel size (the fixed grid's
   times the shrink factor) and smoothed by ``smoothing_sigmas_mm`` (in mm, per axis of each grid);
   ``sampling_percentage`` of the fixed level's voxels are drawn once per level with a seeded generator (``seed``):
@@ -260,15 +262,19 @@ def _optimise(
 
 
 def register_affine_torch(
-    fixed: Volume, moving: Volume, settings: AffineSettings, samples: FixedSamples | None = None
+    fixed: Volume,
+    moving: Volume,
+    settings: AffineSettings,
+    samples: FixedSamples | None = None,
+    initial: np.ndarray | None = None,
 ) -> AffineResult:
     """Rigid then affine registration of ``moving`` to ``fixed`` (module docstring). Returns the fixed -> moving
     transform; the ITK transform in the result is an ``AffineTransform`` centred on the fixed image's centre.
-    ``samples``: :func:`fixed_samples` of ``fixed`` and ``settings`` when the caller has them (a batch), else made."""
+    ``samples``: :func:`fixed_samples` of ``fixed`` and ``settings`` when the caller has them (a batch), else made.
+    ``initial`` (4, 4), fixed LPS -> moving LPS: start from it instead of the centres (module docstring)."""
     samples = samples if samples is not None else fixed_samples(fixed, settings)
     fixed_centre = samples.centre
     moving_image = _scaled(moving)
-    moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, settings.initializer == "moments"))
     radius = float(np.mean(np.asarray(fixed.shape) * fixed.spacing)) / 2  # mm: 1 unit of rotation = 1 mm there
     levels = [
         _Level(points, bins, level_mm, moving, moving_image, float(sigma), settings.histogram_bins)
@@ -277,10 +283,23 @@ def register_affine_torch(
         )
     ]
 
-    def matrix_of(linear: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-        # A(p) = L (p - c_fixed) + c_moving + t
-        top = torch.cat([linear, (moving_centre + translation - linear @ fixed_centre)[:, None]], dim=1)
-        return torch.cat([top, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)], dim=0)
+    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)
+    if initial is None:
+        moving_centre = torch.from_numpy(_centre(moving_image, moving.index_to_lps, settings.initializer == "moments"))
+
+        def matrix_of(linear: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+            # A(p) = L (p - c_fixed) + c_moving + t
+            top = torch.cat([linear, (moving_centre + translation - linear @ fixed_centre)[:, None]], dim=1)
+            return torch.cat([top, bottom], dim=0)
+
+    else:
+        start = torch.from_numpy(np.asarray(initial, dtype=np.float64).copy())
+
+        def matrix_of(linear: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+            # A(p) = initial(L (p - c_fixed) + c_fixed + t): the same parameters, a map of the fixed space composed
+            # before the initial transform (the identity at 0, so the stages start exactly at it)
+            top = torch.cat([linear, (fixed_centre + translation - linear @ fixed_centre)[:, None]], dim=1)
+            return start @ torch.cat([top, bottom], dim=0)
 
     def rigid_matrix(p: torch.Tensor) -> torch.Tensor:
         return matrix_of(rotation_matrix(p[:3] / radius), p[3:])

@@ -15,6 +15,8 @@ the output (reference) grid, LPS mm, to the point of the input (moving) image th
   ``AffineTransform_*_3_3`` and ``MatrixOffsetTransformBase_*_3_3`` (what ANTs and most converters write, and a
   type ITK's Python wrapping cannot create) are read here; other linear ITK types (``Euler3DTransform``,
   ``VersorRigid3DTransform``, ...) through ``itk.transformread``, which loads ITK's transform modules (seconds).
+  The same reader serves ``monai-probreg register --initial-transform`` (:func:`read_initial_transform`: an affine
+  file only, invertible), whose transform is ``affine.tfm``'s: fixed point -> moving point.
 - **sampling** (:mod:`monai_probreg.spatial.point_sampling`): linear, or nearest neighbour with ITK's rounding
   (half up); 0 outside the moving image.
 """
@@ -37,10 +39,13 @@ from monai_probreg.utils.errors import InputError, first_line
 __all__ = [
     "AFFINE_SUFFIXES",
     "SAME_GRID_VOXELS",
+    "AffineFile",
     "FileTransform",
     "Resampled",
     "read_transform",
+    "read_affine",
     "read_affine_file",
+    "read_initial_transform",
     "field_on_grid",
     "resample_through",
 ]
@@ -48,6 +53,8 @@ __all__ = [
 AFFINE_SUFFIXES = (".tfm", ".txt", ".mat")
 SAME_GRID_VOXELS = 1e-3  # a reference voxel this close to a field voxel reads that voxel (NIfTI's float32 headers)
 _MATRIX_OFFSET = re.compile(r"(AffineTransform|MatrixOffsetTransformBase)_(double|float)_3_3")
+_DIMENSIONS = re.compile(r"_(\d+)_(\d+)$")  # ITK's type names end in _<input dimension>_<output dimension>
+LINEAR = "one linear 3-D transform (matrix and offset)"  # what an affine file must hold
 _MATLAB_TYPES = {0: "f8", 1: "f4", 2: "i4", 3: "i2", 4: "u2", 5: "u1"}  # MATLAB v4 "P" digit -> numpy
 
 
@@ -57,6 +64,15 @@ class FileTransform(NamedTuple):
     path: str
     field: Volume | None = None
     matrix: np.ndarray | None = None
+
+
+class AffineFile(NamedTuple):
+    """One linear transform read from a file: ``matrix`` (4, 4) LPS, output point -> input point; ``center``: its
+    ITK centre (``FixedParameters``, LPS mm; the map does not depend on it, but writing it back keeps the file's
+    parameters)."""
+
+    matrix: np.ndarray
+    center: np.ndarray
 
 
 class Resampled(NamedTuple):
@@ -70,19 +86,51 @@ class Resampled(NamedTuple):
 def read_transform(path: str | os.PathLike, role: str = "transform") -> FileTransform:
     """An affine file (:data:`AFFINE_SUFFIXES`) or a displacement field (any image format ITK reads)."""
     if Path(path).name.lower().endswith(AFFINE_SUFFIXES):
-        return FileTransform(str(path), matrix=read_affine_file(path, role))
+        return FileTransform(str(path), matrix=read_affine(path, role, f"a displacement field or {LINEAR}").matrix)
     return FileTransform(str(path), field=read_field(path, role))
 
 
 def read_affine_file(path: str | os.PathLike, role: str = "transform") -> np.ndarray:
     """One linear transform from an ITK text (``.tfm``, ``.txt``) or MATLAB (``.mat``) file -> (4, 4) LPS matrix,
     output point -> input point (module docstring). InputError (one line) for anything else."""
-    path = Path(path)
+    return read_affine(path, role).matrix
+
+
+def read_initial_transform(path: str | os.PathLike, role: str = "--initial-transform") -> AffineFile:
+    """The affine of an earlier registration, fixed LPS -> moving LPS (ITK's and ANTs' convention, ``affine.tfm``'s):
+    an affine file (:data:`AFFINE_SUFFIXES`) holding one invertible linear 3-D transform. InputError (one line)
+    otherwise: a displacement field is refused by its name before it is read (the affine stage takes a matrix)."""
     where = f"{role} {str(path)!r}"
+    _check_file(Path(path), where)
+    if not Path(path).name.lower().endswith(AFFINE_SUFFIXES):
+        raise InputError(
+            f"{where}: expected an affine transform file ({', '.join(AFFINE_SUFFIXES)}), got another kind of file "
+            "(an image such as a displacement field cannot start or replace the affine stage)"
+        )
+    affine = read_affine(path, role)
+    linear = affine.matrix[:3, :3]
+    # numpy's rank tolerance (the largest singular value x 3 x float64's epsilon): singular to working precision
+    if np.linalg.matrix_rank(linear) < len(linear):
+        raise InputError(
+            f"{where}: expected an invertible matrix, got a singular one (determinant {np.linalg.det(linear):.3g}: "
+            "it maps the fixed image onto a plane, a line or a point)"
+        )
+    return affine
+
+
+def _check_file(path: Path, where: str) -> None:
     if not path.exists():
         raise InputError(f"{where}: no such file")
     if not path.is_file():
         raise InputError(f"{where}: is a folder, not a transform file")
+
+
+def read_affine(path: str | os.PathLike, role: str = "transform", expected: str = LINEAR) -> AffineFile:
+    """One linear transform from an ITK text (``.tfm``, ``.txt``) or MATLAB (``.mat``) file, with its centre
+    (module docstring). InputError (one line) for anything else, saying the file should hold ``expected``."""
+    path = Path(path)
+    where = f"{role} {str(path)!r}"
+    _check_file(path, where)
     try:
         data = path.read_bytes()
     except OSError as err:
@@ -91,8 +139,13 @@ def read_affine_file(path: str | os.PathLike, role: str = "transform") -> np.nda
         name, parameters, fixed = _matlab_transform(data) if path.suffix.lower() == ".mat" else _text_transform(data)
     except ValueError as err:
         raise InputError(f"{where}: not an ITK/ANTs transform file: {err}") from None
+    dimensions = _DIMENSIONS.search(name)
+    if dimensions is not None and dimensions.groups() != ("3", "3"):  # refused here, without loading ITK (seconds)
+        source, target = dimensions.groups()
+        kind = f"{source}-D" if source == target else f"{source}-D to {target}-D"
+        raise InputError(f"{where}: expected {expected}, got a {kind} transform ({name})")
     if not _MATRIX_OFFSET.fullmatch(name):
-        return _itk_affine(path, where, name)
+        return _itk_affine(path, where, name, expected)
     if parameters.size != 12 or fixed.size != 3:
         raise InputError(
             f"{where}: expected 12 parameters and 3 fixed parameters (the centre) for {name}, got "
@@ -104,7 +157,7 @@ def read_affine_file(path: str | os.PathLike, role: str = "transform") -> np.nda
     matrix = np.eye(4)
     matrix[:3, :3] = linear
     matrix[:3, 3] = translation + fixed - linear @ fixed  # M (p - c) + c + t
-    return matrix
+    return AffineFile(matrix, fixed.copy())
 
 
 def _text_transform(data: bytes) -> tuple[str, np.ndarray, np.ndarray]:
@@ -165,7 +218,7 @@ def _matlab_transform(data: bytes) -> tuple[str, np.ndarray, np.ndarray]:
     return names[0], records[names[0]], records.get("fixed", np.zeros(0))
 
 
-def _itk_affine(path: Path, where: str, name: str) -> np.ndarray:
+def _itk_affine(path: Path, where: str, name: str, expected: str) -> AffineFile:
     """A linear ITK transform of another type (Euler, versor, similarity...) read by ITK itself."""
     import itk
 
@@ -182,10 +235,9 @@ def _itk_affine(path: Path, where: str, name: str) -> np.ndarray:
         or transform.GetInputSpaceDimension() != 3
         or transform.GetOutputSpaceDimension() != 3
     ):
-        raise InputError(
-            f"{where}: expected a displacement field or one linear 3-D transform (matrix and offset), got {name}"
-        )
-    return affine_from_itk(transform)
+        raise InputError(f"{where}: expected {expected}, got {name}")
+    center = np.asarray(transform.GetCenter(), dtype=np.float64) if hasattr(transform, "GetCenter") else np.zeros(3)
+    return AffineFile(affine_from_itk(transform), center)
 
 
 def _same_grid(field: Volume, shape: tuple[int, ...], index_to_lps: np.ndarray) -> bool:

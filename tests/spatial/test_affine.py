@@ -73,6 +73,40 @@ def test_rigid_only_is_a_rotation_and_is_deterministic(case, backend):
     assert _errors(first.matrix, truth, brain).mean() < 0.3
 
 
+# an earlier registration's answer, a little off: the truth after 3 degrees and 2 mm more (fixed space first, as the
+# stages compose it)
+NEAR_TRUTH_ANGLES_DEG, NEAR_TRUTH_SHIFT_MM = [3.0, -2.0, 2.5], [2.0, -1.0, 1.5]
+
+
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
+def test_stages_start_from_an_initial_transform(case, backend):
+    """``initial`` (``--initial-transform``'s start): the stages begin exactly at it (``result.initial``) and refine
+    it to the truth, as from the initializer; the same result every run."""
+    fixed, moving, truth, brain = case
+    centre = brain.mean(0)
+    initial = truth @ rigid_matrix(NEAR_TRUTH_ANGLES_DEG, NEAR_TRUTH_SHIFT_MM, centre)
+    assert _errors(initial, truth, brain).mean() > 1.5  # far enough for the stages to have work to do
+    result = align(fixed, moving, BACKENDS[backend], initial=initial)
+    np.testing.assert_array_equal(result.initial, initial)
+    errors = _errors(result.matrix, truth, brain)
+    assert errors.mean() < 0.4 and errors.max() < 0.8
+    assert [s.name for s in result.stages] == ["rigid", "affine"]
+    np.testing.assert_allclose(
+        np.asarray(result.transform.TransformPoint(brain[0].tolist())), apply_affine(result.matrix, brain[0]), atol=1e-9
+    )
+    np.testing.assert_array_equal(align(fixed, moving, BACKENDS[backend], initial=initial).matrix, result.matrix)
+
+
+def test_torch_stages_without_iterations_return_the_initial_transform_exactly(case):
+    """The stages' parameters are a map of the fixed space composed before the initial transform, the identity at 0:
+    with no iterations the result is the initial transform itself, to the bit (a scaling and shear included)."""
+    fixed, moving, truth, _ = case
+    initial = truth.copy()
+    initial[:3, :3] = initial[:3, :3] @ np.array([[1.05, 0.02, 0.0], [0.0, 0.97, 0.01], [0.0, 0.0, 1.02]])
+    idle = AffineSettings(**{**FAST_TORCH.as_dict(), "rigid_iterations": (0, 0), "affine_iterations": (0, 0)})
+    np.testing.assert_array_equal(align(fixed, moving, idle, initial=initial).matrix, initial)
+
+
 def test_rotation_angle():
     assert rotation_angle_deg(rigid_matrix([0.0, 0.0, 30.0], [1.0, 2.0, 3.0], [0.0, 0.0, 0.0])) == pytest.approx(30.0)
 

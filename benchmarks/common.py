@@ -72,7 +72,8 @@ def run_command(subcommand: str, *args: str) -> tuple[subprocess.CompletedProces
 # ------------------------------------------------------------------------------------------------ configs
 def bundle_parser(bundle_root: Path, names: Sequence[str], overrides: dict[str, Any] | None = None) -> ConfigParser:
     """The package's :func:`monai_probreg.fitting.stages.bundle_parser` (imported here, when called): the bundle's
-    ``configs/<names>`` merged, ``bundle_root`` and each ``overrides`` key set, as ``monai.bundle run`` does."""
+    ``configs/<names>`` merged, each overlay on top of its base (evaluate.yaml over inference.yaml), ``bundle_root``
+    and each ``overrides`` key set, as ``monai.bundle run`` does."""
     from monai_probreg.fitting.stages import bundle_parser as parser
 
     return parser(bundle_root, names, overrides)

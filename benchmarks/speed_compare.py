@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, parse_overrides
+from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, bundle_parser, parse_overrides
 
 HERE = Path(__file__).resolve().parent
 PAPER_SIZE = [160, 192, 224]
@@ -62,19 +62,14 @@ def prepare_pairs(
     dataset_dir: Path, subjects: Sequence[str] | None, num_pairs: int, size: Sequence[int], bundle_root: Path
 ) -> tuple[list[dict], list[int]]:
     """evaluate.yaml-preprocessed pairs padded/cropped to ``size``: dicts of (1, 1, *size) tensors; native grid."""
-    from monai.bundle import ConfigParser
     from monai.data import Dataset
     from monai.transforms import ResizeWithPadOrCrop
 
     from monai_probreg.data.dataset import index_dataset, labelled_pairs
 
-    config = ConfigParser()
-    config.read_config(str(bundle_root / "configs" / "evaluate.yaml"))
-    config["bundle_root"], config["dataset_dir"] = str(bundle_root), str(dataset_dir)
+    config = bundle_parser(bundle_root, ["evaluate.yaml"], {"dataset_dir": str(dataset_dir)})
     if subjects is None:
-        train = ConfigParser()
-        train.read_config(str(bundle_root / "configs" / "train.yaml"))
-        subjects = list(train["val_ids"])[:num_pairs]
+        subjects = list(bundle_parser(bundle_root, ["train.yaml"])["val_ids"])[:num_pairs]
     dataset = Dataset(labelled_pairs(index_dataset(dataset_dir), subjects), config.get_parsed_content("preprocessing"))
     pad_or_crop = ResizeWithPadOrCrop(spatial_size=list(size))
     pairs, native = [], None

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from common import ants_register
+from common import ants_register, bundle_parser
 
 METHODS = ("ours_mean", "ours_mean_no_reuse", "ours_samples", "ours_trained", "voxelmorph", "ants")
 REUSES_MEMORY = ("ours_mean", "ours_samples", "ours_trained")  # as monai-probreg and the bundle run them
@@ -112,19 +112,13 @@ def _network(
 ) -> torch.nn.Module:
     """``paper``: an untrained ProbRegNet whose UNet runs on the input grid (the paper's setting); ``trained``: the
     configs' network (evaluate.yaml, with ``overrides``) and weights, its network grid scaled with the input."""
-    from monai.bundle import ConfigParser
-
     from monai_probreg import ProbRegNet
     from monai_probreg.weights.loading import load_weights
 
     if kind == "paper":
         torch.manual_seed(0)
         return ProbRegNet().eval()
-    parser = ConfigParser()
-    parser.read_config(str(bundle_root / "configs" / "evaluate.yaml"))
-    parser["bundle_root"] = str(bundle_root)
-    for key, value in overrides.items():
-        parser[key] = value
+    parser = bundle_parser(bundle_root, ["evaluate.yaml"], overrides)
     trained_on, divisor = parser["network_size"], parser["divisor"]  # network grid for the native grid
     network = load_weights(parser.get_parsed_content("network_def"), parser.get_parsed_content("model_file"))
     # Loaded with the trained grid (the settings check next to the weights passes), then the grid is scaled with the

@@ -73,7 +73,7 @@ from monai_probreg.metrics.calibration import (
     spearman,
     uncertainty_calibration_error,
 )
-from monai_probreg.uncertainty.calibration import FIT_LEVELS, Calibration, calibrate_log_var
+from monai_probreg.uncertainty.calibration import FIT_LEVELS, POSTERIOR_SAMPLES, Calibration, calibrate_log_var
 from monai_probreg.uncertainty.entropy import label_entropy, velocity_entropy
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
@@ -184,7 +184,7 @@ def validation_arguments(description: str) -> argparse.ArgumentParser:
     ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
     ap.add_argument("--model-file", type=Path, default=None, help="weights (default: evaluate.yaml's model_file)")
     ap.add_argument("--subjects", nargs="+", default=None, help="default: val_ids of configs/train.yaml")
-    ap.add_argument("--samples", type=int, default=16, help="posterior samples K")
+    ap.add_argument("--samples", type=int, default=POSTERIOR_SAMPLES, help="posterior samples K")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)

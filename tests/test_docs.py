@@ -235,3 +235,32 @@ def test_ci_run_reads_the_same_command():
         pytest.skip("no awk")
     out = subprocess.run([awk, program.group(1), str(README)], capture_output=True, text=True, timeout=30, check=True)
     assert out.stdout.strip() == ci_command_as_ci_run_reads_it(README.read_text(encoding="utf-8"))
+
+
+# --- bundle command lines ------------------------------------------------------------------------------------------
+CONFIG_FILE_ARG = re.compile(r"--config_file\s+(\"\[[^\]\n]*\]\"|'\[[^\]\n]*\]'|\S+)")
+COMMAND_SOURCES = [
+    *LINKED_DOCS,
+    *sorted((ROOT / "bundle" / "configs").glob("*.yaml")),
+    *sorted((ROOT / "monai_probreg").rglob("*.py")),
+    *sorted((ROOT / "benchmarks").glob("*.py")),
+    *sorted((ROOT / "experiments").glob("*.py")),
+]
+
+
+def test_documented_bundle_commands_read_each_overlay_after_its_base():
+    """evaluate.yaml holds only what differs from inference.yaml: every documented ``--config_file`` naming it
+    passes inference.yaml before it (monai_probreg.fitting.stages.OVERLAY_BASES)."""
+    from monai_probreg.fitting.stages import OVERLAY_BASES
+
+    checked, wrong = 0, []
+    for path in COMMAND_SOURCES:
+        for match in CONFIG_FILE_ARG.finditer(path.read_text(encoding="utf-8")):
+            names = re.findall(r"([\w-]+\.yaml)\b", match.group(1))
+            for overlay, base in OVERLAY_BASES.items():
+                if overlay in names:
+                    checked += 1
+                    if base not in names or names.index(base) > names.index(overlay):
+                        wrong.append(f"{_rel(path)}: --config_file {match.group(1)}")
+    assert checked, "no documented command line runs an overlay: update this test"
+    assert not wrong, wrong

@@ -28,13 +28,14 @@ from monai_probreg.cli.pipeline import FixedSpace, Registered, RegistrationOptio
 from monai_probreg.data.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.metrics.recovery import displacement_recovery
 from monai_probreg.spatial.affine import AffineSettings
+from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
 __all__ = ["DEMO_SAMPLES", "demo_report", "run_demo"]
 
-# posterior samples the demo draws unless --samples says otherwise (>= 2 for the coverage): as many as the shipped
-# calibration was fitted with (its sidecar's num_samples; a test ties them). A std from fewer samples is noisier and
-# its intervals cover less (benchmarks/demo_recovery.py --samples measures it)
-DEMO_SAMPLES = 16
+# posterior samples the demo draws unless --samples says otherwise (>= 2 for the coverage): as many as the
+# calibration is fitted with (POSTERIOR_SAMPLES). A std from fewer samples is noisier and its intervals cover less
+# (benchmarks/demo_recovery.py --samples measures it)
+DEMO_SAMPLES = POSTERIOR_SAMPLES
 
 COVERAGE_LEVEL = 0.95  # the calibrated interval whose coverage the demo reports
 

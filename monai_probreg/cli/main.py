@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import sys
 import time
@@ -166,6 +167,15 @@ def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
         "about 5 s for the demo on a 2-core CPU); default: the config's refine_iterations (20: on); 0 = the "
         "network alone",
     )
+    reg.add_argument(
+        "--smoothness",
+        type=float,
+        default=None,
+        metavar="S",
+        help="multiply the refinement's smoothness prior (the config's refine_prior_lambda) by S: above 1 a smoother "
+        "warp, below 1 a sharper one that follows the images more closely (docs/cli.md, its effect on LPBA40); "
+        "default 1; needs the refinement (not --refine 0)",
+    )
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     reg.add_argument(
         "--no-inverse",
@@ -273,6 +283,7 @@ def _add_masks(reg: argparse._ArgumentGroup, batch: bool = False) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from monai_probreg.cli.apply import add_apply_parser
+    from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
     parser = argparse.ArgumentParser(
         prog="monai-probreg", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -320,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
         "and print how well the known transform was recovered: the displacement error in mm "
         "inside the brain before and after, and the coverage of the calibrated 95% interval. "
         "Outputs in DIR as register's, plus subject.nii.gz and true_warp.nii.gz; the scores in "
-        'DIR/summary.json["demo"]. --samples defaults to 16 here (as many as the shipped calibration was '
+        f'DIR/summary.json["demo"]. --samples defaults to {POSTERIOR_SAMPLES} here (as many as the calibration is '
         "fitted with).\n\n" + DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -411,6 +422,10 @@ def _options(args: argparse.Namespace):
         raise InputError(f"--brain-mask-margin must be >= 0 mm; got {args.brain_mask_margin}")
     if args.refine is not None and args.refine < 0:
         raise InputError(f"--refine must be >= 0 optimiser steps (0 = off); got {args.refine}")
+    if args.smoothness is not None and not (math.isfinite(args.smoothness) and args.smoothness > 0):
+        raise InputError(f"--smoothness must be a number > 0 (1: the shipped prior); got {args.smoothness}")
+    if args.smoothness is not None and args.refine == 0:
+        raise InputError("--smoothness scales the refinement's prior: expected refinement on, got --refine 0")
     initial = _initial_transform(args)
     affine = None
     if _affine_stage_runs(args):
@@ -513,19 +528,29 @@ def _setup(args: argparse.Namespace):
     return model, fixed
 
 
-def _with_refinement(options, model, iterations: int | None):
-    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps when given; without it the
-    options keep ``refinement=None``, which ``register_scan`` reads as the config's."""
+def _with_refinement(options, model, iterations: int | None, smoothness: float | None = None):
+    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps and ``--smoothness S`` (the
+    prior's ``prior_lambda`` times S) when given; without either the options keep ``refinement=None``, which
+    ``register_scan`` reads as the config's."""
     import dataclasses
 
     from monai_probreg.utils.errors import InputError
 
-    if iterations is None:
+    if iterations is None and smoothness is None:
         return options
-    try:
-        refinement = model.refinement.with_fields(num_iterations=iterations)
-    except ValueError as err:
-        raise InputError(f"--refine: {err}") from None
+    refinement = model.refinement
+    if iterations is not None:
+        try:
+            refinement = refinement.with_fields(num_iterations=iterations)
+        except ValueError as err:
+            raise InputError(f"--refine: {err}") from None
+    if smoothness is not None:
+        if not refinement.enabled:  # the config's refinement is off and --refine did not turn it on
+            raise InputError(
+                "--smoothness scales the refinement's prior: expected refinement on (the config's "
+                "refine_iterations or --refine N), got 0 steps"
+            )
+        refinement = refinement.with_fields(prior_lambda=refinement.prior_lambda * smoothness)
     return dataclasses.replace(options, refinement=refinement)
 
 
@@ -578,7 +603,7 @@ def _register(args: argparse.Namespace) -> int:
     check_output_dir(args.out, args.overwrite)  # fail before loading anything
     start = time.perf_counter()
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine)
+    options = _with_refinement(options, model, args.refine, args.smoothness)
     _say(args, f"model and fixed image ready in {time.perf_counter() - start:.1f} s")
     summary = register_scan(
         model,
@@ -605,7 +630,7 @@ def _demo(args: argparse.Namespace) -> int:
     check_output_dir(args.out, args.overwrite)
     start = time.perf_counter()
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine)
+    options = _with_refinement(options, model, args.refine, args.smoothness)
     _say(args, f"model and template ready in {time.perf_counter() - start:.1f} s")
     summary = run_demo(
         model,
@@ -635,7 +660,7 @@ def _register_batch(args: argparse.Namespace) -> int:
     for item in items:  # fail fast on what is cheap to check and would hit every scan
         check_output_dir(out / item.name, args.overwrite)
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine)
+    options = _with_refinement(options, model, args.refine, args.smoothness)
     per_scan = args.initial_transform is not None and Path(args.initial_transform).is_dir()
     rows = register_batch(
         model,

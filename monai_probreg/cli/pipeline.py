@@ -46,6 +46,7 @@ import torch
 from monai.networks.utils import eval_mode
 
 import monai_probreg
+from monai_probreg.cli.compose import affine_resample, forward_outputs, inverse_outputs
 from monai_probreg.cli.model import LoadedModel
 from monai_probreg.cli.output_dir import (
     OUTPUTS_README,
@@ -69,14 +70,7 @@ from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM, dilated_mask, fi
 from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.masks import MASK_LEVEL, mask_record, read_mask
 from monai_probreg.spatial.model_grid import ModelGrid
-from monai_probreg.spatial.physical import (
-    compose_forward,
-    compose_inverse,
-    grid_points,
-    mapped_index,
-    voxel_to_mm,
-)
-from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
+from monai_probreg.spatial.physical import grid_points
 from monai_probreg.spatial.transform_files import read_initial_transform
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
 from monai_probreg.uncertainty.calibration import Calibration
@@ -283,9 +277,7 @@ def _numpy(t: torch.Tensor) -> np.ndarray:
 
 
 def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
-    per_label = label_dice(
-        torch.from_numpy(warped.astype(np.int64)), torch.from_numpy(fixed.array.astype(np.int64)), ids
-    )
+    per_label = label_dice(torch.from_numpy(warped), torch.from_numpy(fixed.array), ids)  # read in chunks, no copy
     mean = mean_dice(per_label)
     return {
         "mean": None if math.isnan(mean) else mean,  # JSON has no NaN: null
@@ -479,43 +471,28 @@ def _compose(
     moving_label: Volume | None,
     affine: np.ndarray,
     model_maps: _ModelMaps,
-    affine_index: np.ndarray,
     inverse: bool,
 ) -> _Composed:
-    """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice.
-    ``affine_index``: the fixed grid's continuous index in the moving grid through the affine alone (the resample
-    stage's). The fields are float32, the precision of their files, and the scan and labels are sampled at
-    ``p + D(p)`` with that float32 ``D``: exactly where ITK's resampling through ``warp.nii.gz`` samples them."""
-    grid, image = fixed.grid, fixed.image
-    warp = compose_forward(
-        grid.to_fixed(voxel_to_mm(model_maps.displacement, grid.index_to_lps)), image.index_to_lps, affine
-    ).astype(np.float32)
-    warped_index = mapped_index(image.shape, image.index_to_lps, moving.index_to_lps, field=warp)
+    """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice
+    (:mod:`monai_probreg.cli.compose`, slab by slab). ``model_maps.inverse`` is consumed: set to None once read, so
+    that the model grid's inverse (200 MB at 256^3) is not held beside the composed one."""
+    grid = fixed.grid
+    forward = forward_outputs(grid, fixed.image, moving, moving_label, affine, model_maps.displacement)
     maps = {
-        "warped": sample_linear(moving, None, index=warped_index),
+        "warped": forward.warped,
         "jacobian": grid.to_fixed(model_maps.jacobian),
         "entropy": grid.to_fixed(model_maps.entropy),
     }
     if model_maps.std is not None:
         maps["displacement_std"] = grid.to_fixed(model_maps.std)
-    labels: dict[str, np.ndarray] = {}
-    if moving_label is not None:
-        labels["warped_label"] = sample_nearest(moving_label, None, index=warped_index)
-        labels["affine_label"] = sample_nearest(moving_label, None, index=affine_index)  # Dice and QC, not written
+    labels = dict(forward.labels)
     inverse_warp = None
     if inverse:
-        inverse_warp = compose_inverse(
-            Volume(voxel_to_mm(model_maps.inverse, grid.index_to_lps), grid.index_to_lps),
-            affine,
-            moving.shape,
-            moving.index_to_lps,
-        )
-        if fixed.label is not None:  # q + D_inv(q) for every voxel q of the moving grid, in the fixed label grid
-            labels["fixed_label_in_moving"] = sample_nearest(
-                fixed.label,
-                None,
-                index=mapped_index(moving.shape, moving.index_to_lps, fixed.label.index_to_lps, field=inverse_warp),
-            )
+        backward = inverse_outputs(grid, model_maps.inverse, affine, moving, fixed.label)
+        model_maps.inverse = None
+        inverse_warp = backward.warp
+        if backward.fixed_label is not None:
+            labels["fixed_label_in_moving"] = backward.fixed_label
     dice = None
     if moving_label is not None and fixed.label is not None:
         # the structures both label maps have (a moving map of another protocol, e.g. LPBA40's 48 cortical labels
@@ -530,7 +507,7 @@ def _compose(
                 labels="the non-zero labels of both label maps",
                 num_fixed_only_labels=len(fixed.label_ids) - len(ids),
             )
-    return _Composed(warp, inverse_warp, maps, labels, dice)
+    return _Composed(forward.warp, inverse_warp, maps, labels, dice)
 
 
 _MAP_FILES = ("jacobian", "entropy", "displacement_std")  # left out by RegistrationOptions.maps = False
@@ -554,7 +531,7 @@ class Registered(NamedTuple):
 
 
 def _model_grid_masks(
-    fixed: FixedSpace, moving_mask: Volume | None, affine_index: np.ndarray
+    fixed: FixedSpace, moving_mask: Volume | None, affine: np.ndarray
 ) -> tuple[np.ndarray | None, np.ndarray | None] | None:
     """The refinement's masks on the model grid, float32 0/1 (:class:`~monai_probreg.engines.refinement.RefinementMasks`
     as arrays), or None without any: the fixed mask re-indexed (exact; the padding outside), the moving mask carried
@@ -566,7 +543,9 @@ def _model_grid_masks(
     fixed_part = None if fixed.mask is None else grid.to_model(fixed.mask.array.astype(np.float32))
     moving_part = None
     if moving_mask is not None:
-        on_fixed = sample_linear(moving_mask.with_array(moving_mask.array.astype(np.float32)), None, index=affine_index)
+        on_fixed = affine_resample(
+            moving_mask.with_array(moving_mask.array.astype(np.float32)), fixed.image, affine, 0.0
+        )
         moving_part = grid.to_model((on_fixed >= MASK_LEVEL).astype(np.float32))
     return fixed_part, moving_part
 
@@ -609,7 +588,9 @@ def _writers(
                 (
                     array.size,
                     functools.partial(
-                        write_volume, stage / f"{name}.nii.gz", fixed.image.with_array(array.astype(np.float32))
+                        write_volume,
+                        stage / f"{name}.nii.gz",
+                        fixed.image.with_array(array.astype(np.float32, copy=False)),
                     ),
                 )
             )
@@ -725,21 +706,22 @@ def register_scan(
                 moving_mask,
             )
     with _timed(timings, "resample", report):
-        affine_index = mapped_index(fixed.image.shape, fixed.image.index_to_lps, moving.index_to_lps, affine.matrix)
         background = float(moving.array.min())
-        moving_on_fixed = hide_outside(
-            sample_linear(moving, None, fill=background, index=affine_index), fixed.brain_mask, background
+        moving_on_fixed = affine_resample(moving, fixed.image, affine.matrix, background)
+        moving_input = fixed.grid.to_model(
+            normalise_intensity(hide_outside(moving_on_fixed, fixed.brain_mask, background))
         )
-        moving_input = fixed.grid.to_model(normalise_intensity(moving_on_fixed))
-        masks = _model_grid_masks(fixed, moving_mask, affine_index)
+        del moving_on_fixed
+        masks = _model_grid_masks(fixed, moving_mask, affine.matrix)
     model_maps = _run_model(model, moving_input, fixed.model_input, options, fixed.grid.spacing, timings, report, masks)
     quality = None
     if model.quality is not None:  # weights without a quality model: no stage, "quality": null
         with _timed(timings, "quality", report):
             quality = _quality(model, moving_input, fixed, model_maps)
+    model_maps.network = None  # read by the quality estimate only: its fields (about 300 MB at 256^3) go now
     warning = quality[1].warning if quality is not None else None
     with _timed(timings, "compose", report):
-        composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, affine_index, options.inverse)
+        composed = _compose(fixed, moving, moving_label, affine.matrix, model_maps, options.inverse)
         stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
     checked = check(_registered(fixed, affine, composed, model_maps)) if check is not None else {}
     with staged_output_dir(out, overwrite) as stage:

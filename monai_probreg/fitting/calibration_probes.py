@@ -37,7 +37,7 @@ from monai_probreg.fitting.population_probe import (
 )
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, SubjectCase, subject_case, subject_errors
 from monai_probreg.metrics.calibration import interval_coverage
-from monai_probreg.uncertainty.calibration import Calibration, fit_calibration
+from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration, fit_calibration
 from monai_probreg.utils.tensors import plain_tensor
 
 __all__ = [
@@ -69,7 +69,7 @@ class ProbeSettings(NamedTuple):
     (``reference``: "atlas", or "subject")."""
 
     deformations: int = 1
-    samples: int = 16
+    samples: int = POSTERIOR_SAMPLES
     seed: int = 0
     subject_probe: int = SUBJECT_PROBE_TEMPLATES
     probe: str = "population"

@@ -44,7 +44,7 @@ from monai_probreg.fitting.stages import (
     fit_quality_stage,
     write_sidecars,
 )
-from monai_probreg.uncertainty.calibration import calibration_for
+from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, calibration_for
 from monai_probreg.utils.errors import InputError, first_line
 
 __all__ = ["PROG", "build_parser", "main"]
@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--subjects", nargs="+", default=None, help="validation subjects (default: train.yaml's val_ids)")
     ap.add_argument("--train-subjects", type=int, default=DEFAULT_TRAIN_SUBJECTS, help="quality model: the first N")
     ap.add_argument("--deformations", type=int, default=DEFAULT_DEFORMATIONS, help="population probe: per subject")
-    ap.add_argument("--samples", type=int, default=16, help="posterior samples of the calibration")
+    ap.add_argument("--samples", type=int, default=POSTERIOR_SAMPLES, help="posterior samples of the calibration")
     ap.add_argument("--subject-probe", type=int, default=SUBJECT_PROBE_TEMPLATES, help="templates of the subject probe")
     ap.add_argument("--native-dir", type=Path, default=None, help="subjects with a scan here are left out of the "
                     "whole-command cases (default: <dataset-dir>-native, when there)")  # fmt: skip

@@ -1,10 +1,11 @@
 """The two fits of ``python -m monai_probreg.fitting``, each resumable from its log, and the sidecars they write.
 
-What a fit is fitted for is read from the bundle (:func:`bundle_setup`): the bundle's path (``configs/evaluate.yaml``:
-``network_def``, ``model_file``, ``preprocessing``, ``divisor``, ``refinement``) registers the population probe and the
-quality model's bundle-path cases; the command line's (``configs/inference.yaml``: its network and ``refinement``) the
-subject probe and the whole-command cases; ``configs/train.yaml``'s ``val_ids`` are the validation subjects, every
-other subject of the dataset trains.
+What a fit is fitted for is read from the bundle (:func:`bundle_setup`): the bundle's path (``configs/evaluate.yaml``
+over ``inference.yaml``: ``network_def``, ``model_file``, ``preprocessing``, ``divisor``, ``refinement``) registers the
+population probe and the quality model's bundle-path cases; the command line's (``configs/inference.yaml``: its
+network and ``refinement``) the subject probe and the whole-command cases; ``configs/train.yaml``'s ``val_ids`` are the
+validation subjects, every other subject of the dataset trains. :func:`bundle_parser` reads the configs, an overlay
+(evaluate.yaml) always on top of its base (:data:`OVERLAY_BASES`), as the documented command lines do.
 
 :func:`fit_calibration_stage` registers both calibration probes and fits the calibration on all their cases; its
 result is logged (``calibration.json`` in the work folder), so a run stopped later does not fit it again.
@@ -37,8 +38,10 @@ from monai_probreg.weights.loading import load_weights
 
 __all__ = [
     "CONFIGS",
+    "OVERLAY_BASES",
     "CALIBRATION_LOG",
     "QUALITY_LOG",
+    "config_files",
     "bundle_parser",
     "BundleSetup",
     "bundle_setup",
@@ -50,15 +53,33 @@ __all__ = [
 
 _LOG = logging.getLogger(__name__)
 CONFIGS = ("evaluate.yaml", "inference.yaml", "train.yaml")  # the configs a fit reads
+# overlay -> its base: the overlay holds only what differs, so it is read after its base, never alone (the base is the
+# one home of the defaults both use); the documented command lines pass both, base first
+OVERLAY_BASES = {"evaluate.yaml": "inference.yaml"}
 CALIBRATION_LOG, QUALITY_LOG = "calibration.json", "quality.json"  # in the work folder
 _FITTED = "fitted"  # the calibration log's one record
 
 
+def config_files(bundle_root: Path, names: Sequence[str]) -> list[Path]:
+    """``bundle_root/configs/<names>`` in the order ``monai.bundle run --config_file "[...]"`` must read them: each
+    overlay after its base (:data:`OVERLAY_BASES`, recursively), each file once, at its first place. The list to hand
+    to MONAI (``ConfigParser.read_config``, ``ConfigWorkflow(config_file=...)``) wherever a config may be an overlay."""
+    ordered: list[str] = []
+    for name in names:
+        chain = [name]
+        while chain[0] in OVERLAY_BASES:
+            chain.insert(0, OVERLAY_BASES[chain[0]])
+        ordered += [n for n in chain if n not in ordered]
+    return [Path(bundle_root) / "configs" / n for n in ordered]
+
+
 def bundle_parser(bundle_root: Path, names: Sequence[str], overrides: dict[str, Any] | None = None) -> ConfigParser:
-    """A ``monai.bundle.ConfigParser`` over ``bundle_root/configs/<names>`` (merged in order), with ``bundle_root``
-    set to ``bundle_root`` and each ``overrides`` key set after reading, as ``monai.bundle run --key value`` does."""
+    """A ``monai.bundle.ConfigParser`` over ``bundle_root/configs/<names>`` merged in order, each overlay read on top
+    of its base (:func:`config_files`: ``["evaluate.yaml"]`` reads inference.yaml, then evaluate.yaml), with
+    ``bundle_root`` set to ``bundle_root`` and each ``overrides`` key set after reading, as ``monai.bundle run --key
+    value`` does. The one way the package, the benchmarks and the tests read the bundle's configs."""
     parser = ConfigParser()
-    parser.read_config([str(bundle_root / "configs" / n) for n in names])
+    parser.read_config([str(f) for f in config_files(bundle_root, names)])
     parser["bundle_root"] = str(bundle_root)
     for key, value in (overrides or {}).items():
         parser[key] = value

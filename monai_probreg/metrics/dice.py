@@ -15,6 +15,8 @@ from torch import Tensor
 
 __all__ = ["label_dice", "mean_dice"]
 
+_CHUNK = 1 << 22  # voxels per histogram step
+
 
 def label_dice(pred: Tensor, target: Tensor, labels: Sequence[int] | None = None) -> dict[int, float]:
     """Dice per label. ``pred``, ``target``: integer maps of equal shape (any). ``labels``: which to score
@@ -24,8 +26,7 @@ def label_dice(pred: Tensor, target: Tensor, labels: Sequence[int] | None = None
     for name, t in (("pred", pred), ("target", target)):
         if t.is_floating_point() and not torch.equal(t, t.round()):
             raise ValueError(f"{name} must hold integer labels; got non-integer values")
-    p = pred.reshape(-1).long()
-    t = target.reshape(-1).long()
+    p, t = pred.reshape(-1), target.reshape(-1)
     if (p.numel() and min(int(p.min()), int(t.min())) < 0) or (labels is not None and min(labels, default=0) < 0):
         raise ValueError("label values must be >= 0 (0 = background); got negative values")
     if labels is None:
@@ -36,9 +37,14 @@ def label_dice(pred: Tensor, target: Tensor, labels: Sequence[int] | None = None
     lut_size = int(max(p.max().item(), t.max().item(), max(labels))) + 1
     lut = torch.zeros(lut_size, dtype=torch.long)
     lut[torch.tensor(labels)] = torch.arange(1, len(labels) + 1)  # 0 = any label not scored
-    p_idx, t_idx = lut[p], lut[t]
     n = len(labels) + 1
-    joint = torch.bincount(p_idx * n + t_idx, minlength=n * n).view(n, n).double()
+    # the joint histogram summed over chunks of voxels (exact counts): the int64 indices of a 256^3 map are
+    # 134 MB each, so the whole maps' would be several hundred MB
+    joint = torch.zeros(n * n, dtype=torch.long)
+    for start in range(0, p.numel(), _CHUNK):
+        p_idx, t_idx = lut[p[start : start + _CHUNK].long()], lut[t[start : start + _CHUNK].long()]
+        joint += torch.bincount(p_idx * n + t_idx, minlength=n * n)
+    joint = joint.view(n, n).double()
     inter = joint.diagonal()[1:]
     sizes = joint.sum(1)[1:] + joint.sum(0)[1:]
     dice = torch.where(sizes > 0, 2 * inter / sizes.clamp(min=1), torch.full_like(sizes, float("nan")))

@@ -8,6 +8,7 @@ central differences in the interior and one-sided differences at the borders, ex
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -16,8 +17,15 @@ from torch import Tensor
 __all__ = ["jacobian_determinant", "JacobianStats", "jacobian_stats"]
 
 
-def jacobian_determinant(ddf: Tensor) -> Tensor:
-    """det(I + grad u) per voxel. ``ddf`` (B, D, *S) in voxels, D in (2, 3), each axis >= 2 voxels -> (B, *S)."""
+SLAB_VOXELS = 1 << 21  # voxels per slab of a field that needs no gradient (below)
+
+
+def jacobian_determinant(ddf: Tensor, slab_voxels: int = SLAB_VOXELS) -> Tensor:
+    """det(I + grad u) per voxel. ``ddf`` (B, D, *S) in voxels, D in (2, 3), each axis >= 2 voxels -> (B, *S).
+
+    A field that needs no gradient is done in slabs of about ``slab_voxels`` voxels per item along its first spatial
+    axis, each with one row of its neighbours on either side (the central differences' reach): the same values as the
+    whole field at once, with the temporaries (3 gradients and the cofactor products, over 1 GB at 256^3) per slab."""
     spatial_dims = ddf.ndim - 2
     if spatial_dims not in (2, 3) or ddf.shape[1] != spatial_dims:
         raise ValueError(
@@ -25,6 +33,21 @@ def jacobian_determinant(ddf: Tensor) -> Tensor:
         )
     if min(ddf.shape[2:]) < 2:
         raise ValueError(f"every spatial axis needs >= 2 voxels for finite differences; got {tuple(ddf.shape[2:])}")
+    rows = ddf.shape[2]
+    slab = max(1, int(slab_voxels) // max(1, math.prod(ddf.shape[3:])))
+    if ddf.requires_grad or slab >= rows:
+        return _whole_determinant(ddf)
+    out = ddf.new_empty((ddf.shape[0], *ddf.shape[2:]))
+    for start in range(0, rows, slab):
+        stop = min(start + slab, rows)
+        lo, hi = max(start - 1, 0), min(stop + 1, rows)  # >= 2 rows: stop > start, and rows >= 2
+        out[:, start:stop] = _whole_determinant(ddf[:, :, lo:hi])[:, start - lo : stop - lo]
+    return out
+
+
+def _whole_determinant(ddf: Tensor) -> Tensor:
+    """:func:`jacobian_determinant` of the whole field at once (differentiable)."""
+    spatial_dims = ddf.ndim - 2
     grads = torch.gradient(ddf, dim=tuple(range(2, ddf.ndim)))  # grads[a][:, k] = d u_k / d x_a
     # J[k][a] = delta_ka + d u_k / d x_a as views of the gradients (+ 1 on the diagonal), not a stacked (B, D, D, *S)
     jac = [
@@ -62,5 +85,6 @@ def jacobian_stats(det: Tensor, mask: Tensor | None = None) -> JacobianStats:
         raise ValueError("no voxel to summarise (empty map or empty mask)")
     folding = int((values <= 0).sum())
     positive = values[values > 0]
-    std_log = float(torch.log(positive.double()).std(unbiased=False)) if positive.numel() > 0 else float("nan")
+    # log in place on the float64 copy: one copy of the map's size, not two (the same values)
+    std_log = float(positive.double().log_().std(unbiased=False)) if positive.numel() > 0 else float("nan")
     return JacobianStats(folding, 100.0 * folding / values.numel(), std_log)

@@ -82,7 +82,26 @@ class ModelGrid:
         """(*self.shape, ...) on the model grid -> (I, J, K, ...) on the fixed grid (the exact inverse)."""
         if tuple(array.shape[:3]) != self.shape:
             raise ValueError(f"expected an array on the model grid {self.shape}; got {tuple(array.shape)}")
-        return np.ascontiguousarray(self._reorient(array[self._crop()], self.inverse_ornt))
+        return self.block_to_fixed(array[self._crop()])
+
+    def block_of_rows(self, rows: slice) -> tuple[slice, slice, slice]:
+        """The model grid's block (a slice per axis) that holds the fixed grid's rows ``rows`` of its first axis (a
+        slab of :func:`~monai_probreg.spatial.physical.row_slabs`, step 1): a per-voxel computation on that block
+        then :meth:`block_to_fixed` give those rows of ``to_fixed`` of the computation on the whole model grid."""
+        start, stop, step = rows.indices(self.fixed_shape[0])
+        if step != 1:
+            raise ValueError(f"expected a slice of consecutive rows; got step {step}")
+        axis, flipped = int(self.ornt[0, 0]), self.ornt[0, 1] < 0  # where the fixed grid's first axis went
+        if flipped:
+            start, stop = self.fixed_shape[0] - stop, self.fixed_shape[0] - start
+        block = list(self._crop())
+        block[axis] = slice(self.pad_before[axis] + start, self.pad_before[axis] + stop)
+        return tuple(block)
+
+    def block_to_fixed(self, block: np.ndarray) -> np.ndarray:
+        """A block of the model grid cut by :meth:`block_of_rows` (or the whole cropped grid; any trailing channel
+        axes) -> the same voxels in the fixed grid's orientation (re-indexing only)."""
+        return np.ascontiguousarray(self._reorient(block, self.inverse_ornt))
 
     @staticmethod
     def _reorient(array: np.ndarray, ornt: np.ndarray) -> np.ndarray:

@@ -48,16 +48,37 @@ __all__ = [
     "mapped_index",
     "mm_to_voxel",
     "resample_with_itk",
+    "row_slabs",
     "voxel_to_mm",
 ]
 
+SLAB_VOXELS = 1 << 21  # voxels per slab of :func:`row_slabs`: a slab's (n, 3) float64 points stay near 50 MB
 
-def index_map(shape: tuple[int, ...], matrix: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+
+def row_slabs(shape: tuple[int, ...], voxels: int | None = None) -> list[slice]:
+    """Whole rows of a grid's first axis, about ``voxels`` (default :data:`SLAB_VOXELS`) voxels at a time (at least
+    one row per slab), in order: a whole-grid computation done per slab (:func:`index_map`'s ``first_row``) keeps its
+    (*S, 3) float64 point and index arrays slab-sized (a 256^3 grid's are 400 MB each)."""
+    voxels = SLAB_VOXELS if voxels is None else voxels
+    rows = max(1, int(voxels) // max(1, int(np.prod(shape[1:]))))
+    return [slice(start, min(start + rows, int(shape[0]))) for start in range(0, int(shape[0]), rows)]
+
+
+def index_map(
+    shape: tuple[int, ...], matrix: np.ndarray, offset: np.ndarray | None = None, first_row: int = 0
+) -> np.ndarray:
     """``matrix[:3] @ (i, j, k, 1)`` (+ ``offset[i, j, k]``) for every voxel index of a grid of ``shape``: (I, J, K, 3)
-    float64. Broadcast from three ``arange``s in torch (multi-threaded; no index array, no (N, 3) matmul)."""
+    float64. Broadcast from three ``arange``s in torch (multi-threaded; no index array, no (N, 3) matmul).
+
+    ``first_row``: ``shape`` is a slab of a larger grid, its rows ``first_row, first_row + 1, ...`` of the first axis
+    (:func:`row_slabs`): each value is computed from its own index exactly as in the whole grid's map (folding the
+    slab's start into the matrix's translation instead would round differently)."""
     m = torch.from_numpy(np.asarray(matrix, dtype=np.float64)[:3].copy())
+    starts = (int(first_row), 0, 0)
     axes = [
-        torch.arange(n, dtype=torch.float64).view([-1 if a == axis else 1 for a in range(3)])
+        torch.arange(starts[axis], starts[axis] + n, dtype=torch.float64).view(
+            [-1 if a == axis else 1 for a in range(3)]
+        )
         for axis, n in enumerate(shape)
     ]
     out = torch.empty((*shape, 3), dtype=torch.float64)
@@ -79,6 +100,7 @@ def mapped_index(
     target_index_to_lps: np.ndarray,
     affine: np.ndarray | None = None,
     field: np.ndarray | None = None,
+    first_row: int = 0,
 ) -> np.ndarray:
     """Where every voxel ``p`` of a grid lands in another: the continuous index, in the grid ``target_index_to_lps``,
     of ``A(p) + field(p)`` (I, J, K, 3) float64, ``A`` = ``affine`` (4, 4, default the identity), ``field`` (I, J, K, 3)
@@ -86,7 +108,9 @@ def mapped_index(
 
     Affine in the index apart from ``field``, so no point array is formed: ``T^-1 A G (i, j, k, 1) + T^-1 field``
     (``G``, ``T``: the two grids' index -> LPS matrices). ``field`` is used at the precision it is given: pass the
-    float32 field that is written, and the result is the index ITK's resampling through that file computes."""
+    float32 field that is written, and the result is the index ITK's resampling through that file computes.
+    ``first_row``: ``shape`` (and ``field``) are the slab of the grid from that row of its first axis on
+    (:func:`index_map`'s, :func:`row_slabs`): the same values as that slab of the whole grid's map."""
     target_inverse = np.linalg.inv(np.asarray(target_index_to_lps, dtype=np.float64))
     matrix = (
         target_inverse
@@ -97,7 +121,7 @@ def mapped_index(
     if field is not None:
         flat = torch.from_numpy(np.asarray(field)).to(torch.float64).reshape(-1, 3)
         offset = (flat @ torch.from_numpy(target_inverse[:3, :3].T.copy())).view(*shape, 3)
-    return index_map(shape, matrix, None if offset is None else offset.numpy())
+    return index_map(shape, matrix, None if offset is None else offset.numpy(), first_row)
 
 
 def voxel_to_mm(displacement: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray:
@@ -122,16 +146,20 @@ def apply_affine(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     return out.numpy().reshape(np.shape(points))
 
 
-def compose_forward(deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, affine: np.ndarray) -> np.ndarray:
+def compose_forward(
+    deformable_mm: np.ndarray, fixed_index_to_lps: np.ndarray, affine: np.ndarray, first_row: int = 0
+) -> np.ndarray:
     """Composed field on the fixed grid, ``D(p) = A(p + d(p)) - p`` (*S, 3) mm, float64 (module docstring, item 5).
 
-    ``deformable_mm``: ``d`` (*S, 3) on the fixed grid; ``affine``: ``A`` (4, 4), fixed LPS -> moving LPS.
+    ``deformable_mm``: ``d`` (*S, 3) on the fixed grid, or the slab of it from row ``first_row`` on (:func:`index_map`'s
+    ``first_row``); ``affine``: ``A`` (4, 4), fixed LPS -> moving LPS.
     With ``p = G (i, j, k, 1)``: ``D = (A G - G)(i, j, k, 1) + A_lin d``, so no point array is formed."""
     affine = np.asarray(affine, dtype=np.float64)
     grid = np.asarray(fixed_index_to_lps, dtype=np.float64)
     flat = torch.from_numpy(np.asarray(deformable_mm)).to(torch.float64).reshape(-1, 3)
     moved = flat @ torch.from_numpy(affine[:3, :3].T.copy())
-    return index_map(deformable_mm.shape[:3], affine @ grid - grid, moved.view(*deformable_mm.shape[:3], 3).numpy())
+    shape = deformable_mm.shape[:3]
+    return index_map(shape, affine @ grid - grid, moved.view(*shape, 3).numpy(), first_row)
 
 
 def compose_inverse(
@@ -165,11 +193,11 @@ def compose_inverse(
     out = torch.empty((*shape, 3), dtype=torch.float32)
     for start in range(0, shape[0], rows):
         slab = (min(rows, shape[0] - start), *shape[1:])
-        first_row = np.eye(4)
-        first_row[0, 3] = start  # slab index (r, j, k) -> moving index (start + r, j, k)
-        grid = torch.from_numpy(index_map(slab, normalise @ first_row)).float()
+        to_slab = np.eye(4)
+        to_slab[0, 3] = start  # slab index (r, j, k) -> moving index (start + r, j, k)
+        grid = torch.from_numpy(index_map(slab, normalise @ to_slab)).float()
         values = split_grid_sample(source, grid[None], mode="bilinear", padding_mode="border")[0]  # all threads
-        out[start : start + slab[0]] = values.permute(1, 2, 3, 0) + torch.from_numpy(index_map(slab, shift @ first_row))
+        out[start : start + slab[0]] = values.permute(1, 2, 3, 0) + torch.from_numpy(index_map(slab, shift @ to_slab))
     return out.numpy()
 
 

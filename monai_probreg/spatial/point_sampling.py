@@ -26,7 +26,7 @@ from monai_probreg.blocks.warp import split_grid_sample
 from monai_probreg.spatial.physical import apply_affine
 from monai_probreg.spatial.volume_io import Volume
 
-__all__ = ["continuous_index", "sample_linear", "sample_nearest"]
+__all__ = ["LinearSampler", "continuous_index", "sample_linear", "sample_nearest"]
 
 
 def continuous_index(points: np.ndarray, index_to_lps: np.ndarray) -> np.ndarray:
@@ -64,6 +64,35 @@ def _inside(index: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     return ((index >= -0.5) & (index < upper)).all(dim=-1)
 
 
+class LinearSampler:
+    """:func:`sample_linear` of one volume at many sets of points: the volume is made float64 (and channels first)
+    once, so a grid sampled slab by slab (:func:`~monai_probreg.spatial.physical.row_slabs`) pays for that copy once.
+    Calling it gives exactly :func:`sample_linear`'s values (each point is sampled on its own)."""
+
+    def __init__(self, volume: Volume, fill: float = 0.0, outside: str = "fill", chunk: int = _CHUNK) -> None:
+        if outside not in ("fill", "border"):
+            raise ValueError(f"outside must be 'fill' or 'border'; got {outside!r}")
+        self.volume, self.fill, self.outside, self.chunk = volume, fill, outside, chunk
+        data = np.asarray(volume.array, dtype=np.float64)
+        self.shape, self.channels = data.shape[:3], data.shape[3:]
+        self.source = torch.from_numpy(np.ascontiguousarray(data.reshape(*data.shape[:3], -1).transpose(3, 0, 1, 2)))[
+            None
+        ]
+
+    def __call__(self, points: np.ndarray | None, index: np.ndarray | None = None) -> np.ndarray:
+        """Samples at ``points`` (..., 3) or their continuous ``index`` -> (...[, C]) float64."""
+        sizes = [int(n) for n in self.shape]
+        query_shape = _query_shape(points, index)
+        out = torch.empty((int(np.prod(query_shape[:-1])), self.source.shape[1]), dtype=torch.float64)
+        for start, index_part in _index_chunks(points, self.volume, index, self.chunk):
+            grid = index_to_grid(index_part, sizes).view(1, -1, 1, 1, 3)  # blocks.grid_coords: normalised, xyz order
+            values = split_grid_sample(self.source, grid, mode="bilinear", padding_mode="border")  # on all threads
+            out[start : start + len(index_part)] = values[0, :, :, 0, 0].T
+            if self.outside == "fill":
+                out[start : start + len(index_part)][~_inside(index_part, self.shape)] = self.fill
+        return out.numpy().reshape(*query_shape[:-1], *self.channels)
+
+
 def sample_linear(
     volume: Volume,
     points: np.ndarray | None,
@@ -79,28 +108,14 @@ def sample_linear(
     :func:`continuous_index` in ``volume``'s grid when the caller has it already (several volumes on one grid, or
     :func:`~monai_probreg.spatial.physical.mapped_index` of a whole grid); ``points`` may then be None.
     """
-    if outside not in ("fill", "border"):
-        raise ValueError(f"outside must be 'fill' or 'border'; got {outside!r}")
-    data = np.asarray(volume.array, dtype=np.float64)
-    channels = data.shape[3:]
-    source = torch.from_numpy(np.ascontiguousarray(data.reshape(*data.shape[:3], -1).transpose(3, 0, 1, 2)))[None]
-    sizes = [int(n) for n in data.shape[:3]]
-    query_shape = _query_shape(points, index)
-    out = torch.empty((int(np.prod(query_shape[:-1])), source.shape[1]), dtype=torch.float64)
-    for start, index_part in _index_chunks(points, volume, index, chunk):
-        grid = index_to_grid(index_part, sizes).view(1, -1, 1, 1, 3)  # blocks.grid_coords: normalised, xyz order
-        values = split_grid_sample(source, grid, mode="bilinear", padding_mode="border")  # on all threads
-        out[start : start + len(index_part)] = values[0, :, :, 0, 0].T
-        if outside == "fill":
-            out[start : start + len(index_part)][~_inside(index_part, data.shape[:3])] = fill
-    return out.numpy().reshape(*query_shape[:-1], *channels)
+    return LinearSampler(volume, fill, outside, chunk)(points, index)
 
 
 def sample_nearest(
     volume: Volume, points: np.ndarray | None, fill: int = 0, index: np.ndarray | None = None, chunk: int = _CHUNK
 ) -> np.ndarray:
     """Nearest-neighbour samples (ITK rounding, half up) at ``points`` (..., 3); ``fill`` outside; input dtype.
-    ``index``, ``chunk``: as :func:`sample_linear`'s."""
+    ``index``, ``chunk``: as :func:`sample_linear`'s (no copy of the volume is made, so slabs need no sampler)."""
     _, size_j, size_k = volume.shape
     flat = torch.from_numpy(np.ascontiguousarray(volume.array).reshape(-1))
     query_shape = _query_shape(points, index)

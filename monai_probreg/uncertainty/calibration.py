@@ -56,6 +56,7 @@ from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256
 
 __all__ = [
+    "POSTERIOR_SAMPLES",
     "FIT_LEVELS",
     "INTERVAL_DOFS",
     "Calibration",
@@ -73,6 +74,12 @@ __all__ = [
     "calibration_for",
     "std_scale_for",
 ]
+
+# posterior samples K the uncertainty maps draw by default and the calibration is fitted with (its sidecar's
+# num_samples): the intervals are fitted for the spread of K samples, a std from fewer is noisier and covers less
+# (docs/uncertainty.md). The one home of that count: inference.yaml's num_samples, the demo, the fit's and the
+# benchmarks' --samples read it
+POSTERIOR_SAMPLES = 16
 
 FIT_LEVELS: tuple[float, ...] = (0.5, 0.68, 0.8, 0.9, 0.95)  # nominal interval levels whose coverage the fit matches
 _GRID_POINTS = 1024  # candidate scales searched between the per-level solutions (log-spaced)

@@ -140,7 +140,8 @@ def quality_features(
             f"quality features need at least {_MIN_FOREGROUND}"
         )
     lncc_before, lncc_after = local_ncc(torch.stack([moving, warped])[:, None], fixed.expand(2, 1, *shape))
-    length_mm = (displacement * spacing_t.view(dims, *([1] * dims))).square().sum(0).sqrt()
+    # in place on the product, the one temporary the size of the field (the same values)
+    length_mm = (displacement * spacing_t.view(dims, *([1] * dims))).square_().sum(0).sqrt_()
     det = (jacobian_determinant(displacement[None])[0] if jacobian is None else torch.as_tensor(jacobian).float())[mask]
     positive = det[det > 0]
     return QualityFeatures(

@@ -6,11 +6,14 @@ from pathlib import Path
 
 from monai.bundle import ConfigWorkflow
 
+from monai_probreg.fitting.stages import config_files
+
 NETWORK_SIZE = [16, 16, 16]
 
 
 def infer_workflow(config: str, bundle: Path, dataset: Path, output: Path, **override) -> ConfigWorkflow:
-    """``configs/<config>`` of ``bundle`` as an initialised infer workflow on ``dataset`` writing to ``output``."""
+    """``configs/<config>`` of ``bundle`` (an overlay on top of its base, as documented) as an initialised infer
+    workflow on ``dataset`` writing to ``output``."""
     settings = {
         "bundle_root": str(bundle),
         "dataset_dir": str(dataset),
@@ -20,7 +23,10 @@ def infer_workflow(config: str, bundle: Path, dataset: Path, output: Path, **ove
         **override,
     }
     wf = ConfigWorkflow(
-        config_file=str(bundle / "configs" / config), workflow_type="infer", logging_file=False, **settings
+        config_file=[str(f) for f in config_files(bundle, [config])],
+        workflow_type="infer",
+        logging_file=False,
+        **settings,
     )
     wf.initialize()
     return wf

@@ -82,7 +82,7 @@ def test_evaluate_command_line_as_documented(tmp_path, tiny_dataset, bundle):
         "monai.bundle",
         "run",
         "--config_file",
-        str(bundle / "configs" / "evaluate.yaml"),
+        f"['{bundle / 'configs' / 'inference.yaml'}','{bundle / 'configs' / 'evaluate.yaml'}']",  # overlay after base
         "--bundle_root",
         str(bundle),
         "--dataset_dir",

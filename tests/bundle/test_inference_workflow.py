@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from bundle_fixtures import infer_workflow
 from conftest import BUNDLE_DIR, TINY_LABELS, make_tiny_dataset
-from monai.bundle import ConfigParser
 
 from monai_probreg.engines.outputs import OUTPUT_NAMES
 from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.fitting.stages import bundle_parser
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -82,25 +82,26 @@ def test_inference_takes_a_pairs_file_without_labels(tmp_path, tiny_dataset, bun
 def test_refinement_is_on_by_default_and_settable_from_the_config(config):
     """Both workflows hand the config's ``refinement`` to their inferer: on by default (the default path), the
     library's other defaults otherwise; refine_iterations 0 turns it off."""
-    parser = ConfigParser()
-    parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    parser = bundle_parser(BUNDLE_DIR, [config])
     default = parser.get_parsed_content("inferer").refinement
     # the shipped default path: 20 steps of 0.3 with a quarter of the pull, the first 18 on the network's grid and the
-    # last 2 with the loss images twice finer, the library's other defaults
+    # last 2 with the loss images twice finer, the similarity guard on, the library's other defaults
     expected = RefinementSettings(
-        num_iterations=20, learning_rate=0.3, posterior_weight=0.25, image_grid_factor=2, coarse_iterations=18
+        num_iterations=20,
+        learning_rate=0.3,
+        posterior_weight=0.25,
+        image_grid_factor=2,
+        coarse_iterations=18,
+        similarity_guard=True,
     )
     assert default.enabled and default == expected and parser["refine_image_grid_factor"] == 2
-    parser = ConfigParser()
-    parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    parser = bundle_parser(BUNDLE_DIR, [config])
     parser["refine_iterations"] = 0
     assert not parser.get_parsed_content("inferer").refinement.enabled
-    parser = ConfigParser()
-    parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    parser = bundle_parser(BUNDLE_DIR, [config])
     parser["refine_iterations"] = 1  # fewer steps than the finer ones: every step finer
     assert parser.get_parsed_content("inferer").refinement.coarse_iterations == 0
-    parser = ConfigParser()
-    parser.read_config(str(BUNDLE_DIR / "configs" / config))
+    parser = bundle_parser(BUNDLE_DIR, [config])
     parser["refine_iterations"], parser["refine_prior_lambda"] = 20, 3.0
     parser["refine_image_loss"], parser["refine_image_weight"], parser["refine_fold_backtracks"] = "gaussian", 1.0, 0
     refinement = parser.get_parsed_content("inferer").refinement

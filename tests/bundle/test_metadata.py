@@ -108,11 +108,9 @@ def test_large_files_pass_the_zoos_download_step_without_a_download(tmp_path):
 
 @pytest.mark.parametrize("config", ["inference.yaml", "evaluate.yaml"])
 def test_the_configs_default_weights_are_the_zoos_models_model_pt(config):
-    from monai.bundle import ConfigParser
+    from monai_probreg.fitting.stages import bundle_parser
 
-    parser = ConfigParser()
-    parser.read_config(str(BUNDLE / "configs" / config))
-    parser["bundle_root"] = str(BUNDLE)
+    parser = bundle_parser(BUNDLE, [config])
     assert Path(parser.get_parsed_content("model_file")) == BUNDLE / "models" / "model.pt"
 
 

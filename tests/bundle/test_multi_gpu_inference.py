@@ -21,6 +21,7 @@ from conftest import TINY_LABELS
 
 from monai_probreg.engines.score_files import read_scores, write_scores
 from monai_probreg.engines.sharding import MANIFEST, SHARDS_DIR, merge_shards, shard_dir, shard_items
+from monai_probreg.fitting.stages import config_files
 from monai_probreg.metrics.scores import PairScores
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -125,11 +126,10 @@ needs_gloo = pytest.mark.skipif(
 
 @needs_gloo
 def test_two_process_evaluate_equals_one_process(tmp_path, tiny_dataset, bundle):
-    configs = bundle / "configs"
     single = tmp_path / "single"
-    _bundle_run([configs / "evaluate.yaml"], bundle, tiny_dataset, single, nproc=0)
+    _bundle_run(config_files(bundle, ["evaluate.yaml"]), bundle, tiny_dataset, single, nproc=0)
     sharded = tmp_path / "sharded"
-    log = _bundle_run([configs / "evaluate.yaml", SHARDED], bundle, tiny_dataset, sharded, nproc=2)
+    log = _bundle_run([*config_files(bundle, ["evaluate.yaml"]), SHARDED], bundle, tiny_dataset, sharded, nproc=2)
     assert "merged 2 shards, 3 subjects" in log
     assert sorted(p.name for p in sharded.iterdir()) == sorted([MANIFEST, "scores.csv", "scores.json", "summary.json"])
     manifest = json.loads((sharded / MANIFEST).read_text())
@@ -169,7 +169,7 @@ def test_two_process_evaluate_skips_a_damaged_subject_and_fails(tmp_path, tiny_d
     damaged = dataset / "images" / "T02.nii.gz"  # rank 1's only subject
     damaged.write_bytes(damaged.read_bytes()[: damaged.stat().st_size // 2])
     out = tmp_path / "out"
-    log = _bundle_run([bundle / "configs" / "evaluate.yaml", SHARDED], bundle, dataset, out, nproc=2, returncode=1)
+    log = _bundle_run([*config_files(bundle, ["evaluate.yaml"]), SHARDED], bundle, dataset, out, nproc=2, returncode=1)
     assert "merged 2 shards, 2 subjects" in log
     failed = list(csv.DictReader((out / "failed.csv").open()))
     assert [r["id"] for r in failed] == ["T02"] and str(damaged) in failed[0]["reason"]

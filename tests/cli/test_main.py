@@ -404,6 +404,32 @@ def test_bad_refine_steps(scene, tmp_path):
     assert "--refine" in line and "got -2" in line
 
 
+@pytest.mark.parametrize(
+    ("extra", "expected"),
+    [
+        (("--smoothness", "0"), "got 0.0"),
+        (("--smoothness", "-1"), "got -1.0"),
+        (("--smoothness", "nan"), "got nan"),
+        (("--smoothness", "2", "--refine", "0"), "got --refine 0"),
+    ],
+)
+def test_bad_smoothness(scene, tmp_path, extra, expected):
+    line = _fails(scene, tmp_path, *extra)
+    assert "--smoothness" in line and expected in line
+
+
+def test_smoothness_scales_the_refinements_prior(scene, tmp_path):
+    """--smoothness S: the refinement's prior_lambda is the config's times S (recorded in summary.json), its other
+    settings as shipped (what a larger prior does to the warp: tests/engines/test_refinement.py)."""
+    out = tmp_path / "smooth"
+    result = _register(scene, out, "--smoothness", "2.5", "--refine", "3", "--no-qc", *FAST_AFFINE)
+    assert result.rc == 0, result.err
+    refinement = json.loads((out / "summary.json").read_text())["model"]["refinement"]
+    config = ConfigParser.load_config_file(str(Path(scene.bundle) / "configs" / "inference.yaml"))
+    assert refinement["prior_lambda"] == pytest.approx(config["refine_prior_lambda"] * 2.5)
+    assert refinement["num_iterations"] == 3
+
+
 def _register(scene, out: Path, *extra: str):
     """``register`` of the scene's moving scan into ``out`` with the scene's fixed image and bundle, plus ``extra``."""
     return run_cli("register", "--moving", str(scene.moving), "--out", str(out), *extra, *scene.common)

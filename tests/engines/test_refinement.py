@@ -609,3 +609,31 @@ def test_the_similarity_guard_decides_for_each_pair_of_a_batch():
     assert refined.displacement[0].abs().max() > 0.5
     assert not refined.displacement[1].any()
     torch.testing.assert_close(refined.warped[1], fixed[1], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+def test_a_larger_prior_gives_a_smoother_refined_field(spatial_dims):
+    """The prior's weight (the command's --smoothness scales prior_lambda): on a pair whose two blobs move apart, a
+    much larger prior_lambda leaves a refined velocity of lower Laplacian energy (smoother) and a smaller spread of
+    the Jacobian determinant."""
+    shape = (32, 48) if spatial_dims == 2 else (32, 32, 48)
+    axes = torch.meshgrid(*[torch.arange(n, dtype=torch.float32) for n in shape], indexing="ij")
+
+    def blobs(offset: float) -> torch.Tensor:  # the two blobs shifted in opposite directions along the last axis
+        centres = (
+            [0.35 * n for n in shape[:-1]] + [0.35 * shape[-1] - offset],
+            [0.65 * n for n in shape[:-1]] + [0.65 * shape[-1] + offset],
+        )
+        return sum(torch.exp(-sum((x - c) ** 2 for x, c in zip(axes, centre)) / 18.0) for centre in centres)[None, None]
+
+    moving, fixed = blobs(1.5), blobs(0.0)
+    net = _identity_net(spatial_dims)
+    output = register_pair(net, moving, fixed)
+    energy, spread = {}, {}
+    for prior in (0.05, 50.0):
+        settings = RefinementSettings(num_iterations=30, learning_rate=0.1, posterior_weight=0.0, prior_lambda=prior)
+        refined = refine_registration(net, moving, fixed, output, settings)
+        velocity = refined.velocity_mean[0]
+        energy[prior] = sum(torch.diff(velocity, dim=d + 1).square().sum() for d in range(spatial_dims)).item()
+        spread[prior] = jacobian_determinant(refined.displacement).std().item()
+    assert energy[50.0] < 0.5 * energy[0.05] and spread[50.0] < spread[0.05]

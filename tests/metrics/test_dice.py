@@ -188,3 +188,16 @@ def test_every_mean_dice_in_the_package_follows_the_one_rule():
     assert metric.compute()["dice"] == pytest.approx(expected)
     fixed_volume = Volume(fixed[0, 0].numpy().astype(np.int32), np.eye(4))
     assert _dice(moving[0, 0].numpy(), fixed_volume, labels)["mean"] == pytest.approx(expected)
+
+
+def test_dice_histogram_in_chunks_is_the_whole_maps(monkeypatch):
+    """The joint histogram summed over chunks of voxels (int32 maps read as they are): the same Dice exactly."""
+    from monai_probreg.metrics import dice
+
+    rng = np.random.default_rng(0)
+    pred = torch.from_numpy(rng.integers(0, 7, (9, 8, 7)).astype(np.int32))
+    target = torch.from_numpy(rng.integers(0, 7, (9, 8, 7)).astype(np.int32))
+    whole = label_dice(pred.long(), target.long(), [1, 2, 3, 6, 9])
+    monkeypatch.setattr(dice, "_CHUNK", 37)
+    assert label_dice(pred, target, [1, 2, 3, 6, 9]) == pytest.approx(whole, nan_ok=True)
+    assert label_dice(pred, target) == label_dice(pred.long(), target.long())

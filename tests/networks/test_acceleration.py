@@ -162,12 +162,10 @@ def test_bf16_keeps_dice_and_folding_on_a_synthetic_pair_with_the_shipped_weight
 
 @pytest.mark.parametrize("config", ["inference.yaml", "evaluate.yaml"])
 def test_bundle_configs_and_command_line_switch_the_precision(config):
-    from monai.bundle import ConfigParser
-
     from monai_probreg.cli.main import build_parser
+    from monai_probreg.fitting.stages import bundle_parser
 
-    parser = ConfigParser()
-    parser.read_config(str(ROOT / "bundle" / "configs" / config))
+    parser = bundle_parser(ROOT / "bundle", [config])
     assert parser.get_parsed_content("network_def").unet_precision == "auto"
     parser["unet_precision"] = "fp32"  # what --unet_precision fp32 on the monai.bundle command line does
     assert parser.get_parsed_content("network_def", lazy=False).unet_precision == "fp32"

@@ -16,6 +16,7 @@ import pytest
 from monai.bundle import ConfigWorkflow
 from rel_helpers import flip_byte, save, truncate
 
+from monai_probreg.fitting.stages import config_files
 from monai_probreg.utils.errors import InputError
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -66,7 +67,7 @@ def test_infer_workflows_skip_and_report_the_damaged_subject(tmp_path, tiny_data
     dataset, damaged = _damaged_copy(tiny_dataset, tmp_path, damage)
     out = tmp_path / "out"
     wf = ConfigWorkflow(
-        config_file=str(bundle / "configs" / config),
+        config_file=[str(f) for f in config_files(bundle, [config])],
         workflow_type="infer",
         logging_file=False,
         bundle_root=str(bundle),
@@ -102,7 +103,7 @@ def test_every_subject_damaged_writes_no_scores_and_fails(tmp_path, tiny_dataset
     dataset, _ = _damaged_copy(tiny_dataset, tmp_path, truncate_all)
     out = tmp_path / "out"
     wf = ConfigWorkflow(
-        config_file=str(bundle / "configs" / "evaluate.yaml"),
+        config_file=[str(f) for f in config_files(bundle, ["evaluate.yaml"])],
         workflow_type="infer",
         logging_file=False,
         bundle_root=str(bundle),
@@ -124,7 +125,7 @@ def test_a_clean_run_leaves_no_failed_file(tmp_path, tiny_dataset, bundle):
     out.mkdir()
     (out / "failed.csv").write_text("id,reason\nT09,from an earlier run\n")  # stale: must not survive
     wf = ConfigWorkflow(
-        config_file=str(bundle / "configs" / "evaluate.yaml"),
+        config_file=[str(f) for f in config_files(bundle, ["evaluate.yaml"])],
         workflow_type="infer",
         logging_file=False,
         bundle_root=str(bundle),

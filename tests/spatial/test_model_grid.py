@@ -61,3 +61,21 @@ def test_rejects_arrays_on_other_grids():
         grid.to_model(np.zeros((20, 13, 17)))
     with pytest.raises(ValueError, match="model grid"):
         grid.to_fixed(np.zeros((20, 13, 18)))
+
+
+@pytest.mark.parametrize("axcodes", ["RAS", "LPS", "AIL", "SRP"])
+def test_a_block_of_rows_is_those_rows_of_to_fixed(axcodes):
+    """block_of_rows + block_to_fixed: the fixed grid's rows, cut from the model grid (any orientation, padded)."""
+    from nibabel.orientations import axcodes2ornt, inv_ornt_aff
+
+    from monai_probreg.spatial.volume_io import LPS_TO_RAS
+
+    shape = (7, 5, 6)
+    ras = inv_ornt_aff(axcodes2ornt(axcodes), shape)  # a grid of that orientation
+    grid = ModelGrid(shape, LPS_TO_RAS @ ras @ np.diag([1.0, 1.5, 0.8, 1.0]), divisor=4)
+    model = np.random.default_rng(0).random((*grid.shape, 2))
+    whole = grid.to_fixed(model)
+    for rows in [slice(0, 7), slice(0, 1), slice(2, 5), slice(6, 7)]:
+        assert np.array_equal(grid.block_to_fixed(model[grid.block_of_rows(rows)]), whole[rows])
+    with pytest.raises(ValueError, match="consecutive"):
+        grid.block_of_rows(slice(0, 7, 2))

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 from monai_probreg import compose_displacements, integrate_velocity, warp_image
 from monai_probreg.cli.output_dir import write_field, write_transform
+from monai_probreg.spatial import physical
 from monai_probreg.spatial.physical import (
     affine_from_itk,
     affine_to_itk,
@@ -30,7 +31,7 @@ from monai_probreg.spatial.physical import (
     resample_with_itk,
     voxel_to_mm,
 )
-from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
+from monai_probreg.spatial.point_sampling import LinearSampler, sample_linear, sample_nearest
 from monai_probreg.spatial.volume_io import Volume, volume_from_itk, volume_to_itk
 
 SHAPE = (11, 9, 13)
@@ -281,3 +282,40 @@ def test_field_file_stores_lps_millimetres_as_an_itk_vector_image(tmp_path):
     assert volume is None  # a vector image
     np.testing.assert_allclose(itk.array_from_image(read).transpose(2, 1, 0, 3), field, atol=1e-5)
     np.testing.assert_allclose(np.asarray(read.GetOrigin()), _grid()[:3, 3], atol=1e-5)
+
+
+def test_row_slabs_cover_the_rows_in_order():
+    assert physical.row_slabs((5, 3, 4), voxels=24) == [slice(0, 2), slice(2, 4), slice(4, 5)]
+    assert physical.row_slabs((3, 3, 4), voxels=1) == [slice(0, 1), slice(1, 2), slice(2, 3)]  # at least one row
+    assert physical.row_slabs((3, 3, 4), voxels=10**9) == [slice(0, 3)]
+
+
+def test_maps_of_a_slab_are_that_slab_of_the_whole_grids_to_the_bit():
+    """index_map, mapped_index and compose_forward with first_row: each value from its own index, as on the whole grid
+    (not the slab's start folded into the matrix, which rounds differently)."""
+    rng = np.random.default_rng(1)
+    target = _grid() @ np.diag([1.3, 0.7, 1.1, 1.0])
+    field = (rng.standard_normal((*SHAPE, 3)) * 2).astype(np.float32)
+    d = rng.standard_normal((*SHAPE, 3))
+    whole = {
+        "index": index_map(SHAPE, _affine() @ _grid()),
+        "mapped": mapped_index(SHAPE, _grid(), target, _affine(), field),
+        "composed": compose_forward(d, _grid(), _affine()),
+    }
+    for rows in physical.row_slabs(SHAPE, voxels=2 * SHAPE[1] * SHAPE[2]):
+        slab = (rows.stop - rows.start, *SHAPE[1:])
+        assert np.array_equal(index_map(slab, _affine() @ _grid(), first_row=rows.start), whole["index"][rows])
+        mapped = mapped_index(slab, _grid(), target, _affine(), field[rows], first_row=rows.start)
+        assert np.array_equal(mapped, whole["mapped"][rows])
+        assert np.array_equal(compose_forward(d[rows], _grid(), _affine(), rows.start), whole["composed"][rows])
+
+
+def test_a_linear_sampler_gives_sample_linears_values_per_call():
+    rng = np.random.default_rng(2)
+    volume = Volume(rng.random((5, 6, 4, 2)), _grid())
+    index = rng.uniform(-1, 6, (3, 4, 5, 3))
+    sampler = LinearSampler(volume, fill=-1.0)
+    assert np.array_equal(sampler(None, index=index), sample_linear(volume, None, fill=-1.0, index=index))
+    assert np.array_equal(sampler(None, index=index[1:]), sample_linear(volume, None, fill=-1.0, index=index[1:]))
+    with pytest.raises(ValueError, match="outside"):
+        LinearSampler(volume, outside="wrap")

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from monai.bundle import ConfigParser
 
 from monai_probreg import ProbRegNet
+from monai_probreg.fitting.stages import bundle_parser
 from monai_probreg.utils.errors import InputError
 from monai_probreg.weights.loading import load_weights
 from monai_probreg.weights.settings import (
@@ -99,9 +99,7 @@ def test_the_writer_waits_for_the_weights_and_then_writes(tmp_path):
 @pytest.mark.parametrize("config", ["inference.yaml", "evaluate.yaml"])
 @pytest.mark.parametrize("weights", sorted(p.name for p in (ROOT / "bundle" / "models").glob("*.pt")))
 def test_the_shipped_weights_carry_settings_that_fit_the_configs(config, weights):
-    parser = ConfigParser()
-    parser.read_config(str(ROOT / "bundle" / "configs" / config))
-    parser["bundle_root"] = str(ROOT / "bundle")
+    parser = bundle_parser(ROOT / "bundle", [config])
     path = ROOT / "bundle" / "models" / weights
     assert settings_path(path).is_file()
     assert check_network_settings(path, parser.get_parsed_content("network_def")) is not None

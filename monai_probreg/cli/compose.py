@@ -1,0 +1,118 @@
+"""The command's resampling through the affine and the composed fields, slab by slab of the output grid.
+
+Every whole-grid point, index and field array of these steps is float64 (*S, 3): 400 MB each on a 256^3 grid, and
+the steps used to hold several at once (the command's peak memory, ``benchmarks/end_to_end.py --memory``). Here
+each is made for a slab of rows of the output grid's first axis at a time
+(:func:`~monai_probreg.spatial.physical.row_slabs`), and every value is computed from its own voxel's index
+exactly as on the whole grid (:func:`~monai_probreg.spatial.physical.index_map`'s ``first_row``), so the outputs
+are the same to the bit (``tests/cli/test_compose.py``). What is kept is only what is written, at the precision it
+is written in: the fields float32, the scans float32, the labels in their own type.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from monai_probreg.spatial.model_grid import ModelGrid
+from monai_probreg.spatial.physical import compose_forward, compose_inverse, mapped_index, row_slabs, voxel_to_mm
+from monai_probreg.spatial.point_sampling import LinearSampler, sample_nearest
+from monai_probreg.spatial.volume_io import Volume
+
+__all__ = ["Forward", "Inverse", "affine_resample", "forward_outputs", "inverse_outputs"]
+
+
+def affine_resample(moving: Volume, fixed: Volume, affine: np.ndarray, fill: float) -> np.ndarray:
+    """``moving`` on ``fixed``'s grid through ``affine`` (fixed LPS -> moving LPS): linear, ``fill`` outside the
+    scan; float32 (:func:`~monai_probreg.spatial.point_sampling.sample_linear`'s values, rounded as the intensity
+    scaling that reads them rounds them)."""
+    out = np.empty(fixed.shape, np.float32)
+    scan = LinearSampler(moving, fill=fill)
+    for rows in row_slabs(fixed.shape):
+        slab = (rows.stop - rows.start, *fixed.shape[1:])
+        index = mapped_index(slab, fixed.index_to_lps, moving.index_to_lps, affine, first_row=rows.start)
+        out[rows] = scan(None, index=index)
+    return out
+
+
+class Forward(NamedTuple):
+    """The fixed grid's outputs: ``warp`` (*S, 3) float32, the composed ``D(p) = A(p + d(p)) - p`` in LPS mm;
+    ``warped`` (*S) float32, the moving scan sampled at ``p + D(p)``; ``labels``: ``warped_label`` (there too) and
+    ``affine_label`` (through the affine alone), nearest neighbour, with moving labels (else empty)."""
+
+    warp: np.ndarray
+    warped: np.ndarray
+    labels: dict[str, np.ndarray]
+
+
+def forward_outputs(
+    grid: ModelGrid,
+    fixed: Volume,
+    moving: Volume,
+    moving_label: Volume | None,
+    affine: np.ndarray,
+    displacement: np.ndarray,
+) -> Forward:
+    """``displacement``: the network's ``u`` (3, *grid.shape), voxels of the model ``grid`` of ``fixed``.
+
+    Per slab of the fixed grid: ``d`` in mm (:func:`~monai_probreg.spatial.physical.voxel_to_mm` of the model grid's
+    block that holds the slab, :meth:`~monai_probreg.spatial.model_grid.ModelGrid.block_of_rows`), the composed field
+    (float32: the precision of its file), then the scan and labels sampled at ``p + D(p)`` with that float32 ``D``,
+    exactly where ITK's resampling through ``warp.nii.gz`` samples them."""
+    shape = fixed.shape
+    warp = np.empty((*shape, 3), np.float32)
+    warped = np.empty(shape, np.float32)  # sample_linear's float64, rounded as the file is written
+    labels = {} if moving_label is None else {k: np.empty(shape, moving_label.array.dtype) for k in _FORWARD_LABELS}
+    scan = LinearSampler(moving)
+    for rows in row_slabs(shape):
+        slab = (rows.stop - rows.start, *shape[1:])
+        block = (slice(None), *grid.block_of_rows(rows))
+        deformable = grid.block_to_fixed(voxel_to_mm(displacement[block], grid.index_to_lps))
+        warp[rows] = compose_forward(deformable, fixed.index_to_lps, affine, first_row=rows.start)
+        del deformable
+        index = mapped_index(slab, fixed.index_to_lps, moving.index_to_lps, field=warp[rows], first_row=rows.start)
+        warped[rows] = scan(None, index=index)
+        if moving_label is not None:
+            labels["warped_label"][rows] = sample_nearest(moving_label, None, index=index)
+            index = mapped_index(slab, fixed.index_to_lps, moving.index_to_lps, affine, first_row=rows.start)
+            labels["affine_label"][rows] = sample_nearest(moving_label, None, index=index)  # Dice and QC only
+    return Forward(warp, warped, labels)
+
+
+_FORWARD_LABELS = ("warped_label", "affine_label")
+
+
+class Inverse(NamedTuple):
+    """The moving grid's outputs: ``warp`` (*S_moving, 3) float32, ``D_inv(q) = phi^-1(q) - q`` in LPS mm;
+    ``fixed_label`` (*S_moving): the fixed labels at ``q + D_inv(q)``, nearest neighbour (None without them)."""
+
+    warp: np.ndarray
+    fixed_label: np.ndarray | None
+
+
+def inverse_outputs(
+    grid: ModelGrid, inverse: np.ndarray, affine: np.ndarray, moving: Volume, fixed_label: Volume | None
+) -> Inverse:
+    """``inverse``: the network's ``exp(-v)`` displacement (3, *grid.shape) in voxels of the model ``grid``.
+
+    Its millimetres are made per slab of the model grid straight into the float32, channels-first array that
+    :func:`~monai_probreg.spatial.physical.compose_inverse` samples (it rounds ``d_inv`` to float32 itself, and a
+    channels-first float32 array is taken without a copy): no (*S, 3) float64 field of the whole grid."""
+    d_inv = np.empty(inverse.shape, np.float32)  # (3, *S)
+    for rows in row_slabs(grid.shape):
+        d_inv[:, rows] = voxel_to_mm(inverse[:, rows], grid.index_to_lps).transpose(3, 0, 1, 2)
+    warp = compose_inverse(
+        Volume(d_inv.transpose(1, 2, 3, 0), grid.index_to_lps), affine, moving.shape, moving.index_to_lps
+    )
+    del d_inv
+    label = None
+    if fixed_label is not None:  # q + D_inv(q) for every voxel q of the moving grid, in the fixed label grid
+        label = np.empty(moving.shape, fixed_label.array.dtype)
+        for rows in row_slabs(moving.shape):
+            slab = (rows.stop - rows.start, *moving.shape[1:])
+            index = mapped_index(
+                slab, moving.index_to_lps, fixed_label.index_to_lps, field=warp[rows], first_row=rows.start
+            )
+            label[rows] = sample_nearest(fixed_label, None, index=index)
+    return Inverse(warp, label)

@@ -1,0 +1,79 @@
+"""monai_probreg.cli.compose: slab by slab, the same bits as the whole-grid computation it replaced (oblique grids,
+a model grid in another orientation, slabs of several heights)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from monai_probreg.cli.compose import affine_resample, forward_outputs, inverse_outputs
+from monai_probreg.spatial import physical
+from monai_probreg.spatial.model_grid import ModelGrid
+from monai_probreg.spatial.physical import compose_forward, compose_inverse, mapped_index, voxel_to_mm
+from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest
+from monai_probreg.spatial.volume_io import Volume
+
+
+def _grid(spacing, turn: float, origin) -> np.ndarray:
+    c, s = np.cos(turn), np.sin(turn)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, -1.0]])  # oblique, and a flipped axis
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation @ np.diag(spacing)
+    matrix[:3, 3] = origin
+    return matrix
+
+
+@pytest.fixture
+def case():
+    rng = np.random.default_rng(0)
+    fixed = Volume(rng.random((9, 7, 6), dtype=np.float32), _grid([1.0, 1.2, 0.9], 0.3, [4.0, -3.0, 2.0]))
+    moving = Volume(rng.random((8, 10, 7), dtype=np.float32) * 100, _grid([1.1, 0.8, 1.0], -0.2, [5.0, -4.0, 1.0]))
+    moving_label = moving.with_array(rng.integers(0, 5, moving.shape).astype(np.int32))
+    fixed_label = fixed.with_array(rng.integers(0, 5, fixed.shape).astype(np.int32))
+    affine = np.eye(4)
+    affine[:3, :3] += 0.05 * rng.standard_normal((3, 3))
+    affine[:3, 3] = [0.7, -0.4, 0.3]
+    grid = ModelGrid.for_volume(fixed, divisor=4)
+    displacement = (rng.standard_normal((3, *grid.shape)) * 1.5).astype(np.float32)
+    inverse = (rng.standard_normal((3, *grid.shape)) * 1.5).astype(np.float32)
+    return fixed, moving, moving_label, fixed_label, affine, grid, displacement, inverse
+
+
+@pytest.mark.parametrize("slab_voxels", [1, 100, 10**9])
+def test_forward_outputs_are_the_whole_grid_computation_to_the_bit(case, monkeypatch, slab_voxels):
+    fixed, moving, moving_label, _, affine, grid, displacement, _ = case
+    monkeypatch.setattr(physical, "SLAB_VOXELS", slab_voxels)
+    ours = forward_outputs(grid, fixed, moving, moving_label, affine, displacement)
+    warp = compose_forward(grid.to_fixed(voxel_to_mm(displacement, grid.index_to_lps)), fixed.index_to_lps, affine)
+    warp = warp.astype(np.float32)
+    index = mapped_index(fixed.shape, fixed.index_to_lps, moving.index_to_lps, field=warp)
+    affine_index = mapped_index(fixed.shape, fixed.index_to_lps, moving.index_to_lps, affine)
+    assert np.array_equal(ours.warp, warp)
+    assert np.array_equal(ours.warped, sample_linear(moving, None, index=index).astype(np.float32))
+    assert np.array_equal(ours.labels["warped_label"], sample_nearest(moving_label, None, index=index))
+    assert np.array_equal(ours.labels["affine_label"], sample_nearest(moving_label, None, index=affine_index))
+    assert forward_outputs(grid, fixed, moving, None, affine, displacement).labels == {}
+
+
+@pytest.mark.parametrize("slab_voxels", [1, 100, 10**9])
+def test_inverse_outputs_are_the_whole_grid_computation_to_the_bit(case, monkeypatch, slab_voxels):
+    fixed, moving, _, fixed_label, affine, grid, _, inverse = case
+    monkeypatch.setattr(physical, "SLAB_VOXELS", slab_voxels)
+    ours = inverse_outputs(grid, inverse, affine, moving, fixed_label)
+    field = Volume(voxel_to_mm(inverse, grid.index_to_lps), grid.index_to_lps)
+    warp = compose_inverse(field, affine, moving.shape, moving.index_to_lps)
+    index = mapped_index(moving.shape, moving.index_to_lps, fixed_label.index_to_lps, field=warp)
+    assert np.array_equal(ours.warp, warp)
+    assert np.array_equal(ours.fixed_label, sample_nearest(fixed_label, None, index=index))
+    assert inverse_outputs(grid, inverse, affine, moving, None).fixed_label is None
+
+
+@pytest.mark.parametrize("slab_voxels", [1, 100, 10**9])
+def test_affine_resample_is_sample_linear_rounded_to_float32(case, monkeypatch, slab_voxels):
+    fixed, moving, _, _, affine, _, _, _ = case
+    monkeypatch.setattr(physical, "SLAB_VOXELS", slab_voxels)
+    index = mapped_index(fixed.shape, fixed.index_to_lps, moving.index_to_lps, affine)
+    expected = sample_linear(moving, None, fill=-3.0, index=index).astype(np.float32)
+    ours = affine_resample(moving, fixed, affine, -3.0)
+    assert ours.dtype == np.float32
+    assert np.array_equal(ours, expected)

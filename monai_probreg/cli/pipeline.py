@@ -285,7 +285,7 @@ def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
     }
 
 
-class _Witness(NamedTuple):
+class _QualityInputs(NamedTuple):
     """A registration on the model grid as the quality estimate reads it: the network's own before refinement (what
     its models read, :mod:`monai_probreg.uncertainty.quality`, "Whose features"), or the refined answer."""
 
@@ -379,9 +379,9 @@ def _feature_entropy(model: LoadedModel, maps: _ModelMaps, posterior: tuple[torc
     return _entropy(model, *posterior, tuple(maps.warped.shape), calibration)
 
 
-def _witness(model: LoadedModel, output: RegistrationOutput, maps: _ModelMaps) -> _Witness:
+def _network_quality_inputs(model: LoadedModel, output: RegistrationOutput, maps: _ModelMaps) -> _QualityInputs:
     """The network's registration ``output`` (before refinement) as the quality estimate reads it."""
-    return _Witness(
+    return _QualityInputs(
         _numpy(output.warped[0, 0]),
         _numpy(output.displacement[0]),
         _numpy(jacobian_determinant(output.displacement)[0]),
@@ -415,7 +415,7 @@ def _quality(
         return None
     t = torch.from_numpy
 
-    def features_of(m: _Witness) -> QualityFeatures:
+    def features_of(m: _QualityInputs) -> QualityFeatures:
         return quality_features(
             t(moving_input),
             t(fixed.model_input),
@@ -428,11 +428,11 @@ def _quality(
 
     # the answer the user gets; its entropy as the estimate reads it (the same rule for both feature sets)
     answer = features_of(
-        _Witness(maps.warped, maps.displacement, maps.jacobian, _feature_entropy(model, maps, maps.posterior))
+        _QualityInputs(maps.warped, maps.displacement, maps.jacobian, _feature_entropy(model, maps, maps.posterior))
     )
     if maps.network is None:  # not refined: the answer is the network's own registration
         return answer, model.quality.estimate(answer), None
-    features = features_of(_witness(model, maps.network, maps))
+    features = features_of(_network_quality_inputs(model, maps.network, maps))
     return features, model.quality.estimate(features, answer), answer
 
 

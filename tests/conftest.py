@@ -257,6 +257,16 @@ def run_cli(*argv: str, threads: int = 1) -> SimpleNamespace:
     return SimpleNamespace(rc=rc, out=out.getvalue(), err=err.getvalue())
 
 
+def one_error_line(result: SimpleNamespace, out: Path) -> str:
+    """The one ``monai-probreg: error:`` line of a command that had to fail (``run_cli``'s ``result``), checked: exit
+    status 1, exactly one such line, and neither the output folder ``out`` nor a staging folder next to it left."""
+    assert result.rc == 1, result.err
+    lines = [line for line in result.err.splitlines() if line.startswith("monai-probreg: error:")]
+    assert len(lines) == 1, result.err
+    assert not out.exists() and not [p for p in out.parent.iterdir() if ".partial-" in p.name]
+    return lines[0]
+
+
 def moved_phantom(angles_deg: Sequence[float], translation_mm: Sequence[float]) -> SimpleNamespace:
     """The asymmetric phantom (fixed, on FIXED_LPS) and a scan of it moved by a known rigid transform and resampled
     onto an oblique anisotropic grid: image, labels, truth (fixed -> moving, LPS mm), moved, moved_labels, grid."""

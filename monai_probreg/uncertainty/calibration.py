@@ -38,7 +38,6 @@ the std ranks the errors: ``benchmarks/uncertainty_calibration.py``.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import warnings
@@ -52,8 +51,8 @@ import torch
 from torch import Tensor
 
 from monai_probreg.metrics.calibration import interval_z
-from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256
+from monai_probreg.utils.sidecars import read_sidecar, sidecar_path, write_sidecar
 
 __all__ = [
     "POSTERIOR_SAMPLES",
@@ -74,6 +73,8 @@ __all__ = [
     "calibration_for",
     "std_scale_for",
 ]
+
+CALIBRATION_SIDECAR = "calibration"  # models/model.pt -> models/model.calibration.json (utils.sidecars)
 
 # posterior samples K the uncertainty maps draw by default and the calibration is fitted with (its sidecar's
 # num_samples): the intervals are fitted for the spread of K samples, a std from fewer is noisier and covers less
@@ -281,8 +282,7 @@ def fit_std_scale(std: Tensor | np.ndarray, error: Tensor | np.ndarray, levels: 
 
 def calibration_path(weights_file: str | os.PathLike) -> Path:
     """Where the calibration of ``weights_file`` lives: ``models/model.pt`` -> ``models/model.calibration.json``."""
-    path = Path(weights_file)
-    return path.with_name(path.stem + ".calibration.json")
+    return sidecar_path(weights_file, CALIBRATION_SIDECAR)
 
 
 def save_calibration(
@@ -312,27 +312,18 @@ def save_calibration(
         refinement=dict(refinement or {}),
         interval_dof=None if interval_dof is None else float(interval_dof),
     )
-    write_text(calibration_path(weights_file) if path is None else path, json.dumps(asdict(record), indent=2))
+    write_sidecar(weights_file, CALIBRATION_SIDECAR, asdict(record), path)
     return record
 
 
 def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
     """Read the sidecar of ``weights_file``; refuses one fitted for other weights (SHA-256 mismatch)."""
     path = calibration_path(weights_file)
+    data = read_sidecar(weights_file, CALIBRATION_SIDECAR, "calibration record", " or use std_scale 1 (raw)")
     try:
-        data = json.loads(path.read_text())
         record = CalibrationRecord(**data)
-    except FileNotFoundError:
-        raise
-    except (OSError, ValueError, TypeError) as err:
-        raise ValueError(f"{path}: not a calibration record ({err})") from err
-    actual = file_sha256(weights_file)
-    if record.weights_sha256 != actual:
-        raise ValueError(
-            f"{path} was fitted for weights with SHA-256 {record.weights_sha256[:12]}..., but "
-            f"{weights_file} has {actual[:12]}...; refit it (python -m monai_probreg.fitting) "
-            "or use std_scale 1 (raw)"
-        )
+    except TypeError as err:
+        raise ValueError(f"{path}: not a calibration record ({err})") from None
     try:
         check_calibration(record.std_scale, record.bias_fraction, record.interval_dof)
     except (TypeError, ValueError) as err:

@@ -40,7 +40,6 @@ warns, on validation subjects: ``benchmarks/failure_detection.py``.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -52,8 +51,8 @@ import numpy as np
 
 from monai_probreg.uncertainty.calibration import Calibration, check_calibration
 from monai_probreg.uncertainty.quality_features import QualityFeatures
-from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256
+from monai_probreg.utils.sidecars import read_sidecar, sidecar_path, write_sidecar
 
 __all__ = [
     "ENTROPY_CALIBRATION_KEYS",
@@ -69,6 +68,8 @@ __all__ = [
     "quality_record",
     "save_quality_model",
 ]
+
+QUALITY_SIDECAR = "quality"  # models/model.pt -> models/model.quality.json (utils.sidecars)
 
 # the posterior's numbers the entropy feature depends on (the intervals' dof does not enter an entropy)
 ENTROPY_CALIBRATION_KEYS: tuple[str, ...] = ("std_scale", "bias_fraction")
@@ -283,8 +284,7 @@ def quality_model_for(model: QualityModel | None, calibrate: bool) -> QualityMod
 
 def quality_path(weights_file: str | os.PathLike) -> Path:
     """``models/model.pt`` -> ``models/model.quality.json``."""
-    path = Path(weights_file)
-    return path.with_name(path.stem + ".quality.json")
+    return sidecar_path(weights_file, QUALITY_SIDECAR)
 
 
 def save_quality_model(
@@ -293,7 +293,7 @@ def save_quality_model(
     """Write ``model`` as the sidecar of ``weights_file`` (atomically), stamped with the weights' SHA-256; ``path``:
     where (default: next to the weights, :func:`quality_path`)."""
     model.weights_file, model.weights_sha256 = Path(weights_file).name, file_sha256(weights_file)
-    return write_text(quality_path(weights_file) if path is None else path, json.dumps(asdict(model), indent=2) + "\n")
+    return write_sidecar(weights_file, QUALITY_SIDECAR, asdict(model), path)
 
 
 def load_quality_model(weights_file: str | os.PathLike) -> QualityModel | None:
@@ -301,14 +301,8 @@ def load_quality_model(weights_file: str | os.PathLike) -> QualityModel | None:
     path = quality_path(weights_file)
     if not path.is_file():
         return None
+    data = read_sidecar(weights_file, QUALITY_SIDECAR, "quality model")
     try:
-        model = QualityModel(**json.loads(path.read_text()))
-    except (OSError, ValueError, TypeError) as err:
+        return QualityModel(**data)
+    except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: not a quality model ({err})") from None
-    actual = file_sha256(weights_file)
-    if model.weights_sha256 != actual:
-        raise ValueError(
-            f"{path} was fitted for weights with SHA-256 {model.weights_sha256[:12]}..., but "
-            f"{weights_file} has {actual[:12]}...; refit it (python -m monai_probreg.fitting)"
-        )
-    return model

@@ -59,20 +59,16 @@ from monai_probreg.losses.likelihood import IMAGE_LOSSES, GaussianImageLoss, mak
 from monai_probreg.losses.lncc import FixedImageLNCC, support_box
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
+from monai_probreg.spatial.masks import MASK_LEVEL  # a mask resampled linearly is inside where it is at least this
 from monai_probreg.uncertainty.quality_features import local_ncc
 
 __all__ = [
     "LATER_SETTINGS",
-    "MASK_LEVEL",
     "RefinementMasks",
     "RefinementSettings",
     "local_blend",
     "refine_registration",
 ]
-
-# a mask resampled linearly onto the loss's grid is inside where it is at least this (the command carries the moving
-# mask onto the fixed grid with the same rule, monai_probreg.spatial.masks.MASK_LEVEL)
-MASK_LEVEL = 0.5
 
 
 class RefinementMasks(NamedTuple):
@@ -82,7 +78,7 @@ class RefinementMasks(NamedTuple):
     ``fixed``: the voxels of the fixed grid where the image term is evaluated; ``moving``: the moving image's mask on
     the same grid (before the deformation), warped with the current displacement at every step (linearly, 0 beyond
     the grid; no gradient through it): a voxel whose warped position falls outside it is left out. On the loss's grid
-    (coarser or finer than the images') each mask is resampled linearly and thresholded at :data:`MASK_LEVEL`
+    (coarser or finer than the images') each mask is resampled linearly and thresholded at :data:`~monai_probreg.spatial.masks.MASK_LEVEL`
     (binary there); the warped moving mask is then fractional across its edge. The image term is
     ``sum(w * d) / N`` over the loss's grid, ``w`` the product of the two and ``d`` the per-voxel term (the local NCC
     by :class:`~monai_probreg.losses.lncc.FixedImageLNCC`'s weights): a voxel inside both counts as without masks.
@@ -93,7 +89,7 @@ class RefinementMasks(NamedTuple):
     moving: Tensor | None = None
 
     def on_grid(self, size: tuple[int, ...]) -> RefinementMasks:
-        """Both masks on the loss's grid ``size`` (linear, then :data:`MASK_LEVEL`)."""
+        """Both masks on the loss's grid ``size`` (linear, then :data:`~monai_probreg.spatial.masks.MASK_LEVEL`)."""
         return RefinementMasks(
             *(None if m is None else (_on_grid(m.float(), size) >= MASK_LEVEL).float() for m in self)
         )

@@ -54,6 +54,7 @@ from monai_probreg.data.dataset import index_dataset
 from monai_probreg.fitting.calibration_probes import (
     FIT_ITERATIONS,
     FIT_TOLERANCE,
+    RESIDUAL_WEIGHTS,
     SUBJECT_PROBE_TEMPLATES,
     ProbeSettings,
     calibration_probes,
@@ -153,7 +154,14 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed, refin
     size = tuple(moving.shape[2:])
     posterior = posterior_for(network, moving, fixed, refinement)
     with torch.inference_mode():
-        log_var = calibrate_log_var(posterior.log_var, calibration.std_scale, posterior.mean, calibration.bias_fraction)
+        log_var = calibrate_log_var(
+            posterior.log_var,
+            calibration.std_scale,
+            posterior.mean,
+            calibration.bias_fraction,
+            posterior.residual,
+            calibration.residual_weight,
+        )
         atlas_label = pair["fixed_label"].to(torch.int16)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
         generator = torch.Generator().manual_seed(seed)
@@ -233,6 +241,14 @@ def main(argv=None) -> int:
         help="refits at the fitted pair, at most (see FIT_ITERATIONS)",
     )
     ap.add_argument(
+        "--residual-weights",
+        type=float,
+        nargs="+",
+        default=list(RESIDUAL_WEIGHTS),
+        help="the residual term's weights each fold's fit chooses among (default: the fit's; 0 alone: the "
+        "network's spread without it, the calibration before the residual term)",
+    )
+    ap.add_argument(
         "--refine",
         type=int,
         default=None,
@@ -279,6 +295,9 @@ def main(argv=None) -> int:
         )
     except InputError as err:
         raise SystemExit(str(err)) from None
+    if any(w < 0 for w in args.residual_weights):
+        raise SystemExit(f"--residual-weights must be >= 0; got {args.residual_weights}")
+    probes.residual_weights = tuple(args.residual_weights)
     folds = {sid: i % args.folds for i, sid in enumerate(probes.cases)}
     subject_folds = {tid: n % args.folds for n, tid in enumerate(probes.subject_cases)}
     probe = translation_probe(network, next(iter(probes.items.values()))["fixed"])  # the atlas, the same for all
@@ -298,8 +317,11 @@ def main(argv=None) -> int:
         for f in range(args.folds)
     }
     print(
-        "held-out calibrations per fold (std_scale, bias_fraction, interval dof): "
-        + ", ".join(f"({v.std_scale:.3f}, {v.bias_fraction:.2f}, {v.interval_dof})" for v in scales.values()),
+        "held-out calibrations per fold (std_scale, bias_fraction, interval dof, residual weight): "
+        + ", ".join(
+            f"({v.std_scale:.3f}, {v.bias_fraction:.2f}, {v.interval_dof}, {v.residual_weight:g})"
+            for v in scales.values()
+        ),
         flush=True,
     )
     # the intervals of each row: raw = Gaussian; calibrated = each subject's fold's dof (one dof when the folds agree)

@@ -125,7 +125,7 @@ def load_model(
         torch.device(device),
         weights,
         config,
-        RAW if record is None else Calibration(record.std_scale, record.bias_fraction, record.interval_dof),
+        RAW if record is None else record.calibration(),
         refinement=refinement,
         weights_sha256=file_sha256(weights),
         quality=quality_model,

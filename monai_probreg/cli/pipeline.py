@@ -77,6 +77,7 @@ from monai_probreg.uncertainty.calibration import Calibration
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
+from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import parallel_writes, write_text
 from monai_probreg.utils.provenance import library_versions
@@ -349,8 +350,13 @@ def _run_model(
             network=network_output,
             posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
         )
+        residual = None  # the pair's residual, for the calibration's residual term (uncertainty.residual)
+        if model.calibration.residual_weight > 0:
+            residual = residual_variance(output.warped, fixed_t, output.velocity_mean.shape[2:])
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
-            maps.entropy = _entropy(model, output.velocity_mean, output.velocity_log_var, shape, model.calibration)
+            maps.entropy = _entropy(
+                model, output.velocity_mean, output.velocity_log_var, shape, model.calibration, residual
+            )
     if samples:
         with _timed(timings, "samples", report):
             sampled = posterior_maps(
@@ -363,6 +369,8 @@ def _run_model(
                 seed=seed,
                 bias_fraction=model.bias_fraction,
                 spacing=spacing,
+                residual=residual,
+                residual_weight=model.calibration.residual_weight,
             )
             maps.entropy, maps.std = _numpy(sampled.velocity_entropy), _numpy(sampled.displacement_std)
             maps.variance = _numpy(sampled.displacement_variance)
@@ -374,7 +382,11 @@ def _feature_entropy(model: LoadedModel, maps: _ModelMaps, posterior: tuple[torc
     model's own calibration (:meth:`~monai_probreg.uncertainty.quality.QualityModel.feature_calibration`); the maps'
     entropy itself when ``posterior`` is the answer's and that calibration is the one in use (computed once)."""
     calibration = model.quality.feature_calibration(model.std_scale, model.bias_fraction)
-    if posterior is maps.posterior and calibration == Calibration(model.std_scale, model.bias_fraction):
+    if (
+        posterior is maps.posterior
+        and model.calibration.residual_weight == 0  # the maps' entropy has no residual term, the feature's never has
+        and calibration == Calibration(model.std_scale, model.bias_fraction)
+    ):
         return maps.entropy
     return _entropy(model, *posterior, tuple(maps.warped.shape), calibration)
 
@@ -390,10 +402,15 @@ def _network_quality_inputs(model: LoadedModel, output: RegistrationOutput, maps
 
 
 def _entropy(
-    model: LoadedModel, mean: torch.Tensor, log_var: torch.Tensor, shape: tuple[int, ...], calibration: Calibration
+    model: LoadedModel,
+    mean: torch.Tensor,
+    log_var: torch.Tensor,
+    shape: tuple[int, ...],
+    calibration: Calibration,
+    residual: torch.Tensor | None = None,
 ) -> np.ndarray:
     """The velocity entropy of the posterior (``mean``, ``log_var``) on ``shape`` under ``calibration`` (std_scale 1,
-    bias 0 = raw)."""
+    bias 0 = raw; its residual term with ``residual``, which it then needs)."""
     posterior = posterior_maps(
         model.network,
         mean,
@@ -401,6 +418,8 @@ def _entropy(
         shape,
         std_scale=calibration.std_scale,
         bias_fraction=calibration.bias_fraction,
+        residual=residual,
+        residual_weight=calibration.residual_weight,
     )
     return _numpy(posterior.velocity_entropy)
 
@@ -764,6 +783,9 @@ def register_scan(
                 "divisor": model.divisor,
                 "posterior_std_scale": model.std_scale,
                 "posterior_bias_fraction": model.bias_fraction,
+                # the posterior the maps are drawn from: the network's spread around the answer's mean, widened where
+                # the registered pair stays unlike by this weight (uncertainty.residual; 0: the network's alone)
+                "posterior_residual_weight": model.calibration.residual_weight,
                 "posterior_interval_dof": model.interval_dof,  # Student-t dof of the intervals; None: Gaussian
                 # the calibrated 95% interval of one displacement component is +- this many times that component's
                 # std (displacement_std.nii.gz is the root-sum-square of the 3 components' stds)

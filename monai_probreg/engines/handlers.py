@@ -33,6 +33,7 @@ from monai_probreg.engines.score_files import summary_table, write_scores
 from monai_probreg.metrics.scores import PairScores, score_pair
 from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
+from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.files import write_text
 
 __all__ = ["RegistrationInferer", "RegistrationWriter", "RegistrationScorer"]
@@ -98,7 +99,7 @@ class RegistrationWriter(_PerSubjectHandler):
     :data:`~monai_probreg.engines.outputs.OUTPUT_NAMES`; the label maps only when the batch has labels).
 
     With ``network`` given, the uncertainty maps are :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` of the
-    posterior calibrated by ``std_scale`` and ``bias_fraction`` (1 and 0 = raw), from ``num_samples`` seeded samples
+    posterior calibrated by ``std_scale``, ``bias_fraction`` and ``residual_weight`` (1, 0 and 0 = raw), from ``num_samples`` seeded samples
     (needed, >= 2, for :data:`~monai_probreg.engines.outputs.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's.
     With ``quality``, each subject's quality estimate is written as ``<id>/quality.json`` (and a probable failure
     logged as a warning)."""
@@ -113,6 +114,7 @@ class RegistrationWriter(_PerSubjectHandler):
         seed: int = 0,
         bias_fraction: float = 0.0,
         quality: QualityCheck | None = None,
+        residual_weight: float = 0.0,
     ) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
@@ -125,7 +127,7 @@ class RegistrationWriter(_PerSubjectHandler):
             )
         self.output_dir, self.names = Path(output_dir), tuple(names)
         self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
-        self.bias_fraction = float(bias_fraction)
+        self.bias_fraction, self.residual_weight = float(bias_fraction), float(residual_weight)
         self.quality = quality
 
     def start(self, engine: Engine) -> None:
@@ -138,6 +140,9 @@ class RegistrationWriter(_PerSubjectHandler):
         if self.network is not None:
             sampled = set(self.names) & set(SAMPLED_NAMES)
             label = targets.get("moving_label") if "label_entropy" in self.names else None
+            residual = None  # the registered pair's residual, for the calibration's residual term
+            if self.residual_weight > 0:
+                residual = residual_variance(pair.warped, targets["fixed"], pair.velocity_mean.shape[2:])
             maps = posterior_maps(
                 self.network,
                 pair.velocity_mean,
@@ -148,6 +153,8 @@ class RegistrationWriter(_PerSubjectHandler):
                 label,
                 self.seed,
                 self.bias_fraction,
+                residual=residual,
+                residual_weight=self.residual_weight,
             )
         write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
         record = self.quality(sid, pair, targets) if self.quality is not None else None

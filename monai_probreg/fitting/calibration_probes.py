@@ -3,8 +3,8 @@
 :func:`calibration_probes` registers the cases of both probes (:mod:`~monai_probreg.fitting.population_probe` on the
 bundle's validation subjects, :mod:`~monai_probreg.fitting.subject_probe` on the first training subjects' scans) and
 keeps each case's posterior, so that :meth:`CalibrationProbes.errors_at` can sample them again at any calibration.
-:meth:`CalibrationProbes.fit` is the coverage-matching fit of (std_scale, bias_fraction, interval_dof) on any subset of
-the cases, each probe's coverage matched on its own (``fit_calibration``'s ``groups``): on all of them for the
+:meth:`CalibrationProbes.fit` chooses the residual term's weight (:meth:`CalibrationProbes.residual_weight_for`) and is
+the coverage-matching fit of (std_scale, bias_fraction, interval_dof) at that weight on any subset of the cases, each probe's coverage matched on its own (``fit_calibration``'s ``groups``): on all of them for the
 sidecar (``python -m monai_probreg.fitting``), on the other folds for the held-out numbers of
 ``benchmarks/uncertainty_calibration.py``.
 """
@@ -31,18 +31,20 @@ from monai_probreg.fitting.population_probe import (
     SEED_STRIDE,
     VOXELS_PER_CASE,
     case_errors,
+    case_velocity_std,
     displacement_case,
     pool_errors,
     population_velocities,
 )
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, SubjectCase, subject_case, subject_errors
-from monai_probreg.metrics.calibration import interval_coverage
+from monai_probreg.metrics.calibration import interval_coverage, spearman
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration, fit_calibration
 from monai_probreg.utils.tensors import plain_tensor
 
 __all__ = [
     "FIT_ITERATIONS",
     "FIT_TOLERANCE",
+    "RESIDUAL_WEIGHTS",
     "SUBJECT_PROBE_TEMPLATES",
     "POPULATION",
     "SUBJECTS",
@@ -60,6 +62,9 @@ FIT_TOLERANCE = 0.02  # ... stopping once a refit asks for less than this: |scal
 SUBJECT_PROBE_TEMPLATES = 6  # training subjects whose synthetic subjects make the subject probe (0: none)
 POPULATION, SUBJECTS = 0, 1  # the fit's groups: each probe's coverage is matched on its own (fit_calibration)
 RAW = Calibration(1.0, 0.0)
+# the residual term's weights the fit tries (Calibration.residual_weight; velocity-grid voxels^2 per squared intensity):
+# the one whose sampled std ranks the population probe's errors best (Spearman per component) is kept
+RESIDUAL_WEIGHTS: tuple[float, ...] = (0.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
 
 
 class ProbeSettings(NamedTuple):
@@ -91,6 +96,7 @@ class CalibrationProbes:
     command_model: LoadedModel | None
     raw: dict[str, list[tuple[np.ndarray, ...]]]
     subject_raw: dict[str, tuple[np.ndarray, ...]]
+    residual_weights: tuple[float, ...] = RESIDUAL_WEIGHTS  # the residual term's weights fit() chooses among
 
     def population_errors(self, sid: str, calibration: Calibration) -> list[tuple[np.ndarray, ...]]:
         """(std, error, norm) of each population case of ``sid``, sampled at ``calibration``."""
@@ -100,13 +106,26 @@ class CalibrationProbes:
         """(std, error, norm) of template ``tid``'s synthetic subject, registered by the command's path."""
         return subject_errors(self.command_model, self.subject_cases[tid], calibration, self.samples, self.refinement)
 
-    def errors_at(self, sids: list[str], tids: list[str], calibration: Calibration | None) -> tuple[np.ndarray, ...]:
+    def errors_at(
+        self,
+        sids: list[str],
+        tids: list[str],
+        calibration: Calibration | None,
+        population: dict[str, list[tuple[np.ndarray, ...]]] | None = None,
+    ) -> tuple[np.ndarray, ...]:
         """(std, error, norm, group) pooled over the population cases of ``sids`` and the subject cases of
-        ``tids``, sampled at ``calibration`` (None: the raw samples already drawn)."""
+        ``tids``, sampled at ``calibration`` (None: the raw samples already drawn); ``population``: the population
+        cases' errors at that calibration when already sampled."""
         parts = [
             (*e, np.full(e[0].shape, POPULATION))
             for s in sids
-            for e in (self.raw[s] if calibration is None else self.population_errors(s, calibration))
+            for e in (
+                population[s]
+                if population is not None
+                else self.raw[s]
+                if calibration is None
+                else self.population_errors(s, calibration)
+            )
         ]
         parts += [
             (*e, np.full(e[0].shape, SUBJECTS))
@@ -115,19 +134,25 @@ class CalibrationProbes:
         return pool_errors(parts)
 
     def fit(self, sids: list[str], tids: list[str], iterations: int = FIT_ITERATIONS) -> Calibration:
-        """Coverage-matching (scale, bias fraction, dof) on the population cases of ``sids`` and the subject-probe
-        cases of ``tids``, each probe matched on its own: fitted on the raw samples, then re-sampled at the current
-        pair and refitted, at most ``iterations`` times. Independent velocity noise reaches the displacement damped by
+        """The residual term's weight (:meth:`residual_weight_for`), then coverage-matching (scale, bias fraction,
+        dof) on the population cases of ``sids`` and the subject-probe cases of ``tids``, each probe matched on its
+        own: fitted on the samples of the unscaled posterior with that weight, then re-sampled at the current pair and
+        refitted, at most ``iterations`` times. Independent velocity noise reaches the displacement damped by
         a factor kappa (interpolation and integration average neighbours; kappa = sampled raw displacement variance /
         raw velocity variance on the image grid), so a refit (c, a) of samples drawn at (s, b) means a variance of
         about c^2 kappa (s^2 sigma^2 + b^2 |mu|^2) + a^2 |u|^2 (u ~ mu once integrated): the new pair is
         (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
-        population_std = pool_errors([e for s in sids for e in self.raw[s]])[0]
-        velocity_std = np.concatenate([c["velocity_std"].numpy() for s in sids for c in self.cases[s]], axis=1)
+        weight = self.residual_weight_for(sids) if len(self.residual_weights) > 1 else self.residual_weights[0]
+        base = Calibration(1.0, 0.0, None, weight)  # the network's spread with the residual term, unscaled
+        population = {s: self.raw[s] if weight == 0 else self.population_errors(s, base) for s in sids}
+        population_std = pool_errors([e for s in sids for e in population[s]])[0]
+        velocity_std = np.concatenate(
+            [case_velocity_std(c, weight).numpy() for s in sids for c in self.cases[s]], axis=1
+        )
         kappa = float(np.mean(population_std**2) / np.mean(velocity_std**2))
-        std, error, norm, groups = self.errors_at(sids, tids, None)
+        std, error, norm, groups = self.errors_at(sids, tids, None if weight == 0 else base, population)
         first = fit_calibration(std, error, norm, groups=groups)
-        current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa), first.interval_dof)
+        current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa), first.interval_dof, weight)
         for iteration in tqdm(range(1, iterations + 1), desc="calibration refits", unit="refit", disable=None):
             std, error, norm, groups = self.errors_at(sids, tids, current)
             refit = fit_calibration(std, error, norm, groups=groups)
@@ -141,14 +166,34 @@ class CalibrationProbes:
                 refit.std_scale * current.std_scale,
                 math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction / math.sqrt(kappa)),
                 refit.interval_dof,
+                weight,
             )
         _LOG.info(
             f"  fit on {', '.join(sids + [t + ' (subject probe)' for t in tids])}: kappa {kappa:.3f}, "
             f"refit {iteration} ({refit.std_scale:.3f}, "
             f"{refit.bias_fraction:.3f}, dof {refit.interval_dof}) -> std_scale {current.std_scale:.3f}, bias_fraction "
-            f"{current.bias_fraction:.3f}, interval dof {current.interval_dof}"
+            f"{current.bias_fraction:.3f}, interval dof {current.interval_dof}, residual weight {weight:g}"
         )
         return current
+
+    def residual_weight_for(self, sids: list[str]) -> float:
+        """The weight of :attr:`residual_weights` whose unscaled posterior ranks the errors of the population cases of
+        ``sids`` best: the mean over cases and components of Spearman(sampled std, |error|). The scale does not
+        change a ranking, so it is chosen before the coverage fit; the subject probe, which needs the whole command
+        per weight, is left out of the choice (its coverage is matched as before)."""
+        scores = []
+        for weight in self.residual_weights:
+            errors = [e for s in sids for e in self.population_errors(s, Calibration(1.0, 0.0, None, weight))]
+            scores.append(
+                float(np.mean([spearman(std[k], np.abs(err[k])) for std, err, _ in errors for k in range(3)]))
+            )
+        best = self.residual_weights[int(np.argmax(scores))]
+        _LOG.info(
+            "  residual weight by Spearman(std, |error|) per component: "
+            + ", ".join(f"{w:g}: {r:.3f}" for w, r in zip(self.residual_weights, scores))
+            + f" -> {best:g}"
+        )
+        return best
 
     def fitted_on(self) -> list[str]:
         """The cases' names as the sidecar records them: the subjects, then each template with its seed."""

@@ -14,7 +14,7 @@ are drawn by one of two models:
 
 With our own integration (:data:`TRUTH_STEPS` squarings at full resolution): moving = R warped by exp(v), fixed = R;
 the true displacement of moving onto fixed is exp(-v). The registration is the one users get (:func:`posterior_for`:
-the network's mean, refined when the refinement is on; the network's variance); :func:`case_errors` samples it at a
+the network's mean, refined when the refinement is on; the network's variance and the pair's residual); :func:`case_errors` samples it at a
 calibration and returns the arrays :func:`~monai_probreg.uncertainty.calibration.fit_calibration` takes, on
 :data:`VOXELS_PER_CASE` subsampled brain voxels, in voxels.
 """
@@ -22,7 +22,7 @@ calibration and returns the arrays :func:`~monai_probreg.uncertainty.calibration
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -31,9 +31,9 @@ from monai.networks.layers import GaussianFilter
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.registration import register_pair
-from monai_probreg.networks.velocity_unet import VelocityPosterior
 from monai_probreg.uncertainty.calibration import Calibration, calibrate_log_var
 from monai_probreg.uncertainty.entropy import sampled_displacement_moments
+from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.tensors import plain_tensor
 
@@ -47,7 +47,9 @@ __all__ = [
     "population_velocity",
     "population_deformation",
     "sample_displacements",
+    "PairPosterior",
     "posterior_for",
+    "case_velocity_std",
     "displacement_case",
     "case_errors",
     "pool_errors",
@@ -124,11 +126,24 @@ def _subsample(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     return index[keep]
 
 
-def posterior_for(network, moving, fixed, refinement=None) -> VelocityPosterior:
+class PairPosterior(NamedTuple):
+    """What a registration's maps are sampled from: the velocity ``mean`` and the network's ``log_var``
+    (1, 3, *V), and the pair's ``residual`` (1, 1, *V) after registration
+    (:func:`~monai_probreg.uncertainty.residual.residual_variance`)."""
+
+    mean: torch.Tensor
+    log_var: torch.Tensor
+    residual: torch.Tensor
+
+
+def posterior_for(network, moving, fixed, refinement=None) -> PairPosterior:
     """The posterior a user's registration samples: the network's, with its mean refined for the pair when
-    ``refinement`` (evaluate.yaml's ``refinement``) is enabled; the variance stays the network's."""
+    ``refinement`` (evaluate.yaml's ``refinement``) is enabled; the variance stays the network's; the residual of the
+    registered pair."""
     output = register_pair(network, moving, fixed, refinement)
-    return VelocityPosterior(output.velocity_mean, output.velocity_log_var)
+    with torch.inference_mode():
+        residual = residual_variance(output.warped, fixed, output.velocity_mean.shape[2:])
+    return PairPosterior(output.velocity_mean, output.velocity_log_var, residual)
 
 
 def displacement_case(network, fixed, rms, num_samples, seed, population=None, refinement=None) -> dict[str, Any]:
@@ -145,24 +160,41 @@ def displacement_case(network, fixed, rms, num_samples, seed, population=None, r
     voxels = _subsample(fixed[0, 0] > 0, generator)
     with torch.inference_mode():
         registration = network.velocity_to_displacement(posterior.mean, tuple(fixed.shape[2:]))
-        # the raw velocity std on the image grid, in its voxels: what sampling would give without any smoothing
+        # the raw velocity std on the image grid, in its voxels: what sampling would give without any smoothing;
+        # the residual term's per unit weight, alike (case_velocity_std)
         velocity_std = resize_displacement((0.5 * posterior.log_var).exp(), tuple(fixed.shape[2:]))
+        residual_std = resize_displacement(posterior.residual.sqrt().expand_as(posterior.mean), tuple(fixed.shape[2:]))
     return {
         "mean": posterior.mean,
         "log_var": posterior.log_var,
+        "residual": posterior.residual,
         "truth": truth[0].flatten(1)[:, voxels],
         "voxels": voxels,
         "size": tuple(fixed.shape[2:]),
         "seed": seed,
         "displacement_norm": registration[0].flatten(1)[:, voxels].norm(dim=0),
         "velocity_std": velocity_std[0].flatten(1)[:, voxels],
+        "residual_std": residual_std[0].flatten(1)[:, voxels],
     }
+
+
+def case_velocity_std(case: dict[str, Any], residual_weight: float) -> torch.Tensor:
+    """(3, N) the velocity std of ``case`` (:func:`displacement_case`) on its voxels with the residual term of
+    ``residual_weight`` and no scale: ``sqrt(sigma^2 + residual_weight * residual)``, image-grid voxels."""
+    return (case["velocity_std"].square() + residual_weight * case["residual_std"].square()).sqrt()
 
 
 def case_errors(network, case, calibration: Calibration, num_samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(std, error, |mean displacement|), each (3, N): per subsampled voxel and component, from ``num_samples``
     samples of the posterior calibrated by ``calibration``."""
-    log_var = calibrate_log_var(case["log_var"], calibration.std_scale, case["mean"], calibration.bias_fraction)
+    log_var = calibrate_log_var(
+        case["log_var"],
+        calibration.std_scale,
+        case["mean"],
+        calibration.bias_fraction,
+        case.get("residual"),
+        calibration.residual_weight,
+    )
     generator = torch.Generator().manual_seed(case["seed"] + 1)
     mean, variance = sample_displacements(network, case["mean"], log_var, case["size"], num_samples, generator)
     pick = case["voxels"]

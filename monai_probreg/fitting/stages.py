@@ -241,6 +241,7 @@ def write_sidecars(
             refinement=refinement.as_dict() if refinement.enabled else None,
             interval_dof=fitted.interval_dof,
             path=path,
+            residual_weight=fitted.residual_weight,
         )
         written.append(path)
     if quality is not None:

@@ -1,4 +1,5 @@
-"""Post-hoc calibration of the posterior: a velocity std scale, a bias fraction and the intervals' tails.
+"""Post-hoc calibration of the posterior: a velocity std scale, a bias fraction, the pair's residual and the
+intervals' tails.
 
 Variational posteriors are over-confident (the KL pulls sigma^2 towards 1/(lambda D), whatever the real error).
 We keep the network as trained and temper its posterior afterwards:
@@ -12,7 +13,19 @@ posterior therefore gets a second, isotropic variance term per component (writte
     sigma^2_calibrated,c = std_scale^2 * sigma^2_c + (bias_fraction * |mu|)^2
 
 with mu the posterior mean velocity at that voxel (|mu| its length over the D components; sigma and mu in voxels of
-the velocity grid, so ``bias_fraction`` is unitless). It stays a diagonal Gaussian on the velocity grid, so sampling
+the velocity grid, so ``bias_fraction`` is unitless).
+
+The network's sigma is amortised: it hardly depends on how well this pair ended up aligned, so it ranks the errors of
+the answer (the refined mean) only weakly. The pair itself says where the answer is least held: where the registered
+images still differ (:mod:`monai_probreg.uncertainty.residual`, ``r``: the local mean squared difference of the warped
+moving and the fixed image, on the velocity grid). A fourth number weighs it in before the scale:
+
+    sigma^2_calibrated,c = std_scale^2 * (sigma^2_c + residual_weight * r) + (bias_fraction * |mu|)^2
+
+``residual_weight`` (velocity-grid voxels^2 per squared intensity of the [0, 1] inputs; 0: the network's spread
+alone) is chosen by the fit among a few values, as the one whose sampled std ranks the errors best
+(:meth:`monai_probreg.fitting.calibration_probes.CalibrationProbes.residual_weight_for`); the coverage matching then
+fits the other numbers at that weight. It stays a diagonal Gaussian on the velocity grid, so sampling
 (diffeomorphic samples), the velocity entropy, the displacement std and the label entropy all follow from the
 calibrated ``log_var``. For the small sigmas of a trained model the sampled displacement variance is, to first
 order, std_scale^2 times the raw one plus (bias_fraction |u|)^2 (u the displacement, about mu once integrated),
@@ -31,8 +44,9 @@ scale; None = Gaussian):
 posterior's; only the width of an interval at a given level follows the fitted tails.
 They are stored next to the weights they belong to, as ``<weights stem>.calibration.json``, with the weights'
 SHA-256 so that a retrained model is never paired with an old calibration; a field an older sidecar lacks reads as
-its neutral value (``bias_fraction`` 0, ``refinement`` None, ``interval_dof`` None). Raw (uncalibrated) values:
-``std_scale = 1``, ``bias_fraction = 0``, Gaussian intervals (``interval_dof = None``). Held-out coverage and how well
+its neutral value (``bias_fraction`` 0, ``refinement`` None, ``interval_dof`` None, ``residual_weight`` 0). Raw
+(uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``, Gaussian intervals (``interval_dof = None``), no
+residual term. Held-out coverage and how well
 the std ranks the errors: ``benchmarks/uncertainty_calibration.py``.
 """
 
@@ -98,6 +112,9 @@ class Calibration(NamedTuple):
     std_scale: float
     bias_fraction: float
     interval_dof: float | None = None  # Student-t dof of the intervals; None: Gaussian
+    # velocity variance per unit of the pair's residual (monai_probreg.uncertainty.residual; velocity-grid voxels^2
+    # per squared intensity of the [0, 1] inputs), added before the scale; 0: the network's spread alone
+    residual_weight: float = 0.0
 
 
 RAW = Calibration(1.0, 0.0, None)  # the raw posterior: no scale, no bias term, Gaussian intervals
@@ -124,14 +141,29 @@ class CalibrationRecord:
     refinement: dict | None = None
     # Student-t degrees of freedom of the intervals; None: Gaussian (also an older sidecar without the field)
     interval_dof: float | None = None
+    # the residual term's weight (Calibration.residual_weight); 0: none (also an older sidecar without the field)
+    residual_weight: float = 0.0
+
+    def calibration(self) -> Calibration:
+        """The numbers inference uses."""
+        return Calibration(self.std_scale, self.bias_fraction, self.interval_dof, self.residual_weight)
 
 
-def check_calibration(std_scale: float, bias_fraction: float, interval_dof: float | None = None) -> None:
-    """ValueError unless ``std_scale`` > 0 and ``bias_fraction`` >= 0, both finite, and ``interval_dof`` None or a
-    positive finite number."""
+def check_calibration(
+    std_scale: float, bias_fraction: float, interval_dof: float | None = None, residual_weight: float = 0.0
+) -> None:
+    """ValueError unless ``std_scale`` > 0, ``bias_fraction`` >= 0 and ``residual_weight`` >= 0, all finite, and
+    ``interval_dof`` None or a positive finite number."""
     _check_scale(std_scale)
     _check_bias_fraction(bias_fraction)
     _check_dof(interval_dof)
+    if not (
+        isinstance(residual_weight, (int, float))
+        and not isinstance(residual_weight, bool)
+        and math.isfinite(residual_weight)
+        and residual_weight >= 0
+    ):
+        raise ValueError(f"residual_weight must be a finite number >= 0; got {residual_weight!r}")
 
 
 def _check_dof(interval_dof: float | None) -> None:
@@ -155,20 +187,40 @@ def _check_bias_fraction(bias_fraction: float) -> None:
 
 
 def calibrate_log_var(
-    log_var: Tensor, std_scale: float, mean: Tensor | None = None, bias_fraction: float = 0.0
+    log_var: Tensor,
+    std_scale: float,
+    mean: Tensor | None = None,
+    bias_fraction: float = 0.0,
+    residual: Tensor | None = None,
+    residual_weight: float = 0.0,
 ) -> Tensor:
-    """log sigma^2 of the calibrated posterior: ``log(std_scale^2 exp(log_var) + (bias_fraction |mean|)^2)``, i.e.
-    ``log_var + 2 log(std_scale)`` without the bias term. ``log_var`` any shape; with ``bias_fraction`` > 0,
-    ``mean`` (B, D, *V) the posterior mean velocity, same shape as ``log_var``."""
-    check_calibration(std_scale, bias_fraction)
-    if bias_fraction == 0:
+    """log sigma^2 of the calibrated posterior:
+    ``log(std_scale^2 (exp(log_var) + residual_weight residual) + (bias_fraction |mean|)^2)``, i.e.
+    ``log_var + 2 log(std_scale)`` without the bias and residual terms. ``log_var`` (B, D, *V) (any shape without
+    them); with ``bias_fraction`` > 0, ``mean`` the posterior mean velocity, same shape as ``log_var``; with
+    ``residual_weight`` > 0, ``residual`` (B, 1, *V) from :func:`~monai_probreg.uncertainty.residual.residual_variance`
+    on the velocity grid."""
+    check_calibration(std_scale, bias_fraction, None, residual_weight)
+    if bias_fraction == 0 and residual_weight == 0:
         return log_var + 2.0 * math.log(std_scale)
-    if mean is None or mean.shape != log_var.shape:
-        raise ValueError(
-            f"bias_fraction > 0 needs the posterior mean of the log_var's shape {tuple(log_var.shape)}; "
-            f"got {None if mean is None else tuple(mean.shape)}"
-        )
-    return torch.log(std_scale**2 * log_var.exp() + bias_variance(mean, bias_fraction))
+    variance = log_var.exp()
+    if residual_weight > 0:
+        expected = (log_var.shape[0], 1, *log_var.shape[2:])
+        if residual is None or tuple(residual.shape) != expected:
+            raise ValueError(
+                f"residual_weight > 0 needs the residual {expected} of the log_var's grid; "
+                f"got {None if residual is None else tuple(residual.shape)}"
+            )
+        variance = variance + residual_weight * residual.to(variance.dtype)
+    variance = std_scale**2 * variance
+    if bias_fraction > 0:
+        if mean is None or mean.shape != log_var.shape:
+            raise ValueError(
+                f"bias_fraction > 0 needs the posterior mean of the log_var's shape {tuple(log_var.shape)}; "
+                f"got {None if mean is None else tuple(mean.shape)}"
+            )
+        variance = variance + bias_variance(mean, bias_fraction)
+    return torch.log(variance)
 
 
 def bias_variance(mean: Tensor, bias_fraction: float) -> Tensor:
@@ -295,12 +347,13 @@ def save_calibration(
     refinement: Mapping[str, Any] | None = None,
     interval_dof: float | None = None,
     path: str | os.PathLike | None = None,
+    residual_weight: float = 0.0,
 ) -> CalibrationRecord:
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
     ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
     network's mean); ``interval_dof``: the intervals' Student-t dof (None: Gaussian); ``path``: where to write it
-    (default: next to the weights, :func:`calibration_path`)."""
-    check_calibration(std_scale, bias_fraction, interval_dof)
+    (default: next to the weights, :func:`calibration_path`); ``residual_weight``: the residual term's weight (0: none)."""
+    check_calibration(std_scale, bias_fraction, interval_dof, residual_weight)
     record = CalibrationRecord(
         float(std_scale),
         Path(weights_file).name,
@@ -311,6 +364,7 @@ def save_calibration(
         bias_fraction=float(bias_fraction),
         refinement=dict(refinement or {}),
         interval_dof=None if interval_dof is None else float(interval_dof),
+        residual_weight=float(residual_weight),
     )
     write_sidecar(weights_file, CALIBRATION_SIDECAR, asdict(record), path)
     return record
@@ -325,7 +379,7 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
     except TypeError as err:
         raise ValueError(f"{path}: not a calibration record ({err})") from None
     try:
-        check_calibration(record.std_scale, record.bias_fraction, record.interval_dof)
+        check_calibration(record.std_scale, record.bias_fraction, record.interval_dof, record.residual_weight)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: {err}") from None
     if record.refinement is not None and not isinstance(record.refinement, dict):
@@ -358,7 +412,7 @@ def calibration_for(weights_file: str | os.PathLike, calibrate: bool = True) -> 
     record = calibration_record_for(weights_file, calibrate)
     if record is None:
         return Calibration(1.0, 0.0)
-    return Calibration(record.std_scale, record.bias_fraction, record.interval_dof)
+    return record.calibration()
 
 
 def std_scale_for(weights_file: str | os.PathLike, calibrate: bool = True) -> float:

@@ -1,8 +1,9 @@
 """The calibrated uncertainty maps the bundle's inference writes, from one pair's velocity posterior.
 
 - ``velocity_entropy``: entropy of the calibrated q(z) (paper Eq. 8, nats, summed over the 3 components),
-  resized to the image grid. Without a bias term, calibration adds ``spatial_dims * log(std_scale)`` everywhere;
-  the bias term (:mod:`monai_probreg.uncertainty.calibration`) raises it more where the mean velocity is long.
+  resized to the image grid. Without a bias or residual term, calibration adds ``spatial_dims * log(std_scale)``
+  everywhere; the bias term (:mod:`monai_probreg.uncertainty.calibration`) raises it more where the mean velocity is
+  long, the residual term (:mod:`monai_probreg.uncertainty.residual`) where the registered images still differ.
 - ``displacement_std``: sqrt(sum_c var_c) of K displacements drawn from the calibrated posterior, in voxels of
   the image grid: the radius-like spread of where each voxel maps. On held-out LPBA40 subjects its coverage is
   reported by ``benchmarks/uncertainty_calibration.py``.
@@ -54,13 +55,16 @@ def posterior_maps(
     seed: int = 0,
     bias_fraction: float = 0.0,
     spacing: Sequence[float] | None = None,
+    residual: Tensor | None = None,
+    residual_weight: float = 0.0,
 ) -> PosteriorMaps:
     """Maps of one pair. ``velocity_mean``, ``velocity_log_var``: (1, D, *V) raw posterior; ``network`` provides
     ``velocity_to_displacement``; ``num_samples``: 0 (velocity entropy only) or >= 2; ``std_scale`` and
     ``bias_fraction``: the calibration (1 and 0 = raw); ``moving_label``: (1, 1, *S) integer labels on the moving
     grid, or None; ``spacing``: voxel size per axis of the fixed grid to give ``displacement_std`` in mm (the trace of
     the covariance is rotation-invariant, so per-axis voxel variances times spacing^2 give it exactly), or None for
-    voxels."""
+    voxels; ``residual`` (1, 1, *V) and ``residual_weight``: the calibration's residual term
+    (:func:`~monai_probreg.uncertainty.residual.residual_variance` of the pair; None and 0: none)."""
     if velocity_mean.shape[0] != 1 or velocity_mean.shape != velocity_log_var.shape:
         raise ValueError(
             f"expected one pair's posterior, mean and log_var (1, D, *V); got "
@@ -69,7 +73,9 @@ def posterior_maps(
     if num_samples == 1 or num_samples < 0:
         raise ValueError(f"num_samples must be 0 (no sampling) or >= 2 (a spread needs two); got {num_samples}")
     size = tuple(int(s) for s in spatial_size)
-    log_var = calibrate_log_var(velocity_log_var.float(), std_scale, velocity_mean.float(), bias_fraction)
+    log_var = calibrate_log_var(
+        velocity_log_var.float(), std_scale, velocity_mean.float(), bias_fraction, residual, residual_weight
+    )
     entropy = velocity_entropy(log_var, size)[0, 0]
     if num_samples == 0:
         return PosteriorMaps(entropy, None, None)

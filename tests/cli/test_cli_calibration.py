@@ -18,6 +18,7 @@ from monai_probreg.uncertainty.calibration import calibration_path, save_calibra
 BUNDLE = Path(__file__).resolve().parents[2] / "bundle"
 SCALE = 4.0
 BIAS_FRACTION = 2000.0  # large: the random network's mean velocity is ~5e-4 of its posterior std
+RESIDUAL_WEIGHT = 1e4  # large: the random network's posterior variance is ~1e-3 velocity voxels^2
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +33,9 @@ def scene(tmp_path_factory):
     return root, bundle, weights, fixed, moving
 
 
-def _register(scene, name: str, *extra: str) -> tuple[int, dict, np.ndarray]:
-    root, bundle, _, fixed, moving = scene
+def _register(scene, name: str, *extra: str, moving: Path | None = None) -> tuple[int, dict, np.ndarray]:
+    root, bundle, _, fixed, scene_moving = scene
+    moving = moving or scene_moving
     out = root / name
     threads = torch.get_num_threads()
     try:
@@ -128,6 +130,28 @@ def test_bias_fraction_reaches_the_written_maps(scene):
     assert rc == 0
     inside = raw > 0
     assert np.median(biased[inside] / raw[inside]) > 1.2
+
+
+def test_the_residual_term_reaches_the_written_maps(scene):
+    """A sidecar with a residual weight (std_scale 1): the summary records it, and the displacement std widens where
+    the registered images differ (the same seeded samples otherwise; the network's mean, as above)."""
+    root, _, weights, _, _ = scene
+    image, _ = asymmetric_phantom()
+    unlike = image.astype(np.float32).copy()
+    half = unlike.shape[0] // 2
+    unlike[:half] = unlike[:half].max() - unlike[:half]  # the first half of axis 0 inverted: unlike the fixed image
+    moving = save_lps(root / "unlike.nii.gz", unlike, FIXED_LPS)
+    record = calibration_path(weights).read_text()
+    try:
+        save_calibration(weights, 1.0, ["synthetic"], 2, residual_weight=RESIDUAL_WEIGHT)
+        rc, summary, widened = _register(scene, "residual", "--refine", "0", moving=moving)
+        assert rc == 0 and summary["model"]["posterior_residual_weight"] == RESIDUAL_WEIGHT
+    finally:
+        calibration_path(weights).write_text(record)
+    rc, summary, raw = _register(scene, "raw_for_residual", "--raw-uncertainty", "--refine", "0", moving=moving)
+    assert rc == 0 and summary["model"]["posterior_residual_weight"] == 0.0
+    inside = raw > 0
+    assert np.median(widened[inside] / raw[inside]) > 1.2
 
 
 def test_student_t_intervals_are_recorded_and_raw_on_request_is_gaussian(scene):

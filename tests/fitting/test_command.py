@@ -17,7 +17,7 @@ from conftest import BUNDLE_DIR, make_tiny_dataset, tiny_bundle
 
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.fitting import command, stages
-from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES
+from monai_probreg.fitting.calibration_probes import RESIDUAL_WEIGHTS, SUBJECT_PROBE_TEMPLATES
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED
 from monai_probreg.uncertainty.calibration import Calibration
 
@@ -80,8 +80,10 @@ def test_one_command_writes_both_sidecars_and_a_stopped_run_resumes(setup, tmp_p
     quality = json.loads((out / "model.quality.json").read_text())
     assert not (out / "model.fitting").exists()  # the logs go once the sidecars are whole
     assert not list(weights.parent.glob("*.json"))  # --out-dir: the weights' folder untouched
-    # the calibration: a two-number fit (and its dof) on both probes, around the network's mean (evaluate.yaml)
-    assert calibration["std_scale"] > 0 and 0 <= calibration["bias_fraction"] <= 1
+    # the calibration: a two-number fit (and its dof) on both probes, around the network's mean (evaluate.yaml), with
+    # the residual term's weight chosen among the fit's
+    assert calibration["std_scale"] > 0 and 0 <= calibration["bias_fraction"] < float("inf")
+    assert calibration["residual_weight"] in RESIDUAL_WEIGHTS
     assert calibration["interval_dof"] is None or calibration["interval_dof"] > 0
     assert calibration["fitted_on"] == ["T01", "T02", f"T03 (subject probe, seed {SUBJECT_SEED})"]
     assert calibration["num_samples"] == 2 and calibration["refinement"] == {}

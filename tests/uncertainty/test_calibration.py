@@ -187,7 +187,7 @@ def test_fit_calibration_recovers_a_known_scale_and_bias_fraction(scale, bias_fr
 def test_fit_calibration_without_bias_matches_fit_std_scale():
     std, error = _toy(3.0)
     fitted = fit_calibration(std, error, np.ones_like(std), bias_fractions=(0.0,), interval_dofs=(None,))
-    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0, None)
+    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0, None, 0.0)
 
 
 @pytest.mark.parametrize(
@@ -234,18 +234,54 @@ def test_bias_variance_is_the_squared_fraction_of_the_length():
 
 def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
     save_calibration(weights, 2.0, bias_fraction=0.15)
-    assert calibration_for(weights) == (2.0, 0.15, None) and load_calibration(weights).bias_fraction == 0.15
-    assert calibration_for(weights, calibrate=False) == (1.0, 0.0, None)
+    assert calibration_for(weights) == (2.0, 0.15, None, 0.0) and load_calibration(weights).bias_fraction == 0.15
+    assert calibration_for(weights, calibrate=False) == (1.0, 0.0, None, 0.0)
     record = json.loads(calibration_path(weights).read_text())
     del record["bias_fraction"]  # written before the bias term existed
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (2.0, 0.0, None)
+    assert calibration_for(weights) == (2.0, 0.0, None, 0.0)
     record["bias_fraction"] = -0.5
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: bias_fraction"):
         load_calibration(weights)
     with pytest.raises(ValueError, match="bias_fraction"):
         save_calibration(weights, 2.0, bias_fraction=-1.0)
+
+
+def test_sidecar_keeps_the_residual_weight_and_old_sidecars_read_as_zero(weights):
+    save_calibration(weights, 1.5, interval_dof=2.0, residual_weight=300.0)
+    assert calibration_for(weights) == (1.5, 0.0, 2.0, 300.0)
+    record = json.loads(calibration_path(weights).read_text())
+    del record["residual_weight"]  # written before the residual term existed
+    calibration_path(weights).write_text(json.dumps(record))
+    assert calibration_for(weights) == (1.5, 0.0, 2.0, 0.0)
+    record["residual_weight"] = -1.0
+    calibration_path(weights).write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="model.calibration.json: residual_weight"):
+        load_calibration(weights)
+
+
+@pytest.mark.parametrize("weight", [-1.0, float("nan"), float("inf"), True])
+def test_a_bad_residual_weight_is_refused(weight, weights):
+    with pytest.raises(ValueError, match="residual_weight must be a finite number >= 0"):
+        save_calibration(weights, 1.0, residual_weight=weight)
+
+
+def test_the_residual_term_adds_its_weighted_variance_before_the_scale():
+    log_var = torch.log(torch.full((1, 2, 3, 4), 0.5))
+    residual = torch.linspace(0.0, 1.0, 12).view(1, 1, 3, 4)
+    mean = torch.randn(1, 2, 3, 4)
+    calibrated = calibrate_log_var(log_var, 2.0, mean, 0.1, residual, 3.0)
+    expected = 4.0 * (0.5 + 3.0 * residual) + 0.01 * mean.square().sum(1, keepdim=True)
+    torch.testing.assert_close(calibrated.exp(), expected.expand_as(calibrated))
+    # weight 0: the residual is not needed and changes nothing
+    torch.testing.assert_close(calibrate_log_var(log_var, 2.0), calibrate_log_var(log_var, 2.0, None, 0.0, residual))
+
+
+@pytest.mark.parametrize("residual", [None, torch.zeros(1, 2, 3, 4), torch.zeros(1, 1, 3, 5)])
+def test_a_residual_weight_without_a_residual_of_the_grid_is_refused(residual):
+    with pytest.raises(ValueError, match=r"residual_weight > 0 needs the residual \(1, 1, 3, 4\)"):
+        calibrate_log_var(torch.zeros(1, 2, 3, 4), 1.0, None, 0.0, residual, 1.0)
 
 
 # --- groups: several probes, each one's coverage matched on its own -------------------------------------------------
@@ -346,11 +382,11 @@ def test_fit_rejects_bad_interval_dofs(dofs, match):
 
 def test_sidecar_keeps_the_interval_dof_and_old_sidecars_read_as_gaussian(weights):
     save_calibration(weights, 1.3, interval_dof=3.0)
-    assert calibration_for(weights) == (1.3, 0.0, 3.0) and load_calibration(weights).interval_dof == 3.0
+    assert calibration_for(weights) == (1.3, 0.0, 3.0, 0.0) and load_calibration(weights).interval_dof == 3.0
     record = json.loads(calibration_path(weights).read_text())
     del record["interval_dof"]  # written before bundle 0.21.0
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (1.3, 0.0, None)
+    assert calibration_for(weights) == (1.3, 0.0, None, 0.0)
 
 
 @pytest.mark.parametrize("dof", [0.0, -1.0, "3", True])

@@ -53,6 +53,19 @@ def test_bias_fraction_widens_the_velocity_posterior_where_the_mean_is_long(setu
     assert (biased.displacement_std / raw.displacement_std).median() > 2.0
 
 
+def test_the_residual_term_widens_the_posterior_where_the_pair_stays_unlike(setup):
+    network, mean, log_var, _ = setup
+    residual = torch.zeros(1, 1, *mean.shape[2:])
+    residual[..., :3, :, :] = 0.05  # the first half of axis 0 unlike, the second alike
+    raw = posterior_maps(network, mean, log_var, SIZE, num_samples=4)
+    widened = posterior_maps(network, mean, log_var, SIZE, num_samples=4, residual=residual, residual_weight=0.5)
+    expected = torch.log(log_var.exp() + 0.5 * residual)  # sigma^2 + w r, per component
+    torch.testing.assert_close(widened.velocity_entropy, velocity_entropy(expected, SIZE)[0, 0], atol=1e-5, rtol=0)
+    ratio = widened.displacement_std / raw.displacement_std
+    # sqrt((0.0025 + 0.025) / 0.0025) ~ 3.3 where the residual is, 1 where not (velocity grid 6 -> 12 voxels)
+    assert ratio[:4].median() > 2.5 and ratio[-3:].median() < 1.5
+
+
 def test_label_entropy_zero_when_certain_positive_at_boundaries_when_not(setup):
     network, mean, _, labels = setup
     certain = posterior_maps(network, mean, torch.full_like(mean, -30.0), SIZE, 6, moving_label=labels)

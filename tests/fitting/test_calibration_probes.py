@@ -1,0 +1,69 @@
+"""The fit's choice of the residual term's weight: the weight whose sampled std ranks the population probe's errors
+best. Cases made by hand (a std that is the network's spread plus the weighted residual, errors drawn at a known
+spread), so that the right choice is known: the residual's weight when the errors follow the residual, none when they
+follow the network's spread alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from monai_probreg.fitting.calibration_probes import RESIDUAL_WEIGHTS, CalibrationProbes
+from monai_probreg.uncertainty.calibration import Calibration
+
+VOXELS = 20_000
+
+
+class _HandMadeProbes(CalibrationProbes):
+    """Population cases whose sampled std at a calibration is sqrt(sigma^2 + w r) (the residual term unscaled) and
+    whose errors were drawn with the spread ``truth`` of each voxel."""
+
+    def __init__(self, sigma: np.ndarray, residual: np.ndarray, truth: np.ndarray) -> None:
+        super().__init__(None, 2, None, {"S1": [{}], "S2": [{}]}, {}, {}, None, {}, {})
+        rng = np.random.default_rng(0)
+        self.sigma, self.residual = sigma, residual
+        self.errors = {sid: truth * rng.standard_normal(truth.shape) for sid in self.cases}
+
+    def population_errors(self, sid: str, calibration: Calibration) -> list[tuple[np.ndarray, ...]]:
+        std = calibration.std_scale * np.sqrt(self.sigma**2 + calibration.residual_weight * self.residual)
+        return [(std, self.errors[sid], np.zeros_like(std))]
+
+
+def _spreads() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(1)
+    sigma = rng.uniform(0.3, 0.4, (3, VOXELS))  # the network's spread: nearly the same everywhere
+    residual = rng.uniform(0.0, 1e-3, (3, VOXELS))  # the pair's residual: from none to some
+    return sigma, residual
+
+
+def test_errors_that_follow_the_residual_choose_a_residual_weight():
+    sigma, residual = _spreads()
+    truth = np.sqrt(sigma**2 + 300.0 * residual)  # the errors' spread follows the residual
+    assert _HandMadeProbes(sigma, residual, truth).residual_weight_for(["S1", "S2"]) >= 100.0
+
+
+def test_errors_that_follow_the_networks_spread_keep_it_alone():
+    sigma, residual = _spreads()
+    truth = sigma**4  # the errors' spread follows the network's spread only (steeply, to rank clearly)
+    assert _HandMadeProbes(sigma, residual, truth).residual_weight_for(["S1", "S2"]) == 0.0
+
+
+def test_the_weights_tried_start_with_none_and_grow():
+    assert RESIDUAL_WEIGHTS[0] == 0.0 and list(RESIDUAL_WEIGHTS) == sorted(set(RESIDUAL_WEIGHTS))
+    assert all(w >= 0 for w in RESIDUAL_WEIGHTS)
+
+
+@pytest.mark.parametrize("sids", [["S1"], ["S1", "S2"]])
+def test_the_choice_reads_only_the_subjects_asked_for(sids):
+    sigma, residual = _spreads()
+    probes = _HandMadeProbes(sigma, residual, np.sqrt(sigma**2 + 300.0 * residual))
+    read: list[str] = []
+    original = probes.population_errors
+
+    def spy(sid: str, calibration: Calibration) -> list[tuple[np.ndarray, ...]]:
+        read.append(sid)
+        return original(sid, calibration)
+
+    probes.population_errors = spy
+    probes.residual_weight_for(sids)
+    assert set(read) == set(sids) and len(read) == len(sids) * len(RESIDUAL_WEIGHTS)

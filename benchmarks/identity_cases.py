@@ -13,7 +13,8 @@ transform it must find:
 
 Score: the error of ``warp.nii.gz`` (fixed -> moving, LPS mm, on the fixed grid) against the true displacement,
 median and 95th percentile over the fixed image's brain (its labels, or the template's nonzero voxels); the
-command's own warning (the quality estimate's, none expected); the refinement's and the whole command's seconds.
+command's own warning (the quality estimate's, none expected) with its predicted Dice and failure probability (two
+unrelated pairs should not get the same answer to many digits); the refinement's and the whole command's seconds.
 
     python benchmarks/identity_cases.py --threads 2     # table + benchmarks/results/identity_cases.json
 """
@@ -135,15 +136,26 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "num_folded": int(summary["jacobian"]["num_nonpositive"]),
                 "refine_s": summary["timings_s"].get("refine", 0.0),
                 "command_s": wall,
+                # the quality estimate (None without a quality model): its answer should depend on the pair
+                "predicted_dice": (summary["quality"] or {}).get("predicted_dice"),
+                "failure_probability": (summary["quality"] or {}).get("failure_probability"),
             }
             rows.append(row)
             print(f"{name}: median {median:.3f} mm, p95 {p95:.3f} mm, warning {row['warning']}", flush=True)
-    lines = ["| case | median error, mm | 95th pct, mm | warning | folded voxels | refine s | command s |"]
-    lines.append("|---|---|---|---|---|---|---|")
+    lines = [
+        "| case | median error, mm | 95th pct, mm | warning | folded voxels | predicted Dice | failure probability | "
+        "refine s | command s |"
+    ]
+    lines.append("|---|---|---|---|---|---|---|---|---|")
+
+    def number(value: float | None, digits: str) -> str:
+        return "–" if value is None else format(value, digits)
+
     for r in rows:
         lines.append(
             f"| {r['case']} | {r['median_error_mm']:.3f} | {r['p95_error_mm']:.3f} | {r['warning'] or 'none'} | "
-            f"{r['num_folded']} | {r['refine_s']:.1f} | {r['command_s']:.1f} |"
+            f"{r['num_folded']} | {number(r['predicted_dice'], '.4f')} | {number(r['failure_probability'], '.2e')} | "
+            f"{r['refine_s']:.1f} | {r['command_s']:.1f} |"
         )
     result = {"rows": rows, "degrees": args.degrees, "shift_mm": args.shift_mm, "threads": args.threads}
     write_report(args.out_dir, "identity_cases", result, lines)

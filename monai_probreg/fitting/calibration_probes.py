@@ -64,7 +64,7 @@ POPULATION, SUBJECTS = 0, 1  # the fit's groups: each probe's coverage is matche
 RAW = Calibration(1.0, 0.0)
 # the residual term's weights the fit tries (Calibration.residual_weight; velocity-grid voxels^2 per squared intensity):
 # the one whose sampled std ranks the population probe's errors best (Spearman per component) is kept
-RESIDUAL_WEIGHTS: tuple[float, ...] = (0.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
+RESIDUAL_WEIGHTS: tuple[float, ...] = (0.0, 10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0, 10000.0)
 
 
 class ProbeSettings(NamedTuple):
@@ -143,16 +143,19 @@ class CalibrationProbes:
         about c^2 kappa (s^2 sigma^2 + b^2 |mu|^2) + a^2 |u|^2 (u ~ mu once integrated): the new pair is
         (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
         weight = self.residual_weight_for(sids) if len(self.residual_weights) > 1 else self.residual_weights[0]
-        base = Calibration(1.0, 0.0, None, weight)  # the network's spread with the residual term, unscaled
+        unit = self.unit_scale(sids, weight)
+        base = Calibration(unit, 0.0, None, weight)  # the residual term's spread, as large as the network's alone
         population = {s: self.raw[s] if weight == 0 else self.population_errors(s, base) for s in sids}
         population_std = pool_errors([e for s in sids for e in population[s]])[0]
-        velocity_std = np.concatenate(
+        velocity_std = unit * np.concatenate(
             [case_velocity_std(c, weight).numpy() for s in sids for c in self.cases[s]], axis=1
         )
         kappa = float(np.mean(population_std**2) / np.mean(velocity_std**2))
         std, error, norm, groups = self.errors_at(sids, tids, None if weight == 0 else base, population)
         first = fit_calibration(std, error, norm, groups=groups)
-        current = Calibration(first.std_scale, first.bias_fraction / math.sqrt(kappa), first.interval_dof, weight)
+        current = Calibration(
+            first.std_scale * unit, first.bias_fraction / math.sqrt(kappa), first.interval_dof, weight
+        )
         for iteration in tqdm(range(1, iterations + 1), desc="calibration refits", unit="refit", disable=None):
             std, error, norm, groups = self.errors_at(sids, tids, current)
             refit = fit_calibration(std, error, norm, groups=groups)
@@ -176,14 +179,27 @@ class CalibrationProbes:
         )
         return current
 
+    def unit_scale(self, sids: list[str], weight: float) -> float:
+        """The scale that gives the posterior with the residual term of ``weight`` the mean velocity variance of the
+        network's alone over the population cases' voxels of ``sids`` (1 for weight 0): samples of either stay in the
+        regime the network's posterior is sampled in (scaling and squaring is not linear in a large velocity)."""
+        if weight == 0:
+            return 1.0
+        cases = [c for s in sids for c in self.cases[s]]
+        network = np.mean([float(c["velocity_std"].square().mean()) for c in cases])
+        widened = np.mean([float(case_velocity_std(c, weight).square().mean()) for c in cases])
+        return float(math.sqrt(network / widened))
+
     def residual_weight_for(self, sids: list[str]) -> float:
-        """The weight of :attr:`residual_weights` whose unscaled posterior ranks the errors of the population cases of
-        ``sids`` best: the mean over cases and components of Spearman(sampled std, |error|). The scale does not
-        change a ranking, so it is chosen before the coverage fit; the subject probe, which needs the whole command
-        per weight, is left out of the choice (its coverage is matched as before)."""
+        """The weight of :attr:`residual_weights` whose posterior ranks the errors of the population cases of ``sids``
+        best: the mean over cases and components of Spearman(sampled std, |error|), each weight sampled at its
+        :meth:`unit_scale`. The scale hardly changes a ranking, so it is chosen before the coverage fit; the subject
+        probe, which needs the whole command per weight, is left out of the choice (its coverage is matched as
+        before)."""
         scores = []
         for weight in self.residual_weights:
-            errors = [e for s in sids for e in self.population_errors(s, Calibration(1.0, 0.0, None, weight))]
+            at = Calibration(self.unit_scale(sids, weight), 0.0, None, weight)
+            errors = [e for s in sids for e in self.population_errors(s, at)]
             scores.append(
                 float(np.mean([spearman(std[k], np.abs(err[k])) for std, err, _ in errors for k in range(3)]))
             )

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from monai_probreg.fitting.calibration_probes import RESIDUAL_WEIGHTS, CalibrationProbes
 from monai_probreg.uncertainty.calibration import Calibration
@@ -19,7 +20,8 @@ class _HandMadeProbes(CalibrationProbes):
     whose errors were drawn with the spread ``truth`` of each voxel."""
 
     def __init__(self, sigma: np.ndarray, residual: np.ndarray, truth: np.ndarray) -> None:
-        super().__init__(None, 2, None, {"S1": [{}], "S2": [{}]}, {}, {}, None, {}, {})
+        case = {"velocity_std": torch.from_numpy(sigma), "residual_std": torch.from_numpy(np.sqrt(residual))}
+        super().__init__(None, 2, None, {"S1": [case], "S2": [case]}, {}, {}, None, {}, {})
         rng = np.random.default_rng(0)
         self.sigma, self.residual = sigma, residual
         self.errors = {sid: truth * rng.standard_normal(truth.shape) for sid in self.cases}
@@ -46,6 +48,16 @@ def test_errors_that_follow_the_networks_spread_keep_it_alone():
     sigma, residual = _spreads()
     truth = sigma**4  # the errors' spread follows the network's spread only (steeply, to rank clearly)
     assert _HandMadeProbes(sigma, residual, truth).residual_weight_for(["S1", "S2"]) == 0.0
+
+
+def test_each_weight_is_sampled_as_wide_as_the_networks_spread_alone():
+    sigma, residual = _spreads()
+    probes = _HandMadeProbes(sigma, residual, sigma)
+    assert probes.unit_scale(["S1"], 0.0) == 1.0
+    for weight in (10.0, 1000.0):
+        unit = probes.unit_scale(["S1", "S2"], weight)
+        assert unit < 1.0
+        assert np.mean(unit**2 * (sigma**2 + weight * residual)) == pytest.approx(np.mean(sigma**2))
 
 
 def test_the_weights_tried_start_with_none_and_grow():

@@ -3,8 +3,8 @@
 For each weights file (``--model-files``, default the bundle's shipped default) and each seed, the demo's synthetic
 subject (:mod:`monai_probreg.data.synthetic`: the MNI152 template nilearn ships, turned, shifted and deformed by a
 known transform, with a bias field and noise) is registered back through the code path of ``monai-probreg register``
-(:func:`monai_probreg.cli.demo.run_demo`) and scored inside the brain (:mod:`monai_probreg.metrics.recovery`): the
-displacement error in mm before, after the affine stage alone and after the whole registration (median, 95th
+(:func:`monai_probreg.registration.demo.run_demo`) and scored inside the brain
+(:mod:`monai_probreg.metrics.recovery`): the displacement error in mm before, after the affine stage alone and after the whole registration (median, 95th
 percentile) and the coverage of the calibrated 95% interval. One more case, "identity", registers the template to an
 exact copy of itself (nothing drawn): the right answer is no displacement at all, so its "after" error is what the
 model invents where there is nothing to register.
@@ -41,13 +41,14 @@ import numpy as np
 import torch
 from common import DEFAULT_OUT
 
-from monai_probreg.cli.demo import DEMO_SAMPLES, run_demo
-from monai_probreg.cli.model import load_model
-from monai_probreg.cli.output_dir import write_volume
-from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed
 from monai_probreg.data.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.metrics.recovery import displacement_recovery
+from monai_probreg.registration.demo import DEMO_SAMPLES, run_demo
+from monai_probreg.registration.inputs import prepare_fixed
+from monai_probreg.registration.model import load_model
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.output_folder import write_volume
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 

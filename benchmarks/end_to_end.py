@@ -70,7 +70,7 @@ IMPORT_FLOOR = {
     "python": "pass",
     "torch": "import torch",
     "monai": "import monai",
-    "the command's modules": "import monai_probreg.cli.pipeline",
+    "the command's modules": "import monai_probreg.registration.scan",
 }
 REPRODUCED_FILES = ("warp.nii.gz", "affine.tfm")  # compared byte for byte between "ours" and "ours, again"
 
@@ -178,7 +178,7 @@ def synthetic_scan(dataset_dir: Path, subject: str, atlas: Path, folder: Path) -
     """``subject`` moved out of atlas space and resampled as a raw scan (module docstring); (id, scan, labels)."""
     from register_real_scan import misalign  # benchmarks/ is this script's folder
 
-    from monai_probreg.cli.output_dir import write_volume
+    from monai_probreg.registration.output_folder import write_volume
     from monai_probreg.spatial.volume_io import read_image, read_label
 
     index = index_dataset(dataset_dir)

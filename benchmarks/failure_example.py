@@ -25,9 +25,9 @@ import numpy as np
 from common import DEFAULT_OUT, run_command
 from register_real_scan import misalign
 
-from monai_probreg.cli.output_dir import write_volume
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.fitting.command_cases import turned_header
+from monai_probreg.registration.output_folder import write_volume
 from monai_probreg.spatial.volume_io import Volume, read_image
 
 ROTATION_DEG, TRANSLATION_MM, SPACING_MM = 8.0, 6.0, (1.2, 1.0, 1.1)  # the moved scan

@@ -55,10 +55,6 @@ import torch
 from common import parse_variant
 from demo_recovery import ants_case, one_case
 
-from monai_probreg.cli.demo import DEMO_SAMPLES
-from monai_probreg.cli.model import load_model
-from monai_probreg.cli.output_dir import label_dtype, write_volume
-from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.cli.synth_space import render_head
 from monai_probreg.data.augmentation import RandDiffeomorphicd
 from monai_probreg.data.label_synthesis import ASEG_LABELS
@@ -66,6 +62,12 @@ from monai_probreg.data.synthetic import SyntheticSettings
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.metrics.dice import label_dice
+from monai_probreg.registration.demo import DEMO_SAMPLES
+from monai_probreg.registration.inputs import prepare_fixed
+from monai_probreg.registration.model import load_model
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.output_folder import label_dtype, write_volume
+from monai_probreg.registration.scan import register_scan
 from monai_probreg.spatial.volume_io import Volume, read_image, read_label
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import file_sha256, library_versions

@@ -49,8 +49,8 @@ def peak_rss(cmd: Sequence[str]) -> tuple[float, float]:
 def make_pair(label_maps: Path, folder: Path) -> tuple[dict[str, Path], dict]:
     """The moving and fixed heads and their label maps (module docstring), written into ``folder``; and the label
     maps' grid (shape, spacing)."""
-    from monai_probreg.cli.output_dir import label_dtype, write_volume
     from monai_probreg.cli.synth_space import render_head
+    from monai_probreg.registration.output_folder import label_dtype, write_volume
     from monai_probreg.spatial.volume_io import read_label
 
     paths, grid = {}, {}

@@ -35,9 +35,11 @@ import torch
 from common import parse_variant, write_report
 from generalization import dice, synthetic_head
 
-from monai_probreg.cli.model import load_model
-from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.data.label_synthesis import ASEG_LABELS
+from monai_probreg.registration.inputs import prepare_fixed
+from monai_probreg.registration.model import load_model
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.scan import register_scan
 from monai_probreg.spatial.physical import field_from_itk
 from monai_probreg.spatial.volume_io import read_label
 

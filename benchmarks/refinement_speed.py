@@ -41,11 +41,11 @@ from common import DEFAULT_DATASET, DEFAULT_OUT, parse_variant, write_report
 
 from monai_probreg.blocks import warp
 from monai_probreg.blocks.warp import warp_box, warp_image, warp_labels
-from monai_probreg.cli.model import load_model
 from monai_probreg.engines.refinement import refine_registration
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.losses.lncc import BoxLNCCLoss, FixedImageLNCC, support_box
 from monai_probreg.metrics.dice import label_dice, mean_dice
+from monai_probreg.registration.model import load_model
 from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.volume_io import read_image, read_label
 

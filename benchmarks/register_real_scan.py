@@ -193,8 +193,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     subject, label = dataset / "images" / f"{args.subject}.nii.gz", dataset / "labels" / f"{args.subject}.nii.gz"
 
     from monai_probreg.cli.main import main as cli_main
-    from monai_probreg.cli.model import load_model
-    from monai_probreg.cli.output_dir import write_volume
+    from monai_probreg.registration.model import load_model
+    from monai_probreg.registration.output_folder import write_volume
     from monai_probreg.spatial.physical import apply_affine, grid_points
     from monai_probreg.spatial.volume_io import read_image, read_label
 

@@ -24,11 +24,11 @@ from common import DEFAULT_DATASET, DEFAULT_OUT, write_report
 from refinement_speed import load_pair
 
 from monai_probreg.blocks.warp import warp_labels
-from monai_probreg.cli.model import load_model
 from monai_probreg.engines.refinement import refine_registration
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.metrics.dice import label_dice, mean_dice
 from monai_probreg.metrics.jacobian import jacobian_determinant, jacobian_stats
+from monai_probreg.registration.model import load_model
 
 # moving:fixed, the validation subjects (train.yaml's val_ids) each once as moving and once as fixed
 PAIRS = ("S11:S14", "S14:S16", "S16:S21", "S21:S28", "S28:S29", "S29:S11")

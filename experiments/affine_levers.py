@@ -25,9 +25,9 @@ import numpy as np
 import torch
 from common import DEFAULT_DATASET, DEFAULT_NATIVE
 
-from monai_probreg.cli.pipeline import prepare_fixed
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.metrics.dice import label_dice, mean_dice
+from monai_probreg.registration.inputs import prepare_fixed
 from monai_probreg.spatial.affine import AffineSettings, align
 from monai_probreg.spatial.physical import apply_affine
 from monai_probreg.spatial.point_sampling import sample_nearest

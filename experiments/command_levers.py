@@ -109,7 +109,7 @@ def jacobian_row(repeats: int) -> dict:
 
 
 def exit_row(repeats: int) -> dict:
-    imports = "import monai_probreg.cli.pipeline"
+    imports = "import monai_probreg.registration.scan"
     return {
         "before": process_seconds(imports, repeats),
         "after": process_seconds(f"{imports}; import os, sys; sys.stdout.flush(); os._exit(0)", repeats),

@@ -21,8 +21,9 @@ TIERS = {  # a folder may import its own tier and the tiers below it, never abov
     "weights": 2,
     "data": 3,  # datasets, transforms, augmentation, synthetic subjects: built on spatial's geometry, never under it
     "engines": 4,
-    "cli": 4,
-    "fitting": 5,  # the sidecars' fits: registers through the engines and the command line's path
+    "registration": 5,  # the product's path, one scan read -> affine -> network -> refine -> quality -> written
+    "cli": 6,  # the command: arguments and messages around registration/
+    "fitting": 6,  # the sidecars' fits: registers through the engines and registration/, never through the command
 }
 
 

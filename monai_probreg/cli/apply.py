@@ -100,7 +100,7 @@ def add_apply_parser(commands: argparse._SubParsersAction) -> argparse.ArgumentP
 def check_output_file(out: str | os.PathLike, overwrite: bool = False) -> Path:
     """InputError unless ``out`` is a new (or, with ``overwrite``, an existing) image file of
     :data:`OUTPUT_SUFFIXES` that can be written: its folder, or the nearest existing one above it, writable."""
-    from monai_probreg.cli.output_dir import check_output_dir
+    from monai_probreg.registration.output_folder import check_output_dir
     from monai_probreg.utils.errors import InputError
 
     path = Path(out)
@@ -161,7 +161,7 @@ def apply_transform_file(
     Raises :class:`~monai_probreg.utils.errors.InputError` (one line) before anything is written."""
     import numpy as np
 
-    from monai_probreg.cli.output_dir import label_dtype, write_volume
+    from monai_probreg.registration.output_folder import label_dtype, write_volume
     from monai_probreg.spatial.transform_files import read_transform, resample_through
 
     if interpolation not in INTERPOLATIONS:

@@ -1,8 +1,8 @@
 """``monai-probreg``: register raw 3-D scans to an atlas from the command line.
 
 Subcommands ``register`` (one scan), ``register-batch`` (many scans, model and atlas loaded once) and ``demo`` (a
-synthetic subject with a known answer, :mod:`monai_probreg.cli.demo`); the work is
-:func:`monai_probreg.cli.pipeline.register_scan`. Exit status: 0 on success; 1 with one line
+synthetic subject with a known answer, :mod:`monai_probreg.registration.demo`); the work is
+:func:`monai_probreg.registration.scan.register_scan`. Exit status: 0 on success; 1 with one line
 ``monai-probreg: error: ...`` on stderr when an input or the registration fails (for a batch: when any scan
 failed); 2 for command-line usage errors (argparse).
 """
@@ -230,7 +230,7 @@ def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
 def _add_initial_transform(reg: argparse._ArgumentGroup, batch: bool = False) -> None:
     """``--initial-transform``: an earlier registration's affine (ANTs' ``-r``) in the "registration" group ``reg``;
     register and register-batch only (the demo makes its own subject)."""
-    from monai_probreg.cli.pipeline import INITIAL_TRANSFORM_USES
+    from monai_probreg.registration.options import INITIAL_TRANSFORM_USES
 
     reg.add_argument(
         "--initial-transform",
@@ -336,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_common(demo)
-    demo.set_defaults(samples=None)  # None: monai_probreg.cli.demo.DEMO_SAMPLES (imported when the demo runs)
+    demo.set_defaults(samples=None)  # None: monai_probreg.registration.demo.DEMO_SAMPLES (imported when the demo runs)
     add_apply_parser(commands)
     return parser
 
@@ -379,7 +379,7 @@ def _per_level(values: tuple[int, ...], levels: int) -> tuple[int, ...]:
 def _initial_use(args: argparse.Namespace) -> str | None:
     """How ``--initial-transform`` is used (``start`` unless ``--initial-transform-use`` says otherwise), or None
     without one (and on ``demo``, which has no such option)."""
-    from monai_probreg.cli.pipeline import INITIAL_TRANSFORM_USES
+    from monai_probreg.registration.options import INITIAL_TRANSFORM_USES
 
     if getattr(args, "initial_transform", None) is None:
         return None
@@ -392,7 +392,7 @@ def _affine_stage_runs(args: argparse.Namespace) -> bool:
 
 def _initial_transform(args: argparse.Namespace):
     """``--initial-transform`` read now, before the model loads (a batch's folder: per scan, by the batch), or None."""
-    from monai_probreg.cli.pipeline import InitialTransform
+    from monai_probreg.registration.options import InitialTransform
     from monai_probreg.utils.errors import InputError
 
     path = getattr(args, "initial_transform", None)
@@ -414,7 +414,7 @@ def _initial_transform(args: argparse.Namespace):
 
 
 def _options(args: argparse.Namespace):
-    from monai_probreg.cli.pipeline import RegistrationOptions
+    from monai_probreg.registration.options import RegistrationOptions
     from monai_probreg.spatial.affine import AffineSettings
     from monai_probreg.utils.errors import InputError
 
@@ -488,8 +488,8 @@ def _setup(args: argparse.Namespace):
     import itk
     import torch
 
-    from monai_probreg.cli.model import load_model
-    from monai_probreg.cli.pipeline import prepare_fixed
+    from monai_probreg.registration.inputs import prepare_fixed
+    from monai_probreg.registration.model import load_model
     from monai_probreg.spatial.affine import load_itk_modules
     from monai_probreg.spatial.brain_mask import DEFAULT_MARGIN_MM
     from monai_probreg.utils.memory import reuse_freed_memory
@@ -559,20 +559,6 @@ def _say(args: argparse.Namespace, text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
 
-def _summary_line(summary: dict) -> str:
-    t = summary["timings_s"]
-    parts = [f"total {t['total']:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in t.items() if k != "total") + ")"]
-    if summary.get("dice"):
-        parts.append(f"mean Dice {summary['dice']['mean']:.3f} (affine only {summary['dice']['mean_affine_only']:.3f})")
-    parts.append(f"|J|<=0: {summary['jacobian']['num_nonpositive']}")
-    if summary.get("quality"):
-        parts.append(
-            f"predicted Dice {summary['quality']['predicted_dice']:.2f}, "
-            f"failure probability {summary['quality']['failure_probability']:.2f}"
-        )
-    return "; ".join(parts)
-
-
 def _require_files(args: argparse.Namespace, options: Sequence[str]) -> None:
     """Fail fast, before the model and ITK load (seconds), on input paths that do not exist."""
     from monai_probreg.utils.errors import InputError
@@ -588,15 +574,17 @@ def _require_files(args: argparse.Namespace, options: Sequence[str]) -> None:
 
 def _print_result(args: argparse.Namespace, summary: dict) -> int:
     """The summary line on stdout and the warning, if any, on stderr; 0: a warning never changes the exit status."""
-    print(f"{args.out}: {_summary_line(summary)}")
+    from monai_probreg.cli.messages import summary_line
+
+    print(f"{args.out}: {summary_line(summary)}")
     if summary.get("warning"):
         print(f"monai-probreg: warning: {args.out}: {summary['warning']}", file=sys.stderr, flush=True)
     return 0
 
 
 def _register(args: argparse.Namespace) -> int:
-    from monai_probreg.cli.output_dir import check_output_dir
-    from monai_probreg.cli.pipeline import register_scan
+    from monai_probreg.registration.output_folder import check_output_dir
+    from monai_probreg.registration.scan import register_scan
 
     options = _options(args)
     _require_files(args, ["--moving", "--moving-label", "--fixed", "--fixed-label", "--fixed-mask", "--moving-mask"])
@@ -620,8 +608,9 @@ def _register(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from monai_probreg.cli.demo import DEMO_SAMPLES, demo_report, run_demo
-    from monai_probreg.cli.output_dir import check_output_dir
+    from monai_probreg.cli.messages import demo_report
+    from monai_probreg.registration.demo import DEMO_SAMPLES, run_demo
+    from monai_probreg.registration.output_folder import check_output_dir
 
     if args.samples is None:
         args.samples = DEMO_SAMPLES
@@ -646,8 +635,9 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _register_batch(args: argparse.Namespace) -> int:
-    from monai_probreg.cli.batch import BatchItem, print_batch_table, register_batch
-    from monai_probreg.cli.output_dir import check_output_dir
+    from monai_probreg.cli.messages import print_batch_table
+    from monai_probreg.registration.batch import BatchItem, register_batch
+    from monai_probreg.registration.output_folder import check_output_dir
 
     options = _options(args)
     _require_files(args, ["--fixed", "--fixed-label", "--fixed-mask"])

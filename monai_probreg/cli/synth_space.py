@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monai_probreg.cli.output_dir import label_dtype, write_volume
-from monai_probreg.cli.pipeline import prepare_fixed
 from monai_probreg.data.label_synthesis import T1_LIKE, render_labels
 from monai_probreg.data.template import mni152_template_path
+from monai_probreg.registration.inputs import prepare_fixed
+from monai_probreg.registration.output_folder import label_dtype, write_volume
 from monai_probreg.spatial.affine import AffineSettings, align
 from monai_probreg.spatial.brain_mask import hide_outside
 from monai_probreg.spatial.physical import mapped_index

@@ -31,12 +31,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monai_probreg.cli.model import load_model
-from monai_probreg.cli.output_dir import label_dtype, write_volume
-from monai_probreg.cli.pipeline import Registered, RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.registration.inputs import prepare_fixed
+from monai_probreg.registration.model import load_model
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.output_folder import label_dtype, write_volume
+from monai_probreg.registration.scan import Registered, register_scan
 from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.spatial.physical import mapped_index
 from monai_probreg.spatial.point_sampling import sample_linear, sample_nearest

@@ -24,7 +24,6 @@ from monai.data import Dataset
 from torch import nn
 from tqdm import tqdm
 
-from monai_probreg.cli.model import LoadedModel, load_model
 from monai_probreg.data.dataset import DatasetIndex, labelled_pairs
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.fitting.population_probe import (
@@ -38,6 +37,7 @@ from monai_probreg.fitting.population_probe import (
 )
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, SubjectCase, subject_case, subject_errors
 from monai_probreg.metrics.calibration import interval_coverage, spearman
+from monai_probreg.registration.model import LoadedModel, load_model
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration, fit_calibration
 from monai_probreg.utils.tensors import plain_tensor
 

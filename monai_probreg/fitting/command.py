@@ -31,7 +31,6 @@ from pathlib import Path
 import torch
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from monai_probreg.cli.model import default_bundle_root
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings
 from monai_probreg.fitting.population_probe import SEED_STRIDE
@@ -44,6 +43,7 @@ from monai_probreg.fitting.stages import (
     fit_quality_stage,
     write_sidecars,
 )
+from monai_probreg.registration.model import default_bundle_root
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, calibration_for
 from monai_probreg.utils.errors import InputError, first_line
 

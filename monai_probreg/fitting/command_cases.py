@@ -3,8 +3,8 @@
 The features of a registration depend on its path (the command line's affine stage undoes part of a wrong header, and
 its features are taken on the model grid behind a brain mask), and a detector fitted on the bundle path alone passed a
 turned native header as normal for some weights. So each subject also goes through the whole command
-(:func:`monai_probreg.cli.pipeline.register_scan`) onto the atlas, with its header as it is (``COMMAND``) and turned by
-90 and 180 degrees about the S axis (:func:`turned_header`). Its "no registration" Dice is the bundle path's (same scan,
+(:func:`monai_probreg.registration.scan.register_scan`) onto the atlas, with its header as it is (``COMMAND``) and
+turned by 90 and 180 degrees about the S axis (:func:`turned_header`). Its "no registration" Dice is the bundle path's (same scan,
 same atlas grid); "before" is the command's affine-only Dice.
 """
 
@@ -20,11 +20,13 @@ import nibabel as nib
 import numpy as np
 from tqdm import tqdm
 
-from monai_probreg.cli.model import load_model
-from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.data.pairs import ATLAS_ID
 from monai_probreg.fitting.quality_cases import RecordLog
+from monai_probreg.registration.inputs import prepare_fixed
+from monai_probreg.registration.model import load_model
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.scan import register_scan
 from monai_probreg.uncertainty.calibration import Calibration
 from monai_probreg.uncertainty.quality import QualityModel, entropy_calibration_record, failed
 from monai_probreg.uncertainty.quality_features import QualityFeatures

@@ -27,10 +27,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from monai_probreg.cli.model import LoadedModel
-from monai_probreg.cli.pipeline import FixedSpace, Registered, RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.data.synthetic import SyntheticSettings, SyntheticSubject, brain_mask, synthesize_subject
 from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.registration.inputs import FixedSpace, prepare_fixed
+from monai_probreg.registration.model import LoadedModel
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.scan import Registered, register_scan
 from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.uncertainty.calibration import Calibration
 

@@ -6,7 +6,7 @@ One definition for every path that feeds or imitates the network: the bundle's t
 (:func:`monai_probreg.data.transforms.registration_transforms`), training augmentation and label rendering
 (:mod:`monai_probreg.data.augmentation`, :mod:`monai_probreg.data.label_synthesis`), the torch affine's metric
 (:mod:`monai_probreg.spatial.affine_torch`) and the command line (:func:`normalise_intensity`, used by
-:mod:`monai_probreg.cli.pipeline` on the moving scan resampled onto the fixed grid).
+:mod:`monai_probreg.registration.affine_stage` on the moving scan resampled onto the fixed grid).
 """
 
 from __future__ import annotations

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import numpy as np
 from monai.data import MetaTensor
 from torch import Tensor
 
-__all__ = ["plain_tensor", "shape_str"]
+__all__ = ["float_numpy", "plain_tensor", "shape_str"]
 
 
 def plain_tensor(t: Tensor) -> Tensor:
     """``t`` without MONAI metadata (a plain ``torch.Tensor`` sharing its storage); plain tensors pass through."""
     return t.as_tensor() if isinstance(t, MetaTensor) else t
+
+
+def float_numpy(t: Tensor) -> np.ndarray:
+    """``t`` as a float32 numpy array on the CPU, out of autograd."""
+    return t.detach().float().cpu().numpy()
 
 
 def shape_str(shape: list[int]) -> str:

@@ -10,8 +10,8 @@ import pytest
 from bench_helpers import load_benchmark
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps
 
-from monai_probreg.cli.pipeline import prepare_fixed
 from monai_probreg.data.synthetic import SyntheticSettings
+from monai_probreg.registration.inputs import prepare_fixed
 
 demo_recovery = load_benchmark("demo_recovery")
 

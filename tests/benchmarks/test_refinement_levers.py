@@ -11,7 +11,7 @@ import pytest
 from bench_helpers import load_benchmark
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps
 
-from monai_probreg.cli.output_dir import write_field
+from monai_probreg.registration.output_folder import write_field
 
 levers = load_benchmark("refinement_levers")
 

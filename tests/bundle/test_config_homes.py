@@ -119,10 +119,10 @@ def _constant_line() -> str:
 
 
 def test_the_others_read_the_sample_count(capsys):
-    from monai_probreg.cli.demo import DEMO_SAMPLES
     from monai_probreg.cli.main import build_parser
     from monai_probreg.fitting import command
     from monai_probreg.fitting.calibration_probes import ProbeSettings
+    from monai_probreg.registration.demo import DEMO_SAMPLES
 
     assert "POSTERIOR_SAMPLES" in _raw("inference.yaml")["num_samples"]  # a reference, not a second literal
     assert bundle_parser(BUNDLE, ["inference.yaml"]).get_parsed_content("num_samples") == POSTERIOR_SAMPLES

@@ -32,7 +32,7 @@ from conftest import (
 )
 
 from monai_probreg.cli.main import main
-from monai_probreg.cli.output_dir import write_transform
+from monai_probreg.registration.output_folder import write_transform
 from monai_probreg.spatial.physical import (
     affine_from_itk,
     displacement_transform,

@@ -7,10 +7,10 @@ antsApplyTransforms; here the real ANTs (the ``.[bench]`` extra; the module is s
 interpolators, its output header) would show. Geometry, none of it trivial: the asymmetric phantom and its labels on
 an oblique (permuted, flipped) anisotropic grid with an offset origin; a reference grid of another shape, rotated off
 the axes, left-handed and anisotropic. Transforms: a smooth field on the reference grid written as ``register``
-writes ``warp.nii.gz`` (:func:`~monai_probreg.cli.output_dir.write_field`: LPS mm, NIfTI intent "vector"), a field
-on a coarser third oblique grid covering part of the reference (interpolated, identity outside), our ``.tfm`` affine
-(:func:`~monai_probreg.cli.output_dir.write_transform`) and an affine ``.mat`` written by ANTs
-(``ants.write_transform``, centre not at the origin). Interpolation: ``linear`` of the image against ANTs'
+writes ``warp.nii.gz`` (:func:`~monai_probreg.registration.output_folder.write_field`: LPS mm, NIfTI intent
+"vector"), a field on a coarser third oblique grid covering part of the reference (interpolated, identity outside),
+our ``.tfm`` affine (:func:`~monai_probreg.registration.output_folder.write_transform`) and an affine ``.mat`` written
+by ANTs (``ants.write_transform``, centre not at the origin). Interpolation: ``linear`` of the image against ANTs'
 ``linear``, ``nearest`` of the labels against ANTs' ``nearestNeighbor``.
 
 Acceptance (issue #53): labels identical in at least 99.9% of the voxels; images within 1% of the moving image's
@@ -33,7 +33,7 @@ from conftest import PHANTOM_LABELS, asymmetric_phantom, rigid_matrix, save_lps
 from scipy.spatial.transform import Rotation
 from test_apply import _apply, _array, _oblique_grid, _smooth_field
 
-from monai_probreg.cli.output_dir import write_field, write_transform
+from monai_probreg.registration.output_folder import write_field, write_transform
 from monai_probreg.spatial.physical import grid_points
 
 ants = pytest.importorskip("ants", reason="antspyx (the .[bench] extra) is not installed")

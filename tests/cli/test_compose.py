@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from monai_probreg.cli.compose import affine_resample, forward_outputs, inverse_outputs
+from monai_probreg.registration.compose import affine_resample, forward_outputs, inverse_outputs
 from monai_probreg.spatial import physical
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import compose_forward, compose_inverse, mapped_index, voxel_to_mm

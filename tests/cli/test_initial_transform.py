@@ -25,7 +25,7 @@ from conftest import (
     tiny_bundle,
 )
 
-from monai_probreg.cli.output_dir import write_transform
+from monai_probreg.registration.output_folder import write_transform
 from monai_probreg.spatial.physical import affine_to_itk, apply_affine, grid_points
 from monai_probreg.spatial.transform_files import read_affine_file
 

@@ -5,9 +5,11 @@ from __future__ import annotations
 import pytest
 from conftest import BUNDLE_DIR, FAST_AFFINE_SETTINGS, FIXED_LPS, moved_phantom, save_lps, tiny_bundle
 
-from monai_probreg.cli.model import load_model
-from monai_probreg.cli.pipeline import RegistrationOptions, prepare_fixed, register_scan
 from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.registration.inputs import prepare_fixed
+from monai_probreg.registration.model import load_model
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.scan import register_scan
 from monai_probreg.utils.errors import InputError
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import asymmetric_phantom
 
-from monai_probreg.cli.qc import QCData, qc_figure, save_qc
+from monai_probreg.registration.qc import QCData, qc_figure, save_qc
 
 
 def _data(with_labels: bool, constant_uncertainty: bool = False) -> QCData:

@@ -140,7 +140,7 @@ def test_the_batch_lists_the_warning_and_the_scan_stays_ok(scene, tmp_path):
 def test_load_model_can_leave_a_stale_quality_model_out(scene):
     """python -m monai_probreg.fitting fits a new quality model with the command line's loading: a stale one must not
     stop it."""
-    from monai_probreg.cli.model import load_model
+    from monai_probreg.registration.model import load_model
     from monai_probreg.utils.errors import InputError
 
     path = _stale_quality_model(scene.weights)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import FIXED_LPS, asymmetric_phantom, load_script, save_lps
 
-from monai_probreg.cli.pipeline import prepare_fixed
+from monai_probreg.registration.inputs import prepare_fixed
 from monai_probreg.spatial.volume_io import Volume
 
 affine_levers = load_script("experiments", "affine_levers")

@@ -92,7 +92,7 @@ def test_one_command_writes_both_sidecars_and_a_stopped_run_resumes(setup, tmp_p
     assert quality["entropy_calibration"] == {k: calibration[k] for k in ("std_scale", "bias_fraction")}
     assert quality["weights_sha256"] == calibration["weights_sha256"] == logged["header"]["weights_sha256"]
     # next to the weights, the command line uses both
-    from monai_probreg.cli.model import load_model
+    from monai_probreg.registration.model import load_model
 
     for sidecar in out.glob("*.json"):
         shutil.copy(sidecar, weights.parent / sidecar.name)

@@ -10,11 +10,11 @@ import pytest
 import torch
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps
 
-from monai_probreg.cli.model import LoadedModel
-from monai_probreg.cli.pipeline import Registered
 from monai_probreg.data.synthetic import brain_mask
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.fitting import subject_probe as probe
+from monai_probreg.registration.model import LoadedModel
+from monai_probreg.registration.scan import Registered
 from monai_probreg.uncertainty.calibration import Calibration
 
 # the affine's linear part: 90 degrees about the third LPS axis, then scaled (not orthogonal: L^-1 != L^T)

@@ -164,11 +164,11 @@ def test_every_mean_dice_in_the_package_follows_the_one_rule():
     pair where one scored label is absent from both maps."""
     import numpy as np
 
-    from monai_probreg.cli.pipeline import _dice
     from monai_probreg.engines.validation_metric import RegistrationMetrics
     from monai_probreg.metrics.dice import mean_dice
     from monai_probreg.metrics.scores import score_pair
     from monai_probreg.networks.probreg_net import RegistrationOutput
+    from monai_probreg.registration.compose import _dice
     from monai_probreg.spatial.volume_io import Volume
 
     moving = torch.zeros(1, 1, 4, 5, 6, dtype=torch.long)

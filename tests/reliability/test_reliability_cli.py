@@ -205,7 +205,7 @@ def test_batch_reports_every_bad_scan_and_registers_the_rest(scene, tmp_path):
 
 
 def test_interrupted_batch_still_has_a_summary(scene, tmp_path, monkeypatch):
-    import monai_probreg.cli.batch as batch
+    import monai_probreg.registration.batch as batch
 
     scans = tmp_path / "scans"
     scans.mkdir()

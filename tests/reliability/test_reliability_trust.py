@@ -19,8 +19,8 @@ from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
 
 from monai_probreg import ProbRegNet
 from monai_probreg.cli.main import main
-from monai_probreg.cli.model import load_model
 from monai_probreg.engines.checkpoints import attach_resume
+from monai_probreg.registration.model import load_model
 from monai_probreg.utils.errors import UntrustedFileError
 from monai_probreg.weights.loading import load_weights
 

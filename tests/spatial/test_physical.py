@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from monai_probreg import compose_displacements, integrate_velocity, warp_image
-from monai_probreg.cli.output_dir import write_field, write_transform
+from monai_probreg.registration.output_folder import write_field, write_transform
 from monai_probreg.spatial import physical
 from monai_probreg.spatial.physical import (
     affine_from_itk,

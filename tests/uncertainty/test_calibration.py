@@ -153,7 +153,7 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
     # fitted around the mean the configs give by default (the refined one, with these settings)
     from monai.bundle import ConfigParser
 
-    from monai_probreg.cli.demo import DEMO_SAMPLES
+    from monai_probreg.registration.demo import DEMO_SAMPLES
 
     parser = ConfigParser()
     parser.read_config(str(weights.parents[1] / "configs" / "inference.yaml"))

@@ -1,6 +1,6 @@
 """``monai-probreg register-batch``: many scans, one model and fixed image; one bad scan never stops the batch.
 
-Each scan is registered by :func:`monai_probreg.cli.pipeline.register_scan` into ``out/<name>/`` (all or nothing),
+Each scan is registered by :func:`monai_probreg.registration.scan.register_scan` into ``out/<name>/`` (all or nothing),
 with its own initial transform when a folder of them is given (:func:`initial_transform_for`). A scan
 that fails for any reason (a missing, damaged or odd file: :mod:`monai_probreg.spatial.checks`; or an error while
 registering) becomes a ``failed`` row with its one-line reason, and the next scan starts. ``out/batch_summary.csv``
@@ -19,8 +19,10 @@ from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
-from monai_probreg.cli.model import LoadedModel
-from monai_probreg.cli.pipeline import FixedSpace, InitialTransform, RegistrationOptions, register_scan
+from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.model import LoadedModel
+from monai_probreg.registration.options import InitialTransform, RegistrationOptions
+from monai_probreg.registration.scan import register_scan
 from monai_probreg.spatial.transform_files import AFFINE_SUFFIXES
 from monai_probreg.utils.errors import InputError, first_line
 from monai_probreg.utils.files import write_text
@@ -33,7 +35,6 @@ __all__ = [
     "initial_transform_for",
     "write_batch_summary",
     "register_batch",
-    "print_batch_table",
 ]
 
 BATCH_COLUMNS = [
@@ -163,8 +164,8 @@ def register_batch(
     """Register every item; returns one row per item (failures included) and keeps out/batch_summary.csv current.
     ``debug`` prints each failure's traceback to stderr. Ctrl-C writes the summary (the rest ``not run``), re-raises.
     ``initial_transforms``: a folder of each scan's initial transform (:func:`initial_transform_for`), used as
-    ``initial_use`` says (:class:`~monai_probreg.cli.pipeline.InitialTransform`); one transform for every scan comes
-    in ``options.initial`` instead."""
+    ``initial_use`` says (:class:`~monai_probreg.registration.options.InitialTransform`); one transform for every scan
+    comes in ``options.initial`` instead."""
     from tqdm import tqdm
 
     out = Path(out)
@@ -199,23 +200,3 @@ def register_batch(
     finally:
         bar.close()
     return rows
-
-
-def print_batch_table(rows: Sequence[BatchRow], file=None) -> None:
-    """The summary as an aligned table on stdout (or ``file``)."""
-
-    def fmt(value, spec: str) -> str:
-        return "-" if value is None else format(value, spec)
-
-    print(
-        f"{'scan':<24}{'status':<8}{'Dice':>7}{'affine':>8}{'|J|<=0':>8}{'time (s)':>10}{'pred.':>7}  error / warning",
-        file=file,
-    )
-    for r in rows:
-        note = r.error or (f"WARNING: {r.warning}" if r.warning else "")
-        print(
-            f"{r.scan:<24}{r.status:<8}{fmt(r.mean_dice, '.3f'):>7}{fmt(r.mean_dice_affine_only, '.3f'):>8}"
-            f"{fmt(r.num_jacobian_nonpositive, 'd'):>8}{fmt(r.time_s, '.1f'):>10}{fmt(r.predicted_dice, '.2f'):>7}"
-            f"  {note}",
-            file=file,
-        )

@@ -1,26 +1,35 @@
-"""The command's resampling through the affine and the composed fields, slab by slab of the output grid.
+"""The ``compose`` stage of one registration: affine + deformable -> one field fixed -> moving and its inverse
+(:mod:`monai_probreg.spatial.physical`), the original moving scan and labels resampled once through it, Dice
+(:func:`compose_outputs`); and the resampling through the affine alone (:func:`affine_resample`, the ``resample``
+stage's). All of it slab by slab of the output grid.
 
 Every whole-grid point, index and field array of these steps is float64 (*S, 3): 400 MB each on a 256^3 grid, and
 the steps used to hold several at once (the command's peak memory, ``benchmarks/end_to_end.py --memory``). Here
 each is made for a slab of rows of the output grid's first axis at a time
 (:func:`~monai_probreg.spatial.physical.row_slabs`), and every value is computed from its own voxel's index
 exactly as on the whole grid (:func:`~monai_probreg.spatial.physical.index_map`'s ``first_row``), so the outputs
-are the same to the bit (``tests/cli/test_compose.py``). What is kept is only what is written, at the precision it
-is written in: the fields float32, the scans float32, the labels in their own type.
+are the same to the bit (``tests/registration/test_compose.py``). What is kept is only what is written, at the
+precision it is written in: the fields float32, the scans float32, the labels in their own type.
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+import torch
 
+from monai_probreg.metrics.dice import label_dice, mean_dice
+from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.network import ModelMaps
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import compose_forward, compose_inverse, mapped_index, row_slabs, voxel_to_mm
 from monai_probreg.spatial.point_sampling import LinearSampler, sample_nearest
 from monai_probreg.spatial.volume_io import Volume
 
-__all__ = ["Forward", "Inverse", "affine_resample", "forward_outputs", "inverse_outputs"]
+__all__ = ["Composed", "Forward", "Inverse", "affine_resample", "compose_outputs", "forward_outputs", "inverse_outputs"]
 
 
 def affine_resample(moving: Volume, fixed: Volume, affine: np.ndarray, fill: float) -> np.ndarray:
@@ -116,3 +125,68 @@ def inverse_outputs(
             )
             label[rows] = sample_nearest(fixed_label, None, index=index)
     return Inverse(warp, label)
+
+
+@dataclass
+class Composed:
+    """Everything on the fixed grid (and the inverse on the moving grid) that is written."""
+
+    warp: np.ndarray
+    inverse_warp: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse)
+    maps: dict[str, np.ndarray]
+    labels: dict[str, np.ndarray]
+    dice: dict | None
+
+
+def compose_outputs(
+    fixed: FixedSpace,
+    moving: Volume,
+    moving_label: Volume | None,
+    affine: np.ndarray,
+    model_maps: ModelMaps,
+    inverse: bool,
+) -> Composed:
+    """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice
+    (:func:`forward_outputs`, :func:`inverse_outputs`, slab by slab). ``model_maps.inverse`` is consumed: set to None
+    once read, so that the model grid's inverse (200 MB at 256^3) is not held beside the composed one."""
+    grid = fixed.grid
+    forward = forward_outputs(grid, fixed.image, moving, moving_label, affine, model_maps.displacement)
+    maps = {
+        "warped": forward.warped,
+        "jacobian": grid.to_fixed(model_maps.jacobian),
+        "entropy": grid.to_fixed(model_maps.entropy),
+    }
+    if model_maps.std is not None:
+        maps["displacement_std"] = grid.to_fixed(model_maps.std)
+    labels = dict(forward.labels)
+    inverse_warp = None
+    if inverse:
+        backward = inverse_outputs(grid, model_maps.inverse, affine, moving, fixed.label)
+        model_maps.inverse = None
+        inverse_warp = backward.warp
+        if backward.fixed_label is not None:
+            labels["fixed_label_in_moving"] = backward.fixed_label
+    dice = None
+    if moving_label is not None and fixed.label is not None:
+        # the structures both label maps have (a moving map of another protocol, e.g. LPBA40's 48 cortical labels
+        # against the atlas' 56, is not charged for the labels it never had)
+        ids = sorted(set(fixed.label_ids) & {int(v) for v in np.unique(moving_label.array) if v != 0})
+        if ids:  # else no Dice (summary "dice": null): the two maps share no structure
+            dice = _dice(labels["warped_label"], fixed.label, ids)
+            affine_only = _dice(labels["affine_label"], fixed.label, ids)
+            dice.update(
+                mean_affine_only=affine_only["mean"],
+                per_label_affine_only=affine_only["per_label"],
+                labels="the non-zero labels of both label maps",
+                num_fixed_only_labels=len(fixed.label_ids) - len(ids),
+            )
+    return Composed(forward.warp, inverse_warp, maps, labels, dice)
+
+
+def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:
+    per_label = label_dice(torch.from_numpy(warped), torch.from_numpy(fixed.array), ids)  # read in chunks, no copy
+    mean = mean_dice(per_label)
+    return {
+        "mean": None if math.isnan(mean) else mean,  # JSON has no NaN: null
+        "per_label": {str(k): (None if math.isnan(v) else round(v, 5)) for k, v in per_label.items()},
+    }

@@ -1,4 +1,6 @@
-"""The output folder of ``monai-probreg register``: all-or-nothing writing, file names, ITK writers.
+"""The output folder of one registration (``monai-probreg register``'s ``DIR``): its files and what each is
+(:data:`OUTPUT_FILES`, written as ``README.txt``), all-or-nothing writing, ITK writers, the writer of each file of a
+registration (:func:`output_writers`) and the QC figure's panels (:func:`qc_data`, drawn by :mod:`.qc`).
 
 All-or-nothing: every file is written into a hidden staging folder next to ``DIR`` (same file system) and moved
 into ``DIR`` only when the whole registration has succeeded (:func:`staged_output_dir`). On any error, including
@@ -13,16 +15,24 @@ ISA-L's gzip, far faster than ITK's writer), other formats by ITK; each write is
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import itk
 import numpy as np
 
+from monai_probreg.registration.compose import Composed
+from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.network import ModelMaps
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.qc import QCData
+from monai_probreg.registration.quality_estimate import ScanQuality
+from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.checks import is_nifti
 from monai_probreg.spatial.nifti_write import write_nifti
 from monai_probreg.spatial.physical import field_to_itk
@@ -31,6 +41,7 @@ from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import atomic_write, write_text
 
 __all__ = [
+    "MAP_FILES",
     "OUTPUT_FILES",
     "OUTPUTS_README",
     "check_output_dir",
@@ -39,6 +50,9 @@ __all__ = [
     "label_dtype",
     "write_field",
     "write_transform",
+    "output_writers",
+    "qc_data",
+    "qc_title",
 ]
 
 # name -> what it is; the order of the README and of summary.json["outputs"]
@@ -170,3 +184,103 @@ def write_transform(path: str | os.PathLike, matrix: np.ndarray, center: np.ndar
         f"FixedParameters: {' '.join(repr(float(v)) for v in center)}\n"
     )
     return write_text(path, text)
+
+
+MAP_FILES = ("jacobian", "entropy", "displacement_std")  # left out by RegistrationOptions.maps = False
+
+
+def output_writers(
+    stage: Path,
+    fixed: FixedSpace,
+    moving: Volume,
+    affine: AffineResult,
+    composed: Composed,
+    options: RegistrationOptions,
+) -> list[Callable[[], object]]:
+    """One call per output file (run in parallel by :func:`~monai_probreg.utils.files.parallel_writes`), largest
+    first so that the pool's last file is a small one."""
+    writers: list[tuple[int, Callable[[], object]]] = []
+    if composed.inverse_warp is not None:
+        writers.append(
+            (
+                composed.inverse_warp.size,
+                functools.partial(
+                    write_field, stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps
+                ),
+            )
+        )
+    writers.append(
+        (
+            composed.warp.size,
+            functools.partial(write_field, stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps),
+        )
+    )
+    for name, array in composed.maps.items():
+        if options.maps or name not in MAP_FILES:
+            writers.append(
+                (
+                    array.size,
+                    functools.partial(
+                        write_volume,
+                        stage / f"{name}.nii.gz",
+                        fixed.image.with_array(array.astype(np.float32, copy=False)),
+                    ),
+                )
+            )
+    for name, grid in (("warped_label", fixed.image), ("fixed_label_in_moving", moving)):
+        if name in composed.labels:
+            array = composed.labels[name]
+            writers.append(
+                (
+                    array.size // 4,
+                    functools.partial(  # bytes, roughly: 1-2 per label voxel, 4 per float
+                        write_volume, stage / f"{name}.nii.gz", grid.with_array(array), label_dtype(array)
+                    ),
+                )
+            )
+    writers.append((0, functools.partial(write_transform, stage / "affine.tfm", affine.matrix, affine.center)))
+    return [write for _, write in sorted(writers, key=lambda item: -item[0])]
+
+
+def qc_data(
+    fixed: FixedSpace,
+    moving_input: np.ndarray,
+    model_maps: ModelMaps,
+    composed: Composed,
+    title: str,
+    warning: str | None = None,
+) -> QCData:
+    """The QC figure's panels (:mod:`.qc`) on the model grid: the images, the network's maps, the labels."""
+    to_model, labels = fixed.grid.to_model, composed.labels
+    sampled = model_maps.std is not None
+    return QCData(
+        fixed=fixed.model_input,
+        moving=moving_input,
+        warped=model_maps.warped,
+        displacement=model_maps.displacement,
+        jacobian=model_maps.jacobian,
+        uncertainty=model_maps.std if sampled else model_maps.entropy,
+        uncertainty_name="displacement std (mm)" if sampled else "velocity entropy",
+        spacing=tuple(fixed.grid.spacing),
+        title=title,
+        warning=warning,
+        fixed_label=to_model(fixed.label.array) if fixed.label is not None else None,
+        moving_label=to_model(labels["affine_label"]) if "affine_label" in labels else None,
+        warped_label=to_model(labels["warped_label"]) if "warped_label" in labels else None,
+    )
+
+
+def qc_title(
+    moving: Volume,
+    dice: dict | None,
+    num_folding: int,
+    quality: ScanQuality | None,
+) -> str:
+    """The QC figure's title: the scan, its Dice (with labels), the folding count, the predicted Dice."""
+    title = Path(moving.path).name + (
+        f"   mean Dice {dice['mean']:.3f} (affine only {dice['mean_affine_only']:.3f})" if dice else ""
+    )
+    title += f"   |J| <= 0: {num_folding} voxels"
+    if quality is not None:
+        title += f"   predicted Dice {quality.estimate.predicted_dice:.2f}"
+    return title

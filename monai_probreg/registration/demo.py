@@ -1,9 +1,10 @@
-"""``monai-probreg demo``: register a synthetic subject whose answer is known, and say how well it was recovered.
+"""``monai-probreg demo``: register a synthetic subject whose answer is known, and score how well it was recovered
+(the lines the command prints: :func:`monai_probreg.cli.messages.demo_report`).
 
 The subject is made from the template (by default the MNI ICBM152 template nilearn ships:
 :mod:`monai_probreg.data.template`) by :func:`~monai_probreg.data.synthetic.synthesize_subject`: a random rigid turn
 and shift, a random smooth diffeomorphism, a bias field and Rician noise, all drawn from ``--seed``. It is then
-registered back onto the template by :func:`~monai_probreg.cli.pipeline.register_scan`, the code path of
+registered back onto the template by :func:`~monai_probreg.registration.scan.register_scan`, the code path of
 ``monai-probreg register`` with its options, and the result is scored against the known transform inside the
 template's brain (:mod:`monai_probreg.metrics.recovery`): the displacement error in mm before registration, after
 the affine stage and after the whole registration (median, 95th percentile), and the fraction of the error components
@@ -22,15 +23,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from monai_probreg.cli.model import LoadedModel
-from monai_probreg.cli.output_dir import write_field, write_volume
-from monai_probreg.cli.pipeline import FixedSpace, Registered, RegistrationOptions, register_scan
 from monai_probreg.data.synthetic import SyntheticSettings, brain_mask, synthesize_subject
 from monai_probreg.metrics.recovery import displacement_recovery
+from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.model import LoadedModel
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.output_folder import write_field, write_volume
+from monai_probreg.registration.scan import Registered, register_scan
 from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
-__all__ = ["DEMO_SAMPLES", "demo_report", "run_demo"]
+__all__ = ["COVERAGE_LEVEL", "DEMO_SAMPLES", "run_demo"]
 
 # posterior samples the demo draws unless --samples says otherwise (>= 2 for the coverage): as many as the
 # calibration is fitted with (POSTERIOR_SAMPLES). A std from fewer samples is noisier and its intervals cover less
@@ -101,37 +104,3 @@ def run_demo(
     return register_scan(
         model, fixed, moving, out_dir, None, options, overwrite, report, check=check, extra_outputs=extra
     )
-
-
-def _fmt(value: float | None) -> str:
-    return "    -" if value is None else f"{value:5.2f}"
-
-
-def demo_report(summary: dict) -> str:
-    """The lines ``monai-probreg demo`` prints: what was drawn, the errors, the coverage."""
-    demo = summary["demo"]
-    rotation = ", ".join(f"{a:.1f}" for a in demo["rotation_deg"])
-    shift = ", ".join(f"{t:.1f}" for t in demo["shift_mm"])
-    lines = [
-        (
-            f"demo (seed {demo['seed']}): the template turned by ({rotation}) deg, shifted by ({shift}) mm and "
-            f"deformed (velocity RMS {demo['settings']['deform_rms_mm']} mm), with a bias field and noise"
-        ),
-        "displacement error inside the brain, mm     median   95th pct",
-    ]
-    for key, text in (
-        ("before", "before registration"),
-        ("affine_only", "after the affine stage"),
-        ("after", "after registration"),
-    ):
-        row = demo[key] or {"median_mm": None, "p95_mm": None}
-        lines.append(f"  {text:<40}{_fmt(row['median_mm'])}    {_fmt(row['p95_mm'])}")
-    if demo["coverage"] is None:
-        lines.append("interval coverage: needs --samples >= 2")
-    else:
-        tails = "" if demo.get("interval_dof") is None else f" (Student-t, {demo['interval_dof']:g} dof)"
-        lines.append(
-            f"calibrated {demo['coverage_level']:.0%} interval{tails}: covers {demo['coverage']:.1%} of the error "
-            f"components (the truth itself is exact to {demo['truth_inverse_error_mm']:.2f} mm)"
-        )
-    return "\n".join(lines)

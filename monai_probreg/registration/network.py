@@ -1,0 +1,138 @@
+"""The network's stages of one registration, on the model grid (the moving scan as :mod:`.affine_stage` made it):
+
+- ``model``: the network's posterior mean velocity -> displacement and the warped scan (network, integration, warp;
+  :func:`monai_probreg.engines.registration.register_pair`);
+- ``refine``: with the options' ``refinement`` enabled, that mean refined for the pair
+  (:mod:`monai_probreg.engines.refinement`), its image term inside the cost-function masks when given;
+- ``maps``: the inverse displacement (``exp(-v)``; unless ``inverse`` is off), Jacobian, velocity entropy;
+- ``samples``: with ``samples = K >= 2``, K posterior samples -> displacement standard deviation
+  (:func:`monai_probreg.uncertainty.posterior_maps.posterior_maps`, calibrated as the model is).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from monai.networks.utils import eval_mode
+
+from monai_probreg.engines.refinement import RefinementMasks, refine_registration
+from monai_probreg.engines.registration import register_pair
+from monai_probreg.metrics.jacobian import jacobian_determinant
+from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.registration.model import LoadedModel
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.uncertainty.calibration import Calibration
+from monai_probreg.uncertainty.posterior_maps import posterior_maps
+from monai_probreg.uncertainty.residual import residual_variance
+from monai_probreg.utils.tensors import float_numpy
+
+__all__ = ["ModelMaps", "posterior_entropy", "run_network"]
+
+
+@dataclass
+class ModelMaps:
+    """The network's results on the model grid: displacement and inverse (3, *S) voxels, maps (*S)."""
+
+    displacement: np.ndarray
+    inverse: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse)
+    jacobian: np.ndarray
+    entropy: np.ndarray | None  # velocity entropy, filled in by run_network (with the samples when there are any)
+    warped: np.ndarray
+    network: RegistrationOutput | None = None  # the network's own registration when refined (the quality reads it)
+    # the answer's velocity (mean, log-variance), kept for the quality estimate's entropy (None without a quality model)
+    posterior: tuple[torch.Tensor, torch.Tensor] | None = None
+    std: np.ndarray | None = None
+    variance: np.ndarray | None = None  # (3, *S) mm^2 per model-grid axis, with the samples
+
+
+def run_network(
+    model: LoadedModel,
+    moving_input: np.ndarray,
+    fixed_input: np.ndarray,
+    options: RegistrationOptions,
+    spacing: np.ndarray,
+    stage: Callable[[str], AbstractContextManager],
+    masks: tuple[np.ndarray | None, np.ndarray | None] | None = None,
+) -> ModelMaps:
+    """The stages of the module docstring, each run inside ``stage(name)`` (the caller's clock); ``masks``: the
+    refinement's (fixed, moving) on the model grid (:class:`~.affine_stage.ModelInput`), or None."""
+    shape, samples, seed = moving_input.shape, options.samples, options.seed
+    moving_t = torch.from_numpy(moving_input)[None, None].to(model.device)
+    fixed_t = torch.from_numpy(fixed_input)[None, None].to(model.device)
+    with stage("model"):
+        output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
+    network_output = None
+    if options.refinement.enabled:
+        with stage("refine"), eval_mode(model.network):
+            network_output = output if model.quality is not None else None  # kept only for the quality estimate
+            if masks is not None:
+                masks = RefinementMasks(
+                    *(None if m is None else torch.from_numpy(m)[None, None].to(model.device) for m in masks)
+                )
+            output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement, masks)
+    with stage("maps"):
+        inverse = None
+        if options.inverse:
+            with eval_mode(model.network), torch.inference_mode():  # exp(-v)
+                inverse = float_numpy(model.network.velocity_to_displacement(-output.velocity_mean, shape)[0])
+        maps = ModelMaps(
+            float_numpy(output.displacement[0]),
+            inverse,
+            float_numpy(jacobian_determinant(output.displacement)[0]),
+            None,
+            float_numpy(output.warped[0, 0]),
+            network=network_output,
+            posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
+        )
+        residual = None  # the pair's residual, for the calibration's residual term (uncertainty.residual)
+        if model.calibration.residual_weight > 0:
+            residual = residual_variance(output.warped, fixed_t, output.velocity_mean.shape[2:])
+        if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
+            maps.entropy = posterior_entropy(
+                model, output.velocity_mean, output.velocity_log_var, shape, model.calibration, residual
+            )
+    if samples:
+        with stage("samples"):
+            sampled = posterior_maps(
+                model.network,
+                output.velocity_mean,
+                output.velocity_log_var,
+                shape,
+                samples,
+                model.std_scale,
+                seed=seed,
+                bias_fraction=model.bias_fraction,
+                spacing=spacing,
+                residual=residual,
+                residual_weight=model.calibration.residual_weight,
+            )
+            maps.entropy, maps.std = float_numpy(sampled.velocity_entropy), float_numpy(sampled.displacement_std)
+            maps.variance = float_numpy(sampled.displacement_variance)
+    return maps
+
+
+def posterior_entropy(
+    model: LoadedModel,
+    mean: torch.Tensor,
+    log_var: torch.Tensor,
+    shape: tuple[int, ...],
+    calibration: Calibration,
+    residual: torch.Tensor | None = None,
+) -> np.ndarray:
+    """The velocity entropy of the posterior (``mean``, ``log_var``) on ``shape`` under ``calibration`` (std_scale 1,
+    bias 0 = raw; its residual term with ``residual``, which it then needs)."""
+    posterior = posterior_maps(
+        model.network,
+        mean,
+        log_var,
+        shape,
+        std_scale=calibration.std_scale,
+        bias_fraction=calibration.bias_fraction,
+        residual=residual,
+        residual_weight=calibration.residual_weight,
+    )
+    return float_numpy(posterior.velocity_entropy)

@@ -1,0 +1,113 @@
+"""The ``quality`` stage of one registration: the label-free quality estimate on the model grid
+(:mod:`monai_probreg.uncertainty.quality`), read from the network's own registration before refinement (what its
+models were fitted on: docs/uncertainty.md, "Whose features"), with the refined answer's features beside it; and its
+record in ``summary.json``. Weights without a quality model have no stage (``"quality": null``)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.metrics.jacobian import jacobian_determinant
+from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.model import LoadedModel
+from monai_probreg.registration.network import ModelMaps, posterior_entropy
+from monai_probreg.uncertainty.calibration import Calibration
+from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
+from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
+from monai_probreg.utils.tensors import float_numpy
+
+__all__ = ["ScanQuality", "estimate_quality", "quality_summary"]
+
+
+class ScanQuality(NamedTuple):
+    """``features`` of the network's registration (what the estimate reads), the ``estimate``, and the
+    ``answer_features`` of the refined answer (None: not refined, the answer is the network's own)."""
+
+    features: QualityFeatures
+    estimate: QualityEstimate
+    answer_features: QualityFeatures | None
+
+
+class _QualityInputs(NamedTuple):
+    """A registration on the model grid as the quality estimate reads it: the network's own before refinement (what
+    its models read, :mod:`monai_probreg.uncertainty.quality`, "Whose features"), or the refined answer."""
+
+    warped: np.ndarray
+    displacement: np.ndarray
+    jacobian: np.ndarray
+    entropy: np.ndarray
+
+
+def _feature_entropy(model: LoadedModel, maps: ModelMaps, posterior: tuple[torch.Tensor, torch.Tensor]) -> np.ndarray:
+    """The velocity entropy of ``posterior`` (mean, log-variance) as the quality estimate reads it: under the quality
+    model's own calibration (:meth:`~monai_probreg.uncertainty.quality.QualityModel.feature_calibration`); the maps'
+    entropy itself when ``posterior`` is the answer's and that calibration is the one in use (computed once)."""
+    calibration = model.quality.feature_calibration(model.std_scale, model.bias_fraction)
+    if (
+        posterior is maps.posterior
+        and model.calibration.residual_weight == 0  # the maps' entropy has no residual term, the feature's never has
+        and calibration == Calibration(model.std_scale, model.bias_fraction)
+    ):
+        return maps.entropy
+    return posterior_entropy(model, *posterior, tuple(maps.warped.shape), calibration)
+
+
+def _network_quality_inputs(model: LoadedModel, output: RegistrationOutput, maps: ModelMaps) -> _QualityInputs:
+    """The network's registration ``output`` (before refinement) as the quality estimate reads it."""
+    return _QualityInputs(
+        float_numpy(output.warped[0, 0]),
+        float_numpy(output.displacement[0]),
+        float_numpy(jacobian_determinant(output.displacement)[0]),
+        _feature_entropy(model, maps, (output.velocity_mean, output.velocity_log_var)),
+    )
+
+
+def estimate_quality(
+    model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, maps: ModelMaps
+) -> ScanQuality | None:
+    """The label-free quality estimate on the model grid (module docstring); None when the weights have no quality
+    model."""
+    if model.quality is None:
+        return None
+    t = torch.from_numpy
+
+    def features_of(m: _QualityInputs) -> QualityFeatures:
+        return quality_features(
+            t(moving_input),
+            t(fixed.model_input),
+            t(m.warped),
+            t(m.displacement),
+            t(m.entropy),
+            fixed.grid.spacing,
+            jacobian=t(m.jacobian),
+        )
+
+    # the answer the user gets; its entropy as the estimate reads it (the same rule for both feature sets)
+    answer = features_of(
+        _QualityInputs(maps.warped, maps.displacement, maps.jacobian, _feature_entropy(model, maps, maps.posterior))
+    )
+    if maps.network is None:  # not refined: the answer is the network's own registration
+        return ScanQuality(answer, model.quality.estimate(answer), None)
+    features = features_of(_network_quality_inputs(model, maps.network, maps))
+    return ScanQuality(features, model.quality.estimate(features, answer), answer)
+
+
+def quality_summary(model: LoadedModel, quality: ScanQuality | None, refinement: RefinementSettings) -> dict | None:
+    """``summary.json["quality"]``: the estimate's record (the bundle's, without its warning, which the summary has
+    at its top level), the model's threshold and definition, and how the run's refinement differs from the fit's."""
+    if quality is None:
+        return None
+    record = quality_record(*quality)  # strict JSON, the same record as the bundle's
+    del record["warning"]  # summary.json has it at the top level
+    return {
+        **record,
+        "warning_threshold": model.quality.threshold,
+        "definition": model.quality.definition,
+        "model": quality_path(model.model_file).name,
+        "refinement_differs_from_fit": refinement.differences(model.quality.refinement),
+    }

@@ -1,0 +1,168 @@
+"""Register one raw scan to a fixed image, end to end: the functional core of ``monai-probreg register``.
+
+Stages, timed under these names in ``summary.json["timings_s"]``, each in the module that runs it:
+
+- ``read``: read and validate the moving scan (and its labels, its mask) with their geometry (:mod:`.inputs`);
+- ``affine``, ``resample``: the affine pre-alignment, then the moving scan on the model grid as the network reads it
+  (:mod:`.affine_stage`);
+- ``model``, ``refine``, ``maps``, ``samples``: the network's registration, its test-time refinement, the inverse,
+  Jacobian and entropy, the posterior samples (:mod:`.network`);
+- ``quality``: the label-free quality estimate, with a quality model next to the weights (:mod:`.quality_estimate`);
+- ``compose``: affine + deformable -> one field fixed -> moving and its inverse; the original moving scan and labels
+  resampled once through it; Dice (:mod:`.compose`);
+- ``qc``, ``write``: the files, in a staging folder moved into place at the end (:mod:`.output_folder`), compressed
+  in parallel threads while the QC figure is drawn (:mod:`.qc`): ``qc`` times the drawing, ``write`` the wait for
+  the files after it; then ``summary.json`` (:mod:`.summary`) and ``README.txt``.
+
+The model is loaded once (:func:`monai_probreg.registration.model.load_model`) and the fixed image prepared once
+(:func:`monai_probreg.registration.inputs.prepare_fixed`), so a batch pays for them once; neither is counted in a
+scan's stages.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from monai_probreg.metrics.jacobian import jacobian_stats
+from monai_probreg.registration.affine_stage import affine_stage, model_input
+from monai_probreg.registration.compose import Composed, compose_outputs
+from monai_probreg.registration.inputs import FixedSpace, read_moving
+from monai_probreg.registration.model import LoadedModel
+from monai_probreg.registration.network import ModelMaps, run_network
+from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.output_folder import (
+    OUTPUTS_README,
+    check_output_dir,
+    output_writers,
+    qc_data,
+    qc_title,
+    staged_output_dir,
+)
+from monai_probreg.registration.qc import save_qc
+from monai_probreg.registration.quality_estimate import estimate_quality
+from monai_probreg.registration.summary import scan_summary
+from monai_probreg.spatial.affine import AffineResult
+from monai_probreg.spatial.volume_io import Volume
+from monai_probreg.utils.files import parallel_writes, write_text
+
+__all__ = ["Registered", "register_scan"]
+
+
+class Registered(NamedTuple):
+    """What :func:`register_scan` computed, for a caller's own check of the result (its ``check``).
+
+    ``warp`` (*S, 3): the composed ``D(p) = phi(p) - p``, LPS mm on the fixed grid, float32 (``warp.nii.gz``'s
+    values); ``affine`` (4, 4): the affine stage, fixed LPS -> moving LPS; ``points`` (*S, 3): the fixed grid's LPS
+    points;
+    ``displacement_variance`` (*S, 3): the calibrated posterior's variance of the deformable displacement, mm^2 on
+    the fixed grid, one component per column of ``variance_axes`` (3, 3; unit LPS vectors: the model grid's axes),
+    or None without samples."""
+
+    warp: np.ndarray
+    affine: np.ndarray
+    points: np.ndarray
+    displacement_variance: np.ndarray | None
+    variance_axes: np.ndarray
+
+
+def _registered(fixed: FixedSpace, affine: AffineResult, composed: Composed, model_maps: ModelMaps) -> Registered:
+    grid = fixed.grid
+    variance = None if model_maps.variance is None else grid.to_fixed(np.moveaxis(model_maps.variance, 0, -1))
+    return Registered(composed.warp, affine.matrix, fixed.points, variance, grid.index_to_lps[:3, :3] / grid.spacing)
+
+
+@contextmanager
+def _timed(timings: dict[str, float], name: str, report: Callable[[str, float], None] | None) -> Iterator[None]:
+    start = time.perf_counter()
+    yield
+    timings[name] = round(time.perf_counter() - start, 3)
+    if report is not None:
+        report(name, timings[name])
+
+
+def register_scan(
+    model: LoadedModel,
+    fixed: FixedSpace,
+    moving_path: str | os.PathLike | Volume,
+    out_dir: str | os.PathLike,
+    moving_label_path: str | os.PathLike | None = None,
+    options: RegistrationOptions | None = None,
+    overwrite: bool = False,
+    report: Callable[[str, float], None] | None = None,
+    check: Callable[[Registered], dict] | None = None,
+    extra_outputs: Mapping[str, Callable[[Path], object]] | None = None,
+    moving_mask_path: str | os.PathLike | None = None,
+) -> dict:
+    """Register ``moving_path`` to ``fixed`` and write every output into ``out_dir`` (all or nothing).
+
+    ``moving_path`` may be a :class:`~monai_probreg.spatial.volume_io.Volume` already in memory (``monai-probreg
+    demo``'s synthetic subject): the "read" stage then only takes it. ``report(stage, seconds)`` is called after each
+    stage. ``check(registered)``: a caller's check of the result (:class:`Registered`), whose keys are added to the
+    summary; ``extra_outputs``: file name -> writer of that file (given its path in the staging folder), written
+    with the others. ``moving_mask_path``: the moving scan's cost-function mask (``--moving-mask``, on its grid;
+    :mod:`monai_probreg.spatial.masks`), or None. Returns the summary written to ``summary.json``.
+    Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
+    """
+    options = options or RegistrationOptions()
+    if options.refinement is None:  # the model's (config's) refinement: what the command line runs by default
+        options = replace(options, refinement=model.refinement)
+    out = check_output_dir(out_dir, overwrite)
+    timings: dict[str, float] = {}
+    stage = functools.partial(_timed, timings, report=report)
+    start = time.perf_counter()
+    with stage("read"):
+        moving = read_moving(moving_path, moving_label_path, moving_mask_path)
+    with stage("affine"):
+        affine = affine_stage(fixed, moving, options)
+    with stage("resample"):
+        moving_input, masks = model_input(fixed, moving, affine.matrix)
+    model_maps = run_network(model, moving_input, fixed.model_input, options, fixed.grid.spacing, stage, masks)
+    quality = None
+    if model.quality is not None:  # weights without a quality model: no stage, "quality": null
+        with stage("quality"):
+            quality = estimate_quality(model, moving_input, fixed, model_maps)
+    model_maps.network = None  # read by the quality estimate only: its fields (about 300 MB at 256^3) go now
+    warning = quality.estimate.warning if quality is not None else None
+    with stage("compose"):
+        composed = compose_outputs(fixed, moving.image, moving.label, affine.matrix, model_maps, options.inverse)
+        stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
+    checked = check(_registered(fixed, affine, composed, model_maps)) if check is not None else {}
+    with staged_output_dir(out, overwrite) as folder:
+        # the files compress in a pool of threads while this thread draws the QC figure: "qc" is the drawing,
+        # "write" the wait for the files after it (so the stages still add up to the wall time)
+        write_start = time.perf_counter()
+        with parallel_writes(torch.get_num_threads()) as submit:
+            for writer in output_writers(folder, fixed, moving.image, affine, composed, options):
+                submit(writer)
+            for name, write in (extra_outputs or {}).items():
+                submit(functools.partial(write, folder / name))
+            if options.qc:
+                with stage("qc"):
+                    title = qc_title(moving.image, composed.dice, stats.num_folding, quality)
+                    save_qc(folder / "qc.png", qc_data(fixed, moving_input, model_maps, composed, title, warning))
+        timings["write"] = round(time.perf_counter() - write_start - timings.get("qc", 0.0), 3)
+        if report is not None:
+            report("write", timings["write"])
+        timings["total"] = round(time.perf_counter() - start, 3)
+        outputs = sorted(p.name for p in folder.iterdir()) + ["summary.json", "README.txt"]
+        summary = scan_summary(
+            model, fixed, moving, options, affine, model_maps, composed, stats, quality, timings, outputs
+        )
+        clash = set(checked) & set(summary)
+        if clash:
+            raise ValueError(f"check() returned keys the summary has already: {sorted(clash)}")
+        summary.update(checked)
+        write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
+        write_text(folder / "README.txt", OUTPUTS_README)
+    return summary

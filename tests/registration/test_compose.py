@@ -1,5 +1,5 @@
-"""monai_probreg.cli.compose: slab by slab, the same bits as the whole-grid computation it replaced (oblique grids,
-a model grid in another orientation, slabs of several heights)."""
+"""monai_probreg.registration.compose: slab by slab, the same bits as the whole-grid computation it replaced
+(oblique grids, a model grid in another orientation, slabs of several heights)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""monai_probreg.cli.pipeline: its options (samples, the refinement a library call gets by default)."""
+"""monai_probreg.registration.scan: its options (samples, the refinement a library call gets by default)."""
 
 from __future__ import annotations
 

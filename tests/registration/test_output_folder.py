@@ -1,4 +1,4 @@
-"""monai_probreg.cli.output_dir: the output folder is written all or nothing."""
+"""monai_probreg.registration.output_folder: the output folder is written all or nothing."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""monai_probreg.cli.qc: the QC figure renders (with and without labels), atomically, and closes its figure."""
+"""monai_probreg.registration.qc: the QC figure renders (with and without labels), atomically, and closes its figure."""
 
 from __future__ import annotations
 

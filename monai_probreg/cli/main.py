@@ -17,7 +17,7 @@ import os
 import sys
 import time
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 __all__ = ["build_parser", "main", "run", "run_bundle_demo"]
@@ -582,56 +582,54 @@ def _print_result(args: argparse.Namespace, summary: dict) -> int:
     return 0
 
 
-def _register(args: argparse.Namespace) -> int:
+def _register_one(args: argparse.Namespace, files: Sequence[str], ready: str, register: Callable[..., dict]) -> int:
+    """``register`` and ``demo``: the options and the ``files`` options checked, the model and the fixed image loaded
+    (``ready`` names them in the message), then ``register(model, fixed, options, report)``'s summary printed."""
     from monai_probreg.registration.output_folder import check_output_dir
-    from monai_probreg.registration.scan import register_scan
 
     options = _options(args)
-    _require_files(args, ["--moving", "--moving-label", "--fixed", "--fixed-label", "--fixed-mask", "--moving-mask"])
+    _require_files(args, files)
     check_output_dir(args.out, args.overwrite)  # fail before loading anything
     start = time.perf_counter()
     model, fixed = _setup(args)
     options = _with_refinement(options, model, args.refine, args.smoothness)
-    _say(args, f"model and fixed image ready in {time.perf_counter() - start:.1f} s")
-    summary = register_scan(
-        model,
-        fixed,
-        args.moving,
-        args.out,
-        args.moving_label,
-        options,
-        args.overwrite,
-        report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"),
-        moving_mask_path=args.moving_mask,
-    )
+    _say(args, f"{ready} ready in {time.perf_counter() - start:.1f} s")
+    summary = register(model, fixed, options, lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
     return _print_result(args, summary)
+
+
+def _register(args: argparse.Namespace) -> int:
+    from monai_probreg.registration.scan import register_scan
+
+    def register(model, fixed, options, report) -> dict:
+        return register_scan(
+            model,
+            fixed,
+            args.moving,
+            args.out,
+            args.moving_label,
+            options,
+            args.overwrite,
+            report=report,
+            moving_mask_path=args.moving_mask,
+        )
+
+    files = ["--moving", "--moving-label", "--fixed", "--fixed-label", "--fixed-mask", "--moving-mask"]
+    return _register_one(args, files, "model and fixed image", register)
 
 
 def _demo(args: argparse.Namespace) -> int:
     from monai_probreg.cli.messages import demo_report
     from monai_probreg.registration.demo import DEMO_SAMPLES, run_demo
-    from monai_probreg.registration.output_folder import check_output_dir
+
+    def register(model, fixed, options, report) -> dict:
+        summary = run_demo(model, fixed, args.out, args.seed, options=options, overwrite=args.overwrite, report=report)
+        print(demo_report(summary))
+        return summary
 
     if args.samples is None:
         args.samples = DEMO_SAMPLES
-    options = _options(args)
-    _require_files(args, ["--fixed", "--fixed-label"])
-    check_output_dir(args.out, args.overwrite)
-    start = time.perf_counter()
-    model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine, args.smoothness)
-    _say(args, f"model and template ready in {time.perf_counter() - start:.1f} s")
-    summary = run_demo(
-        model,
-        fixed,
-        args.out,
-        args.seed,
-        options=options,
-        overwrite=args.overwrite,
-        report=lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"),
-    )
-    print(demo_report(summary))
-    return _print_result(args, summary)
+    return _register_one(args, ["--fixed", "--fixed-label"], "model and template", register)
 
 
 def _register_batch(args: argparse.Namespace) -> int:

@@ -15,15 +15,25 @@ import logging
 import math
 import os
 import sys
+import textwrap
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
+from monai_probreg.registration.output_files import output_list
+
 __all__ = ["build_parser", "main", "run", "run_bundle_demo"]
 
+# the outputs by name; what each is, once, in monai_probreg.registration.output_files (DIR/README.txt)
+_OUTPUTS = textwrap.fill(
+    "Outputs, each described in DIR/README.txt: " + ", ".join(output_list()) + ".",
+    width=118,
+    break_long_words=False,
+    break_on_hyphens=False,
+)
 
-DESCRIPTION = """\
+DESCRIPTION = f"""\
 Register 3-D brain MRI scans to an atlas with the trained VoxelMorph-diff model (Dalca et al. 2018): affine
 pre-alignment (rigid then affine, Mattes mutual information; in torch, or ITK's with --affine-backend itk), then the
 network's diffeomorphic deformation, composed into one transform. Scans may come in any orientation, voxel size,
@@ -37,9 +47,7 @@ field of view and intensity range; they should be skull-stripped T1-weighted bra
   monai-probreg register --moving sub01.nii.gz --fixed atlas.nii.gz --initial-transform sub01_0GenericAffine.mat \\
       --initial-transform-use as-affine --out results/sub01    # ANTs' affine (-r): as it is, or as a start
 
-Outputs (see DIR/README.txt): warped.nii.gz (moving on the fixed grid), warp.nii.gz and inverse_warp.nii.gz (ITK/ANTs
-displacement fields, LPS mm), affine.tfm, jacobian.nii.gz, entropy.nii.gz, displacement_std.nii.gz (--samples),
-warped_label.nii.gz / fixed_label_in_moving.nii.gz (labels), summary.json, qc.png.
+{_OUTPUTS}
 
 The model (network settings and weights) comes from the MONAI bundle: BUNDLE/configs/inference.yaml and
 the config's model_file (BUNDLE/models/...), BUNDLE being the repository's bundle/ folder unless --bundle-root, --config or --model-file

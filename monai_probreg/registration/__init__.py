@@ -9,8 +9,8 @@ benchmarks call alike. In the order a scan goes through it:
 - :mod:`.network`: the network's registration, its test-time refinement, the maps and the posterior samples;
 - :mod:`.quality_estimate`: the label-free quality estimate;
 - :mod:`.compose`: affine + deformable composed, the original scan and labels resampled once, Dice;
-- :mod:`.output_folder`, :mod:`.qc`, :mod:`.summary`: the files written all or nothing, the QC figure,
-  ``summary.json``;
+- :mod:`.output_files`, :mod:`.output_folder`, :mod:`.qc`, :mod:`.summary`: what each file is (``README.txt``),
+  the files written all or nothing, the QC figure, ``summary.json``;
 - :mod:`.scan`: :func:`~.scan.register_scan`, the stages above in order, timed; :mod:`.batch`: many scans, one bad
   scan never stopping the others; :mod:`.demo`: a synthetic subject with a known answer, registered and scored.
 

@@ -1,6 +1,6 @@
-"""The output folder of one registration (``monai-probreg register``'s ``DIR``): its files and what each is
-(:data:`OUTPUT_FILES`, written as ``README.txt``), all-or-nothing writing, ITK writers, the writer of each file of a
-registration (:func:`output_writers`) and the QC figure's panels (:func:`qc_data`, drawn by :mod:`.qc`).
+"""The output folder of one registration (``monai-probreg register``'s ``DIR``): all-or-nothing writing, ITK
+writers, the writer of each file of a registration (:func:`output_writers`) and the QC figure's panels
+(:func:`qc_data`, drawn by :mod:`.qc`). What each file is: :mod:`.output_files` (``README.txt``).
 
 All-or-nothing: every file is written into a hidden staging folder next to ``DIR`` (same file system) and moved
 into ``DIR`` only when the whole registration has succeeded (:func:`staged_output_dir`). On any error, including
@@ -30,6 +30,7 @@ from monai_probreg.registration.compose import Composed
 from monai_probreg.registration.inputs import FixedSpace
 from monai_probreg.registration.network import ModelMaps
 from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.output_files import OUTPUT_FILES
 from monai_probreg.registration.qc import QCData
 from monai_probreg.registration.quality_estimate import ScanQuality
 from monai_probreg.spatial.affine import AffineResult
@@ -42,8 +43,6 @@ from monai_probreg.utils.files import atomic_write, write_text
 
 __all__ = [
     "MAP_FILES",
-    "OUTPUT_FILES",
-    "OUTPUTS_README",
     "check_output_dir",
     "staged_output_dir",
     "write_volume",
@@ -54,42 +53,6 @@ __all__ = [
     "qc_data",
     "qc_title",
 ]
-
-# name -> what it is; the order of the README and of summary.json["outputs"]
-OUTPUT_FILES = {
-    "warped.nii.gz": "moving image resampled onto the fixed grid through the composed transform (linear, original "
-    "intensities, 0 outside the moving scan)",
-    "warped_label.nii.gz": "moving labels on the fixed grid (nearest neighbour) [--moving-label]",
-    "warp.nii.gz": "composed displacement field fixed -> moving (affine + deformable), LPS mm, on the fixed grid; "
-    "ITK DisplacementFieldTransform / antsApplyTransforms -t warp.nii.gz",
-    "inverse_warp.nii.gz": "composed inverse field moving -> fixed, LPS mm, on the moving grid; "
-    "antsApplyTransforms -i FIXED -r MOVING -t inverse_warp.nii.gz",
-    "affine.tfm": "the affine part alone (fixed -> moving, ITK AffineTransform_double_3_3 text file)",
-    "fixed_label_in_moving.nii.gz": "fixed labels mapped onto the moving scan's own grid (nearest neighbour) "
-    "[--fixed-label]",
-    "jacobian.nii.gz": "det(I + grad u) of the deformable part on the fixed grid (<= 0: folding); the composed "
-    "transform's Jacobian is this times summary.json affine.determinant",
-    "entropy.nii.gz": "entropy of the velocity posterior q(z) (Dalca et al. 2018, Eq. 8), fixed grid",
-    "displacement_std.nii.gz": "std of the displacement over K posterior samples, sqrt(sum of the 3 variances), mm; "
-    "a component's calibrated 95% interval is +- summary.json model.posterior_interval_95_half_width_std times that "
-    "component's own std (about this map / sqrt(3)), Student-t tails [--samples K]",
-    "subject.nii.gz": "the synthetic subject registered (the moving image), made from the template [demo]",
-    "true_warp.nii.gz": "the known field fixed -> moving the subject was made with, LPS mm, on the fixed grid, in "
-    "warp.nii.gz's convention: the answer warp.nii.gz is scored against [demo]",
-    "qc.png": "quality-control figure: three orthogonal slices of each map",
-    "summary.json": "timings per stage, affine, |J| <= 0 count, Dice per label, inputs and settings",
-    "README.txt": "this list",
-}
-
-OUTPUTS_README = (
-    "Outputs of monai-probreg register (VoxelMorph-diff, Dalca et al. 2018).\n"
-    + "\n".join(f"  {name:<30}{text}" for name, text in OUTPUT_FILES.items())
-    + """
-Conventions: physical points are ITK's LPS millimetres. A displacement field maps a point p of its grid to
-p + d(p) in the other space (ITK DisplacementFieldTransform, ANTs warp files): warp.nii.gz pulls the moving image
-back onto the fixed grid, warped(p) = moving(p + d(p)). Files on the fixed grid carry the fixed image's header.
-"""
-)
 
 
 def check_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> Path:
@@ -115,7 +78,7 @@ def check_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> Pat
 def staged_output_dir(out_dir: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Yield a staging folder; on success move its files into ``out_dir`` (module docstring), else delete it.
 
-    With ``overwrite``, files of ours (:data:`OUTPUT_FILES`) left from an earlier run and not produced by this one
+    With ``overwrite``, files of ours (:data:`~.output_files.OUTPUT_FILES`) left from an earlier run and not produced by this one
     are removed, so the folder never mixes two runs; files of other names are kept.
     """
     final = check_output_dir(out_dir, overwrite)

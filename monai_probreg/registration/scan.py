@@ -41,8 +41,8 @@ from monai_probreg.registration.inputs import FixedSpace, read_moving
 from monai_probreg.registration.model import LoadedModel
 from monai_probreg.registration.network import ModelMaps, run_network
 from monai_probreg.registration.options import RegistrationOptions
+from monai_probreg.registration.output_files import OUTPUTS_README
 from monai_probreg.registration.output_folder import (
-    OUTPUTS_README,
     check_output_dir,
     output_writers,
     qc_data,

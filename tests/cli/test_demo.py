@@ -13,7 +13,7 @@ import pytest
 from conftest import BUNDLE_DIR, FAST_AFFINE, FIXED_LPS, asymmetric_phantom, run_cli, save_lps, tiny_bundle
 from monai.bundle import ConfigParser
 
-from monai_probreg.registration.output_folder import OUTPUT_FILES
+from monai_probreg.registration.output_files import OUTPUT_FILES
 from monai_probreg.spatial.volume_io import read_image
 from monai_probreg.uncertainty.calibration import calibration_path, save_calibration
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from monai_probreg.registration.output_folder import OUTPUT_FILES, OUTPUTS_README, check_output_dir, staged_output_dir
+from monai_probreg.registration.output_files import OUTPUT_FILES, OUTPUTS_README
+from monai_probreg.registration.output_folder import check_output_dir, staged_output_dir
 from monai_probreg.utils.errors import InputError
 
 

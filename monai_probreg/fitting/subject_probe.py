@@ -11,7 +11,7 @@ whose residual error is not proportional to the displacement (the bias term's mo
 - each subject is :func:`~monai_probreg.data.synthetic.synthesize_subject` of its template with the demo's
   ``SyntheticSettings`` (a random rigid turn and shift, a random smooth deformation, a bias field, Rician noise),
   seed ``SUBJECT_SEED + n`` (far from the demo's seeds 0-2);
-- it is registered back onto its template by :func:`~monai_probreg.cli.pipeline.register_scan`, the code path of
+- it is registered back onto its template by :func:`~monai_probreg.registration.scan.register_scan`, the code path of
   ``monai-probreg register``, with the posterior sampled at a given calibration;
 - per brain voxel (subsampled) and component: the std of the sampled deformable displacement, its error against the
   truth in the posterior's frame (:mod:`monai_probreg.metrics.recovery`'s ``delta = L^-1 (phi - phi_true)``) and the

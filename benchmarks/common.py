@@ -3,7 +3,7 @@
 Every script runs as ``python benchmarks/<name>.py``, which puts this folder on ``sys.path``, so the scripts import
 this module plainly (``from common import bundle_parser``), never by editing ``sys.path``; the tests get the same
 through pytest's ``pythonpath`` (pyproject.toml). Importing it costs the standard library only: monai, torch and
-antspyx are imported by the functions that use them, so the light scripts (``ddp_scaling.py``) stay light.
+antspyx are imported by the functions that use them, so the light scripts (``experiments/ddp_scaling.py``) stay light.
 """
 
 from __future__ import annotations

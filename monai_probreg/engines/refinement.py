@@ -31,7 +31,7 @@ there, blended into the refined one over 1, 2, 4, ... velocity cells, :func:`loc
 (``fold_backtracks`` times at most), and the network's registration itself is returned when nothing is fold-free: a
 user asking for refinement never gets a folded warp the network alone would not have given. The folds are few and
 local (tens of voxels of a head), so halving the whole change threw away much of the gain on whole-head pairs
-(``benchmarks/refinement_levers.py``, docs/accuracy.md).
+(``experiments/refinement_levers.py``, docs/accuracy.md).
 
 Cost-function masks (:class:`RefinementMasks`, ``refine_registration``'s ``masks``; the command's ``--fixed-mask``
 and ``--moving-mask``): the image term summed only over the fixed mask's voxels whose warped position falls inside
@@ -124,20 +124,20 @@ class RefinementSettings:
         (1: the network's, 4 mm for the shipped weights; 2: twice finer, the paper's 2 mm). The network's mean and
         log-variance are resized onto it (:func:`resize_log_var`) and the returned ones live there; the images of the
         loss are the network's grid, or the velocity grid when that is finer. 2 measured worse and slower on training
-        pairs (``benchmarks/refinement_levers.py``, docs/accuracy.md). The log-variance is then in the finer grid's
+        pairs (``experiments/refinement_levers.py``, docs/accuracy.md). The log-variance is then in the finer grid's
         units, so the velocity entropy is shifted (by 3 log 2 nats for 2 in 3-d) and the calibration, fitted on the
         network's grid, does not apply as it is.
     image_grid_factor: the images of the loss live on a grid this many times finer than the network's (1: its
         ``network_size``; 2: twice finer, at most the images' own grid). The velocity grid does not change; the LNCC
         window (``lncc_kernel_size``) is in voxels of that finer grid. 2 scored higher than 1 on training pairs, most
-        on whole-head synthetic ones, at several times the cost of a step (``benchmarks/refinement_levers.py``,
+        on whole-head synthetic ones, at several times the cost of a step (``experiments/refinement_levers.py``,
         docs/accuracy.md); the shipped configs use 2 for their last steps (``coarse_iterations``), which their
         calibration and quality model are fitted for. The dataclass default stays 1, the cheaper form.
     coarse_iterations: of the ``num_iterations`` steps, the first this many compare the images on the network's
         grid (``image_grid_factor`` 1, eight times fewer voxels in 3-d), the rest on the ``image_grid_factor`` grid:
         a coarse-to-fine schedule (0: every step on the finer grid). More coarse steps with the last ones finer kept
         the Dice of every finer step on training pairs and left less of the network's invented displacement on a
-        scan onto its own copy, at a fraction of the time (``benchmarks/refinement_levers.py``, docs/speed.md).
+        scan onto its own copy, at a fraction of the time (``experiments/refinement_levers.py``, docs/speed.md).
     coarse_lncc_kernel_size: the LNCC window of those coarse steps, in voxels of the network's grid (odd; None:
         ``lncc_kernel_size``, a window ``image_grid_factor`` times wider than the finer grid's).
     symmetric_start: start from (and pull towards) ``(mu(moving, fixed) - mu(fixed, moving)) / 2``, the network's

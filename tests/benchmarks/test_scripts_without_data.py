@@ -27,6 +27,7 @@ from bench_helpers import REPO
         "experiments/uncertainty_ceiling",
         "experiments/lncc_margin",
         "experiments/speed_levers",
+        "experiments/ddp_scaling",
     ],
 )
 def test_missing_dataset_skips_with_exit_code_0(tmp_path, script):

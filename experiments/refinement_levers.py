@@ -14,9 +14,12 @@ finer, 2 mm, the paper's velocity grid). Each variant registers the same pairs t
   (mm), what a variant invents where there is nothing to register (a larger step won the pairs in bundle 0.20.0 and
   lost here: docs/accuracy.md).
 
-    python benchmarks/refinement_levers.py --threads 1 --label-maps SynthSeg/data/training_label_maps
+It imports the generalisation benchmark's synthetic heads, so benchmarks/ goes on the path:
 
-Prints one table (Dice, folded voxels, refinement seconds) and writes ``OUT_DIR/refinement_levers.json``.
+    PYTHONPATH=benchmarks python experiments/refinement_levers.py --threads 1 --label-maps SynthSeg/data/training_label_maps
+
+Prints one table (Dice, folded voxels, refinement seconds) and writes ``OUT_DIR/refinement_levers.json`` (default
+experiments/results).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from pathlib import Path
 import itk
 import numpy as np
 import torch
-from common import parse_variant, write_report
+from common import DEFAULT_DATASET, parse_variant, write_report
 from generalization import dice, synthetic_head
 
 from monai_probreg.data.label_synthesis import ASEG_LABELS
@@ -43,9 +46,7 @@ from monai_probreg.registration.scan import register_scan
 from monai_probreg.spatial.physical import field_from_itk
 from monai_probreg.spatial.volume_io import read_label
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO / "benchmarks" / "results"
-DEFAULT_DATASET = REPO.parent / "shared" / "data" / "lpba40"
+RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
 LPBA40_PAIRS = ("S12:S13", "S15:S17", "S18:S19")  # moving:fixed, training subjects (train.yaml's val_ids excluded)
 SYNTH_PAIRS = ("training_seg_01:training_seg_02", "training_seg_03:training_seg_04")
 SYNTH_SEED = 0  # the random deformation and contrast of each synthetic head (generalization.synthetic_head)
@@ -119,7 +120,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--label-maps", type=Path, default=None, help="folder with SynthSeg's training_seg_*.nii.gz")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), help="names of VARIANTS, or name=field:value,...")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     model = load_model(model_file=args.model_file)

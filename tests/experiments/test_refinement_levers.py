@@ -1,4 +1,4 @@
-"""benchmarks/refinement_levers.py: variants parsed from the command line, the identity cases' score on a known field,
+"""experiments/refinement_levers.py: variants parsed from the command line, the identity cases' score on a known field,
 and the script end to end on tiny FreeSurfer-labelled phantoms named like SynthSeg's training maps (no LPBA40): one
 row per variant, a finer grid run, the identity case scored."""
 
@@ -8,12 +8,11 @@ import json
 
 import numpy as np
 import pytest
-from bench_helpers import load_benchmark
-from conftest import FIXED_LPS, asymmetric_phantom, save_lps
+from conftest import FIXED_LPS, asymmetric_phantom, load_script, save_lps
 
 from monai_probreg.registration.output_folder import write_field
 
-levers = load_benchmark("refinement_levers")
+levers = load_script("experiments", "refinement_levers")
 
 
 def test_only_training_label_maps_and_subjects_are_used():

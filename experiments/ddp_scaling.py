@@ -6,8 +6,10 @@ epoch times from the log (ignite's "Epoch[e] Complete. Time taken"); the first e
 left out. One epoch covers the training subjects once in both runs (each rank trains on its own shard), so
 speed-up = t(1) / t(N) and scaling efficiency = speed-up / N.
 
-    python benchmarks/ddp_scaling.py                  # table + benchmarks/results/ddp_scaling.json
-    python benchmarks/ddp_scaling.py --nproc 2 --network-size 64 80 64 --epochs 3
+It imports the benchmarks' shared paths, so benchmarks/ goes on the path:
+
+    PYTHONPATH=benchmarks python experiments/ddp_scaling.py     # table + experiments/results/ddp_scaling.json
+    PYTHONPATH=benchmarks python experiments/ddp_scaling.py --nproc 2 --network-size 64 80 64 --epochs 3
 """
 
 from __future__ import annotations
@@ -23,11 +25,12 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from common import DEFAULT_DATASET, DEFAULT_OUT, REPO
+from common import DEFAULT_DATASET, REPO
 
 EPOCH_LINE = re.compile(r"SupervisedTrainer - INFO - Epoch\[(\d+)\] Complete\. Time taken: (\d+):(\d+):([\d.]+)")
 WARMUP_EPOCHS = 1  # epochs left out of the timing
 RUN_TIMEOUT_S = 1800
+RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
 
 
 def epoch_times(log: str) -> dict[int, float]:
@@ -93,7 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=3)
     ap.add_argument("--nproc", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1, help="CPU threads per process")
-    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     if not args.dataset_dir.is_dir():
         print(f"skipped: dataset not found at {args.dataset_dir.resolve()}", flush=True)

@@ -192,7 +192,7 @@ def case_errors(network, case, calibration: Calibration, num_samples) -> tuple[n
         calibration.std_scale,
         case["mean"],
         calibration.bias_fraction,
-        case.get("residual"),
+        case["residual"],
         calibration.residual_weight,
     )
     generator = torch.Generator().manual_seed(case["seed"] + 1)

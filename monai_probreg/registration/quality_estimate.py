@@ -16,7 +16,6 @@ from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.registration.inputs import FixedSpace
 from monai_probreg.registration.model import LoadedModel
 from monai_probreg.registration.network import ModelMaps, posterior_entropy
-from monai_probreg.uncertainty.calibration import Calibration
 from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.tensors import float_numpy
@@ -48,10 +47,9 @@ def _feature_entropy(model: LoadedModel, maps: ModelMaps, posterior: tuple[torch
     model's own calibration (:meth:`~monai_probreg.uncertainty.quality.QualityModel.feature_calibration`); the maps'
     entropy itself when ``posterior`` is the answer's and that calibration is the one in use (computed once)."""
     calibration = model.quality.feature_calibration(model.std_scale, model.bias_fraction)
-    if (
-        posterior is maps.posterior
-        and model.calibration.residual_weight == 0  # the maps' entropy has no residual term, the feature's never has
-        and calibration == Calibration(model.std_scale, model.bias_fraction)
+    # an entropy depends on every number of the calibration but the intervals' dof (the feature's has no residual term)
+    if posterior is maps.posterior and calibration._replace(interval_dof=None) == model.calibration._replace(
+        interval_dof=None
     ):
         return maps.entropy
     return posterior_entropy(model, *posterior, tuple(maps.warped.shape), calibration)

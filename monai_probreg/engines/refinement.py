@@ -52,6 +52,7 @@ import torch.nn.functional as F
 from monai.networks.layers.factories import Pool
 from torch import Tensor
 
+from monai_probreg.blocks.box_resize import resize_displacement_box
 from monai_probreg.blocks.integration import resize_displacement
 from monai_probreg.blocks.warp import warp_box, warp_image
 from monai_probreg.losses.kl import LaplacianKLLoss
@@ -320,11 +321,13 @@ def _without_folds(
 
 class _ImageTerm:
     """The refinement's image term ``D(moving o exp(mu), fixed)`` as a function of the displacement on the loss's
-    grid. LNCC (with the network's one-pass sampling, ``fast_sampling``) is :class:`FixedImageLNCC`: the fixed
-    image's window sums once per pair, and the moving image warped and compared only inside the box around the fixed
-    image's nonzero voxels where a window can add to the loss (:func:`support_box`; the same value as over the whole
-    grid, the background of a skull-stripped fixed image adding exactly 0). Otherwise the warp and the loss of
-    :func:`make_image_loss` over the whole grid."""
+    grid (:meth:`displacement`: the integrated field resized there, on ``region`` only when set). LNCC (with the
+    network's one-pass sampling, ``fast_sampling``) is :class:`FixedImageLNCC`: the fixed image's window sums once per
+    pair, and the moving image warped and compared only inside the box around the fixed image's nonzero voxels where a
+    window can add to the loss (:func:`support_box`; the same value as over the whole grid, the background of a
+    skull-stripped fixed image adding exactly 0), the displacement resized onto that box alone
+    (:func:`resize_displacement_box`). Otherwise the warp and the loss of :func:`make_image_loss` over the whole
+    grid."""
 
     def __init__(
         self,
@@ -336,13 +339,16 @@ class _ImageTerm:
         masks: RefinementMasks | None = None,
     ) -> None:
         self.network, self.moving = network, moving
+        self.grid = tuple(int(n) for n in fixed.shape[2:])
         self.lncc = None
+        self.region = None  # the box of the loss's grid the displacement is needed on (None: the whole grid)
         self.masks = masks if masks is not None and (masks.fixed is not None or masks.moving is not None) else None
         if settings.image_loss == "lncc" and network.fast_sampling:
             # windows with no nonzero fixed voxel add 0: the box holds the nonzero voxels and every window that
             # reaches them (one radius) with whole windows of their own (a second radius)
             region = support_box(fixed, margin=2 * (kernel_size // 2))
             self.lncc = FixedImageLNCC(fixed, kernel_size, region=region)
+            self.region = region
         else:
             self.fixed = fixed
             # with masks, the per-voxel term (weighted below); without, the loss as it always was
@@ -351,6 +357,13 @@ class _ImageTerm:
                 settings.image_loss, moving.ndim - 2, settings.image_sigma, kernel_size, reduction
             )
             self.image_sigma = settings.image_sigma
+
+    def displacement(self, field: Tensor) -> Tensor:
+        """The integrated displacement ``field`` (B, D, *V, on the velocity grid) on the loss's grid, on
+        :attr:`region`'s box only when set (what :meth:`__call__` takes)."""
+        if self.region is None:
+            return resize_displacement(field, self.grid)
+        return resize_displacement_box(field, self.grid, self.region)
 
     def _weight(self, displacement: Tensor, crop: bool) -> Tensor | None:
         """The masks' per-voxel weight for ``displacement`` (on the box of the LNCC's region when ``crop``): the fixed
@@ -363,7 +376,7 @@ class _ImageTerm:
             with torch.no_grad():  # the mask says which voxels count; it is not a term to optimise
                 if crop:
                     origin = self.lncc.region[0]
-                    warped = warp_box(moving, self.lncc.crop(displacement).detach(), origin, padding_mode="zeros")
+                    warped = warp_box(moving, displacement.detach(), origin, padding_mode="zeros")
                 else:
                     warped = warp_image(moving, displacement.detach(), padding_mode="zeros")
             weight = warped if weight is None else weight * warped
@@ -383,8 +396,8 @@ class _ImageTerm:
         if self.lncc.region is None:
             warped = warp_image(self.moving, displacement, padding_mode=net.padding_mode)
             return self.lncc(warped) if self.masks is None else self.lncc(warped, self._weight(displacement, False))
-        origin = self.lncc.region[0]
-        warped = warp_box(self.moving, self.lncc.crop(displacement), origin, padding_mode=net.padding_mode)
+        origin = self.lncc.region[0]  # the displacement is already the box's (displacement())
+        warped = warp_box(self.moving, displacement, origin, padding_mode=net.padding_mode)
         return self.lncc(warped) if self.masks is None else self.lncc(warped, self._weight(displacement, True))
 
 
@@ -455,8 +468,9 @@ def refine_registration(
                 on_grid = None if masks is None else masks.on_grid(grid)
                 terms[grid, kernel] = _ImageTerm(network, *images, settings, kernel, on_grid)
             optimiser.zero_grad(set_to_none=True)
-            displacement = network.velocity_to_displacement(velocity, grid)
-            loss = settings.image_weight * terms[grid, kernel](displacement) + kl_loss(velocity, log_var)
+            term = terms[grid, kernel]
+            displacement = term.displacement(network.integrate(velocity))
+            loss = settings.image_weight * term(displacement) + kl_loss(velocity, log_var)
             if settings.posterior_weight > 0:  # (mu - mu_net)^2 / sigma_net^2, mean over the velocity grid
                 pull = ((velocity - start).square() * log_var.neg().exp()).mean()
                 loss = loss + 0.5 * settings.posterior_weight * pull

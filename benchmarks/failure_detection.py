@@ -9,8 +9,9 @@ Registrations (bundle path: evaluate.yaml's network, preprocessing and calibrate
 - the failure set (:mod:`monai_probreg.fitting.failure_set`): each validation subject, perturbed by each perturbation, onto the atlas and
   onto another validation subject (seeded).
 The detector (:mod:`monai_probreg.uncertainty.quality`) is fitted on the same kinds of registrations of the
-*training* subjects only (each to the atlas and to another training subject, and each perturbed by every
-perturbation onto the atlas or another training subject), never on a validation subject.
+*training* subjects only (each to the atlas and to another training subject, each perturbed by every
+perturbation onto the atlas or another training subject, and each onto itself and onto a near copy of itself:
+:mod:`monai_probreg.fitting.self_cases`), never on a validation subject.
 With refinement (evaluate.yaml's ``refine_iterations``, the default path; ``--refine N``), each registration's
 features are those of the network's own registration and its Dice and "failed" those of the refined one
 (:mod:`monai_probreg.uncertainty.quality`, "Whose features"); the refined one's features are kept as
@@ -71,6 +72,7 @@ from monai_probreg.fitting.quality_fit import (
     split_records,
     with_command_cases,
 )
+from monai_probreg.fitting.self_cases import SELF_NAMES
 from monai_probreg.metrics.calibration import auroc, spearman
 from monai_probreg.uncertainty.calibration import Calibration, calibration_for
 from monai_probreg.uncertainty.quality import entropy_calibration_record
@@ -99,7 +101,7 @@ def score(model, records: list[dict]) -> dict[str, Any]:
 
     outcome = [r["failed"] for r in records]
     per = {}
-    for name in [NORMAL, *PERTURBATIONS, *COMMAND_NAMES]:
+    for name in [NORMAL, *PERTURBATIONS, *COMMAND_NAMES, *SELF_NAMES]:  # the self cases: training only
         rs = [r for r in records if r["perturbation"] == name]
         if rs:
             per[name] = {
@@ -371,8 +373,11 @@ def _main(argv=None) -> int:
         )
     if command is not None and not any(r["perturbation"] in COMMAND_NAMES for r in train_records):  # old records
         train_records, val_records = (
-            with_command_cases(records, seed, command, calibration)
-            for records, seed in ((train_records, args.seed), (val_records, args.seed + VALIDATION_SEED_OFFSET))
+            with_command_cases(records, seed, command, calibration, training=training)
+            for records, seed, training in (
+                (train_records, args.seed, True),
+                (val_records, args.seed + VALIDATION_SEED_OFFSET, False),
+            )
         )
     model = fit_on_records(train_records, refinement_record, calibration)  # as python -m monai_probreg.fitting fits
     train_result, result = score(model, train_records), score(model, val_records)

@@ -7,7 +7,8 @@ import the same functions and only measure (held-out folds, validation subjects,
 
 - the calibration: ``population_probe`` (known deformations of the atlas), ``subject_probe`` (synthetic subjects
   through the command's path), ``calibration_probes`` (both registered, and the coverage-matching fit);
-- the quality model: ``failure_set`` (perturbations of a moving scan), ``quality_cases`` (the bundle path's cases and
-  the log that resumes them), ``command_cases`` (the whole command's), ``quality_fit`` (a split's records and the fit);
+- the quality model: ``failure_set`` (perturbations of a moving scan), ``self_cases`` (a training subject onto itself
+  and onto a near copy: almost nothing to register), ``quality_cases`` (the bundle path's cases and the log that
+  resumes them), ``command_cases`` (the whole command's), ``quality_fit`` (a split's records and the fit);
 - ``stages``: what the bundle says, the two fits, each resumable, and the sidecars; ``command``: the entry point.
 """

@@ -8,9 +8,9 @@ reads the bundle (``evaluate.yaml``: network, weights, preprocessing and the ref
 1. the calibration (about 20 min on 2 threads for LPBA40): the population probe of the validation subjects and the
    subject probe of the first training subjects, registered and fitted together
    (:mod:`monai_probreg.fitting.calibration_probes`);
-2. the quality model (about 2 h): the training subjects' registrations, normal, perturbed by the failure set and
-   through the whole command, fitted with the entropy feature under the calibration of step 1
-   (:mod:`monai_probreg.fitting.quality_fit`);
+2. the quality model (about 2 h): the training subjects' registrations, normal, perturbed by the failure set, onto
+   themselves and near copies of themselves, and through the whole command, fitted with the entropy feature under
+   the calibration of step 1 (:mod:`monai_probreg.fitting.quality_fit`);
 
 and writes ``<weights stem>.calibration.json`` and ``<weights stem>.quality.json`` next to the weights (``--out-dir``:
 elsewhere), each atomically and only once both are fitted: a run stopped part-way leaves the sidecars as they were.

@@ -1,7 +1,8 @@
 """The quality model's registrations on the bundle's path: the cases of a split and one registration's record.
 
 Each case (:func:`cases_for`) is a moving scan, a fixed scan, a perturbation of the moving one (``NORMAL``: none; else
-one of :data:`~monai_probreg.fitting.failure_set.PERTURBATIONS`) and a seed; :func:`run_case` registers it as
+one of :data:`~monai_probreg.fitting.failure_set.PERTURBATIONS`, or for a training subject onto itself one of
+:data:`~monai_probreg.fitting.self_cases.SELF_PERTURBATIONS`) and a seed; :func:`run_case` registers it as
 evaluate.yaml does (network, preprocessing, the refined mean when the refinement is on) on the dataset grid and
 records the quality features of the network's own registration (what the estimate reads:
 :mod:`monai_probreg.uncertainty.quality`, "Whose features"), those of the refined one (``answer_features``), the Dice
@@ -29,6 +30,7 @@ from monai_probreg.data.transforms import registration_transforms
 from monai_probreg.engines.refinement import refine_registration
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.fitting.failure_set import PERTURBATIONS
+from monai_probreg.fitting.self_cases import SELF_PERTURBATIONS
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.metrics.scores import score_pair
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
@@ -53,6 +55,7 @@ _LOG = logging.getLogger(__name__)
 
 NORMAL = "none"
 TRAIN_PARTNERS = 2  # normal training registrations per subject besides the atlas
+_PERTURB = {**PERTURBATIONS, **SELF_PERTURBATIONS}  # every perturbation of a case's moving scan, by name
 
 
 def load_scans(dataset_dir: Path, ids: list[str], divisor: int) -> dict[str, dict]:
@@ -75,7 +78,8 @@ def cases_for(ids: list[str], seed: int, training: bool) -> list[dict[str, Any]]
     """The registrations of one split: (moving, fixed, perturbation, seed) dicts, normal ones first. Validation:
     every ordered pair, every subject to the atlas, each perturbation onto the atlas and onto another subject.
     Training (many more subjects): each subject to the atlas and to ``TRAIN_PARTNERS`` others, each perturbation
-    onto the atlas or another subject, alternately."""
+    onto the atlas or another subject, alternately, and last each subject onto itself, unchanged and as a near copy
+    (:data:`~monai_probreg.fitting.self_cases.SELF_PERTURBATIONS`; last, so the other cases keep their seeds)."""
     cases = []
     for n, sid in enumerate(ids):
         cases.append({"moving": sid, "fixed": ATLAS_ID, "perturbation": NORMAL})
@@ -89,6 +93,8 @@ def cases_for(ids: list[str], seed: int, training: bool) -> list[dict[str, Any]]
             targets = [(ATLAS_ID, other)[(n + k) % 2]] if training else [ATLAS_ID, other]
             for fixed in dict.fromkeys(targets):
                 cases.append({"moving": sid, "fixed": fixed, "perturbation": name})
+    if training:
+        cases += [{"moving": sid, "fixed": sid, "perturbation": name} for sid in ids for name in SELF_PERTURBATIONS]
     return [{**c, "seed": seed + i} for i, c in enumerate(cases)]
 
 
@@ -100,7 +106,7 @@ def run_case(network, calibration, scans: dict, case: dict, refinement=None) -> 
     image, label = moving["image"], moving["label"]
     if case["perturbation"] != NORMAL:
         g = torch.Generator().manual_seed(case["seed"])
-        image, label = PERTURBATIONS[case["perturbation"]](image, label, g)
+        image, label = _PERTURB[case["perturbation"]](image, label, g)
     network_output = register_pair(network, image, fixed["image"])
     output = None
     if refinement is not None and refinement.enabled:  # from the same network output: one forward pass

@@ -5,10 +5,12 @@ range the fit saw (a linear model must not extrapolate: a registration better al
 any training pair, e.g. after the command line's full affine, is predicted as the best of them, not beyond) and
 standardised with the training set's mean and spread:
 
-- predicted Dice: ridge regression of the actual mean Dice (on the fit's data set's scale: a ranking elsewhere);
+- predicted Dice: ridge regression of the actual mean Dice (on the fit's data set's scale: a ranking elsewhere), fitted
+  on the pairs with something to register and clipped to their range (``dice_low``, ``dice_high``): a scan onto
+  (a near copy of) itself is predicted as the best of them;
 - failure probability: L2-regularised logistic regression of "failed", where a registration *failed* when its Dice
-  is below the Dice before the deformable step (the affine alone) or below no registration + ``FAILURE_MARGIN``
-  (the definition the detector is scored on).
+  is below the Dice before the deformable step (the affine alone) or below no registration + ``FAILURE_MARGIN``,
+  and not within that margin of a perfect overlap (the definition the detector is scored on: :func:`failed`).
 
 Whose features: the *network's* registration, before any test-time refinement (the "witness"). Refinement
 (:mod:`monai_probreg.engines.refinement`) maximises the pair's local NCC, so the refined registration looks alike
@@ -22,20 +24,23 @@ deformable step the user gets lowered the local similarity of the pair by more t
 (``lncc_after < lncc_before - margin`` of the *answer*'s features: the registration moved the images apart, which no
 optimiser of its own loss would do). The margin keeps a registration that changes almost nothing (a scan onto a near
 copy of itself) from warning or not by the rounding of the UNet's arithmetic (bf16 on CPUs with native bf16, fp32
-elsewhere). That rule is not fitted: the clipping above hides such a case from the linear models whenever the pair
-is more alike than any training pair (a scan registered to a copy of itself, the demo's synthetic subject).
+elsewhere). That rule is not fitted. The failure model has seen such pairs (scans onto themselves and onto near
+copies): NCC 1 is inside its range, a pair cannot be more alike, so two such pairs are not clipped to one point and
+their probabilities differ (the link has no floor either: :func:`logistic`).
 
-Both models are fitted by ``python -m monai_probreg.fitting`` (:mod:`monai_probreg.fitting.quality_fit`) on
-*training* subjects only (normal pairs and a failure set: wrong orientations, cropped field of view, a missing block,
-heavy noise and bias, inverted contrast), through both paths that compute the features (the bundle's, on the dataset
-grid, and the whole command's, affine stage and model grid included, with headers as they are and turned), and
-stored next to the weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the calibration. The
-entropy feature is a calibrated one, and the sidecar keeps the calibration it was computed with at the fit
-(``entropy_calibration``): every estimate computes it with that one, so a refitted posterior calibration (what the
+Both models are fitted by ``python -m monai_probreg.fitting`` (:mod:`monai_probreg.fitting.quality_fit`) on *training*
+subjects only (normal pairs, a failure set: wrong orientations, cropped field of view, a missing block, heavy noise and
+bias, inverted contrast, and pairs with almost nothing to register: a scan onto itself and onto a near copy,
+:mod:`monai_probreg.fitting.self_cases`), through both paths that compute the features (the bundle's, on the dataset
+grid, and the whole command's, affine stage and model grid included, with headers as they are and turned, and moved onto
+the scan itself), and stored next to the weights as ``<weights stem>.quality.json`` with the weights' SHA-256, like the
+calibration. The entropy feature is a calibrated one, and the sidecar keeps the calibration it was computed with at the
+fit (``entropy_calibration``): every estimate computes it with that one, so a refitted posterior calibration (what the
 uncertainty maps show) leaves the estimate as it was validated; an older sidecar without it reads the calibration in
-use, and is not used under the raw posterior (:func:`quality_model_for`). Written by hand: ten lines of closed-form
-ridge and Newton's method, where scikit-learn would be a dependency for two linear models. How well it predicts and
-warns, on validation subjects: ``benchmarks/failure_detection.py``.
+use, and is not used under the raw posterior (:func:`quality_model_for`). The fit
+(:func:`~monai_probreg.fitting.quality_fit.fit_quality_model`) is written by hand: ten lines of closed-form ridge and
+Newton's method, where scikit-learn would be a dependency for two linear models. How well it predicts and warns, on
+validation subjects: ``benchmarks/failure_detection.py``.
 """
 
 from __future__ import annotations
@@ -58,12 +63,13 @@ __all__ = [
     "ENTROPY_CALIBRATION_KEYS",
     "FAILURE_MARGIN",
     "LNCC_DROP_MARGIN",
+    "PERFECT_DICE",
     "QualityEstimate",
     "QualityModel",
     "entropy_calibration_record",
     "failed",
-    "fit_quality_model",
     "load_quality_model",
+    "logistic",
     "quality_path",
     "quality_record",
     "save_quality_model",
@@ -74,16 +80,16 @@ QUALITY_SIDECAR = "quality"  # models/model.pt -> models/model.quality.json (uti
 # the posterior's numbers the entropy feature depends on (the intervals' dof does not enter an entropy)
 ENTROPY_CALIBRATION_KEYS: tuple[str, ...] = ("std_scale", "bias_fraction")
 FAILURE_MARGIN = 0.05  # Dice below no registration + this counts as a failure (the issue's definition)
-RIDGE = 1e-2  # L2 penalty of both fits, on standardised features (numerical safety, not tuning)
-NEWTON_STEPS = 50  # logistic fit: Newton iterations (converges in < 15 on the failure set)
+PERFECT_DICE = 1.0  # a label map against itself: a Dice within FAILURE_MARGIN of it has nothing left to gain
 DEFAULT_THRESHOLD = 0.5  # failure probability from which a registration is flagged
 LNCC_DROP_MARGIN = 0.002  # local-NCC drop beyond which the deformable step "made the images less alike" (module
 # docstring): above what bf16 moves, below the failure set's drops (experiments/lncc_margin.py measures both)
 
 
 def failed(dice: float, dice_before: float, dice_identity: float, margin: float = FAILURE_MARGIN) -> bool:
-    """The failure definition: Dice below the affine-only Dice or below no registration + ``margin``."""
-    return bool(dice < dice_before or dice < dice_identity + margin)
+    """The failure definition: Dice below the affine-only Dice or below no registration + ``margin``, unless within
+    ``margin`` of :data:`PERFECT_DICE` (a scan onto a near copy of itself: no registration is already there)."""
+    return bool(dice < min(max(dice_before, dice_identity + margin), PERFECT_DICE - margin))
 
 
 class QualityEstimate(NamedTuple):
@@ -111,8 +117,10 @@ def quality_record(features: QualityFeatures, estimate: QualityEstimate, answer:
     }
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-np.clip(x, -40.0, 40.0)))
+def logistic(x: np.ndarray) -> np.ndarray:
+    """The failure model's link, exp(-log(1 + exp(-x))): no overflow, and no clip of ``x`` (a clip would give every
+    logit beyond it one probability: pairs far on the good side, a scan onto a near copy of itself, would tie)."""
+    return np.exp(-np.logaddexp(0.0, -x))
 
 
 @dataclass
@@ -131,13 +139,20 @@ class QualityModel:
     threshold: float = DEFAULT_THRESHOLD
     lncc_drop_margin: float = LNCC_DROP_MARGIN
     dice_range: list[float] = field(default_factory=lambda: [0.0, 1.0])  # the fit's Dice range: predictions stay in it
+    # per feature: the range of the Dice regression's own registrations (those with something to register: not a scan
+    # onto itself), where its input is clipped; [] (older sidecars): low and high
+    dice_low: list[float] = field(default_factory=list)
+    dice_high: list[float] = field(default_factory=list)
     weights_file: str = ""
     weights_sha256: str = ""
     fitted_on: list[str] = field(default_factory=list)
     refinement: dict = field(default_factory=dict)  # the fit's outcomes: RefinementSettings.as_dict() ({}: network)
     # the posterior calibration {"std_scale", "bias_fraction"} of the fit's entropy feature ({}: the one in use)
     entropy_calibration: dict = field(default_factory=dict)
-    definition: str = f"failed = Dice < Dice before the deformable step, or Dice < no registration + {FAILURE_MARGIN}"
+    definition: str = (
+        f"failed = Dice < Dice before the deformable step, or Dice < no registration + {FAILURE_MARGIN}; never when "
+        f"Dice >= {PERFECT_DICE} - {FAILURE_MARGIN}"
+    )
 
     def __post_init__(self) -> None:
         n = len(self.feature_names)
@@ -150,6 +165,13 @@ class QualityModel:
             raise ValueError(f"scale must be positive; got {self.scale}")
         if any(not lo <= hi for lo, hi in zip(self.low, self.high)):
             raise ValueError(f"low must be <= high per feature; got {self.low} and {self.high}")
+        dice_low, dice_high = self.dice_low, self.dice_high
+        if (dice_low or dice_high) and not (
+            len(dice_low) == len(dice_high) == n and all(lo <= hi for lo, hi in zip(dice_low, dice_high))
+        ):
+            raise ValueError(
+                f"dice_low and dice_high must be [] or {n} values, low <= high; got {dice_low}, {dice_high}"
+            )
         if len(self.dice_range) != 2 or not 0.0 <= self.dice_range[0] <= self.dice_range[1] <= 1.0:
             raise ValueError(f"dice_range must be [low, high] within [0, 1]; got {self.dice_range}")
         if not 0.0 < self.threshold < 1.0:
@@ -171,16 +193,16 @@ class QualityModel:
             return Calibration(**{k: float(v) for k, v in self.entropy_calibration.items()})
         return Calibration(float(std_scale), float(bias_fraction))
 
-    def _standardise(self, features: Sequence[QualityFeatures]) -> np.ndarray:
+    def _standardise(self, features: Sequence[QualityFeatures], low: list[float], high: list[float]) -> np.ndarray:
         x = np.asarray([list(f) for f in features], dtype=np.float64).reshape(len(features), len(self.mean))
-        x = np.clip(x, np.asarray(self.low), np.asarray(self.high))
-        return (x - np.asarray(self.mean)) / np.asarray(self.scale)
+        return (np.clip(x, np.asarray(low), np.asarray(high)) - np.asarray(self.mean)) / np.asarray(self.scale)
 
     def predict(self, features: Sequence[QualityFeatures]) -> tuple[np.ndarray, np.ndarray]:
         """Predicted Dice and failure probability of each registration (arrays of len(features))."""
-        z = self._standardise(features)
+        z = self._standardise(features, self.dice_low or self.low, self.dice_high or self.high)
         dice = np.clip(z @ np.asarray(self.dice_coef) + self.dice_intercept, *self.dice_range)
-        probability = _sigmoid(z @ np.asarray(self.failure_coef) + self.failure_intercept)
+        z = self._standardise(features, self.low, self.high)
+        probability = logistic(z @ np.asarray(self.failure_coef) + self.failure_intercept)
         return dice, probability
 
     def estimate(self, features: QualityFeatures, answer: QualityFeatures | None = None) -> QualityEstimate:
@@ -215,62 +237,6 @@ def entropy_calibration_record(calibration: Calibration) -> dict[str, float]:
     """What a quality sidecar and failure_detection's records store of ``calibration``: the numbers an entropy depends
     on (:data:`ENTROPY_CALIBRATION_KEYS`; the intervals' dof does not enter it)."""
     return {k: float(getattr(calibration, k)) for k in ENTROPY_CALIBRATION_KEYS}
-
-
-def fit_quality_model(
-    features: Sequence[QualityFeatures],
-    dice: Sequence[float],
-    failures: Sequence[bool],
-    threshold: float = DEFAULT_THRESHOLD,
-    fitted_on: Sequence[str] = (),
-    refinement: dict | None = None,
-    entropy_calibration: Calibration | None = None,
-) -> QualityModel:
-    """Fit both models on registrations with known outcome (training subjects only): ``features`` of the network's
-    registrations, ``dice`` and ``failures`` of the registrations users get (refined with ``refinement``, a
-    ``RefinementSettings.as_dict()``, or the network's own: None). ``entropy_calibration``: the posterior
-    calibration the features' entropy was computed with (recorded, and used by every estimate); None: not recorded."""
-    x = np.asarray([list(f) for f in features], dtype=np.float64)
-    y = np.asarray(dice, dtype=np.float64)
-    t = np.asarray(failures, dtype=np.float64)
-    if x.ndim != 2 or len(x) < 2 or len(y) != len(x) or len(t) != len(x):
-        raise ValueError(
-            f"need >= 2 registrations with one Dice and one failure flag each; got {len(x)} feature "
-            f"rows, {len(y)} Dice values, {len(t)} flags"
-        )
-    if not (np.isfinite(x).all() and np.isfinite(y).all()):
-        raise ValueError("features and Dice must be finite")
-    mean, scale = x.mean(0), x.std(0)
-    scale[scale < 1e-8] = 1.0  # a constant feature carries nothing: keep it, with weight fitted to ~0
-    z = np.hstack([(x - mean) / scale, np.ones((len(x), 1))])
-    penalty = RIDGE * np.eye(z.shape[1])
-    penalty[-1, -1] = 0.0  # no penalty on the intercept
-    dice_w = np.linalg.solve(z.T @ z + penalty, z.T @ y)
-    fail_w = np.zeros(z.shape[1])
-    for _ in range(NEWTON_STEPS):  # Newton's method on the penalised log-likelihood (convex)
-        p = _sigmoid(z @ fail_w)
-        gradient = z.T @ (p - t) + penalty @ fail_w
-        hessian = (z * (p * (1 - p))[:, None]).T @ z + penalty + 1e-9 * np.eye(z.shape[1])
-        step = np.linalg.solve(hessian, gradient)
-        fail_w -= step
-        if np.abs(step).max() < 1e-8:
-            break
-    return QualityModel(
-        list(QualityFeatures._fields),
-        x.min(0).tolist(),
-        x.max(0).tolist(),
-        mean.tolist(),
-        scale.tolist(),
-        dice_w[:-1].tolist(),
-        float(dice_w[-1]),
-        fail_w[:-1].tolist(),
-        float(fail_w[-1]),
-        float(threshold),
-        dice_range=[float(y.min()), float(y.max())],
-        fitted_on=list(fitted_on),
-        refinement=dict(refinement or {}),
-        entropy_calibration={} if entropy_calibration is None else entropy_calibration_record(entropy_calibration),
-    )
 
 
 def quality_model_for(model: QualityModel | None, calibrate: bool) -> QualityModel | None:

@@ -112,3 +112,32 @@ def test_command_cases_refuse_a_refinement_changed_since_the_run_started(tmp_pat
     log = RecordLog(tmp_path / LOG, started)
     with pytest.raises(InputError, match=r"num_iterations.*99"):
         command.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3, log=log)
+
+
+def test_a_training_subject_goes_through_the_command_onto_itself_with_its_header_moved(tmp_path):
+    """``self_cases``: after the three atlas cases, the scan onto itself, its header (and its labels') moved by a
+    seeded rigid motion that the affine stage undoes: no registration is the scan itself (Dice 1), the affine alone
+    finds the motion back, and the record's failure follows the definition; without it (validation) there is none."""
+    from monai_probreg.fitting.self_cases import SELF_DICE
+
+    dataset = make_tiny_dataset(tmp_path / "data", num_subjects=1, shape=(32, 36, 28))
+    bundle = tiny_bundle(tmp_path / "bundle", BUNDLE_DIR)
+    records = command.command_cases(dataset, ["T01"], bundle, None, {"T01": 0.5}, seed=3, refine=0, self_cases=True)
+    assert [r["perturbation"] for r in records] == [*command.COMMAND_NAMES, command.COMMAND_SELF]
+    own = records[-1]
+    assert (own["moving"], own["fixed"], own["seed"], own["dice_identity"]) == ("T01", "T01", 3, SELF_DICE)
+    assert own["dice_before"] > 0.9  # the affine stage undid the header's motion
+    assert own["failed"] == failed(own["dice"], own["dice_before"], SELF_DICE)
+    assert set(own["features"]) == set(QualityFeatures._fields)
+    assert all(math.isfinite(v) for v in own["features"].values())
+
+
+def test_a_moved_header_moves_the_world_and_keeps_the_voxels(tmp_path):
+    data = np.arange(4 * 6 * 5, dtype=np.int16).reshape(4, 6, 5)
+    affine = np.diag([1.5, 1.0, 2.0, 1.0])
+    nib.save(nib.Nifti1Image(data, affine), tmp_path / "scan.nii.gz")
+    motion = np.eye(4)
+    motion[:3, 3] = [1.0, -2.0, 3.0]
+    moved = nib.load(command.moved_header(tmp_path / "scan.nii.gz", motion, tmp_path / "moved.nii.gz"))
+    assert np.array_equal(np.asanyarray(moved.dataobj), data)
+    assert np.allclose(moved.affine, motion @ affine) and np.allclose(moved.get_qform(), motion @ affine)

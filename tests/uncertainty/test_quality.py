@@ -11,12 +11,13 @@ import pytest
 import torch
 from monai.bundle import ConfigParser
 
+from monai_probreg.fitting.quality_fit import fit_quality_model
 from monai_probreg.uncertainty.quality import (
     FAILURE_MARGIN,
     LNCC_DROP_MARGIN,
+    PERFECT_DICE,
     QualityModel,
     failed,
-    fit_quality_model,
     load_quality_model,
     quality_path,
     quality_record,
@@ -48,10 +49,27 @@ def _training_set(seed: int = 0):
         (0.59, 0.60, 0.50, True),  # below the affine alone
         (0.58, 0.50, 0.55, True),  # below no registration + margin
         (0.55 + FAILURE_MARGIN, 0.50, 0.55, False),  # exactly at the margin is not a failure
+        (PERFECT_DICE, PERFECT_DICE, PERFECT_DICE, False),  # a scan onto itself, left as it was
+        (PERFECT_DICE - FAILURE_MARGIN, 0.99, PERFECT_DICE, False),  # within the margin of a perfect overlap
+        (0.90, 0.99, PERFECT_DICE, True),  # a copy of itself registered further off than the margin
     ],
 )
 def test_the_failure_definition(dice, before, identity, expected):
     assert failed(dice, before, identity) is expected
+
+
+def test_the_failure_probability_has_no_floor_far_from_the_threshold():
+    """Logits far below 0 (pairs far on the good side, e.g. scans onto near copies of themselves) keep their own
+    probability: no clip of the logit maps them all to one number."""
+    features, dice, failures = _training_set()
+    model = fit_quality_model(features, dice, failures)
+    n = len(model.mean)
+    far = dataclasses.replace(model, failure_coef=[0.0] * n, failure_intercept=-50.0)
+    further = dataclasses.replace(far, failure_intercept=-60.0)
+    p_far, p_further = (float(m.predict([features[0]])[1][0]) for m in (far, further))
+    assert p_far == pytest.approx(math.exp(-50.0), rel=1e-9, abs=0) and p_further == pytest.approx(
+        math.exp(-60.0), rel=1e-9, abs=0
+    )
 
 
 def test_the_fits_recover_a_known_relation():
@@ -148,6 +166,8 @@ def _model(**changes) -> dict:
         ({"lncc_drop_margin": -0.001}, "lncc_drop_margin"),
         ({"lncc_drop_margin": 1.0}, "lncc_drop_margin"),
         ({"dice_range": [0.8, 0.2]}, "dice_range"),
+        ({"dice_low": [0.0] * N}, "dice_low and dice_high must be"),  # one without the other
+        ({"dice_low": [1.0] * N, "dice_high": [0.0] * N}, "dice_low and dice_high must be"),
         ({"entropy_calibration": {"std_scale": 0.5}}, "entropy_calibration must be"),
         ({"entropy_calibration": {"std_scale": 0.5, "bias_fraction": 0.1, "x": 1}}, "entropy_calibration must be"),
         ({"entropy_calibration": {"std_scale": 0.0, "bias_fraction": 0.1}}, "std_scale must be"),

@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 __all__ = [
+    "BOX_SUM_PLANES",
     "POOLED_FROM_VOXELS",
     "BoxLNCCLoss",
     "FixedImageLNCC",
@@ -41,6 +42,9 @@ __all__ = [
 POOLED_FROM_VOXELS = 800_000
 
 _AVG_POOL = {1: F.avg_pool1d, 2: F.avg_pool2d, 3: F.avg_pool3d}
+# output planes of the first spatial axis that padded_box_sum sums at a time: the fastest of 2-16 on a brain's box at
+# 1 mm (145 x 178 x 129, three channels) on a 2-core CPU with 32 MB of L3, where one block and its sums stay in cache
+BOX_SUM_PLANES = 8
 
 
 def box_mean(x: Tensor, kernel_size: int) -> Tensor:
@@ -68,13 +72,30 @@ def box_sum(x: Tensor, kernel_size: int) -> Tensor:
     return padded_box_sum(F.pad(x, [radius, radius] * (x.ndim - 2)), kernel_size)
 
 
-def padded_box_sum(padded: Tensor, kernel_size: int) -> Tensor:
+def padded_box_sum(padded: Tensor, kernel_size: int, planes: int | None = BOX_SUM_PLANES) -> Tensor:
     """:func:`box_sum` of a tensor already padded: ``padded`` (B, C, *(S + 2 r)), r = ``kernel_size // 2``, holds the
     image in its interior and zeros in its borders; returns (B, C, *S). One zero-bordered buffer can be refilled
-    and summed many times (no padding copy per call)."""
-    for dim in range(2, padded.ndim):
-        padded = _window_sum(padded, kernel_size, dim)
-    return padded
+    and summed many times (no padding copy per call).
+
+    With 2 or more spatial axes, ``planes`` output planes of the first axis at a time (None: all at once): each
+    block's sums along every axis, in the same order, while its data are still in the CPU's cache (a whole 3-d box
+    of a brain at 1 mm is several times the cache). The same additions of the same numbers for every voxel, so the
+    same bits as all at once."""
+    if planes is not None and (isinstance(planes, bool) or not isinstance(planes, int) or planes < 1):
+        raise ValueError(f"planes must be a positive integer or None; got {planes!r}")
+    size = padded.shape[2] - (kernel_size - 1)
+    if planes is None or padded.ndim < 4 or size <= planes:
+        for dim in range(2, padded.ndim):
+            padded = _window_sum(padded, kernel_size, dim)
+        return padded
+    out = padded.new_empty(*padded.shape[:2], *(n - (kernel_size - 1) for n in padded.shape[2:]))
+    for start in range(0, size, planes):
+        count = min(planes, size - start)
+        block = padded.narrow(2, start, count + kernel_size - 1)  # the planes and the window's reach around them
+        for dim in range(2, padded.ndim):
+            block = _window_sum(block, kernel_size, dim)
+        out.narrow(2, start, count).copy_(block)
+    return out
 
 
 def _window_sum(padded: Tensor, kernel_size: int, dim: int) -> Tensor:

@@ -131,9 +131,10 @@ class CalibrationRecord:
     num_samples: int = 0
     levels: list[float] = field(default_factory=lambda: list(FIT_LEVELS))
     method: str = (
-        "coverage matching: (std_scale, bias_fraction, interval_dof) of sigma^2 = std_scale^2 sigma^2 + "
-        "(bias_fraction |mean velocity|)^2 and the intervals +- t_interval_dof(level) sigma minimise the sum over "
-        "levels and probes of (coverage - level)^2 of the sampled displacements"
+        "coverage matching: (std_scale, bias_fraction, interval_dof) of sigma^2 = std_scale^2 (sigma^2 + "
+        "residual_weight r) + (bias_fraction |mean velocity|)^2 and the intervals +- t_interval_dof(level) sigma "
+        "minimise the sum over levels and probes of (coverage - level)^2 of the sampled displacements (r: the "
+        "registered pair's local residual; residual_weight chosen first, by the population probe's ranking)"
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe

@@ -8,7 +8,14 @@ import torch
 import torch.nn.functional as F
 from monai.losses import LocalNormalizedCrossCorrelationLoss
 
-from monai_probreg.losses.lncc import BoxLNCCLoss, FixedImageLNCC, box_mean, box_sum, support_box
+from monai_probreg.losses.lncc import (
+    BoxLNCCLoss,
+    FixedImageLNCC,
+    box_mean,
+    box_sum,
+    padded_box_sum,
+    support_box,
+)
 
 SHAPES = {1: (2, 3, 40), 2: (2, 1, 30, 41), 3: (1, 2, 11, 14, 17)}
 
@@ -165,6 +172,27 @@ def test_box_sum_is_a_convolution_with_ones(spatial_dims, kernel_size):
     torch.testing.assert_close(box_sum(x, kernel_size), expected, rtol=1e-12, atol=1e-12)
     if kernel_size <= min(x.shape[2:]):
         torch.testing.assert_close(box_sum(x, kernel_size), box_mean(x, kernel_size) * kernel_size**spatial_dims)
+
+
+@pytest.mark.parametrize("spatial_dims", [2, 3])
+@pytest.mark.parametrize("planes", [1, 3, 8, 100])
+@pytest.mark.parametrize("kernel_size", [3, 9])
+def test_box_sums_by_blocks_of_planes_are_the_same_bits(spatial_dims, planes, kernel_size):
+    """Blocks of the first axis (sizes that do not divide it, and one larger than it) add the same numbers in the same
+    order as the whole tensor at once: equal to the last bit, in float32."""
+    g = torch.Generator().manual_seed(planes)
+    shape = (2, 3, 13, 11, 7)[: 2 + spatial_dims]
+    radius = kernel_size // 2
+    padded = F.pad(torch.rand(shape, generator=g), [radius, radius] * spatial_dims)
+    whole = padded_box_sum(padded, kernel_size, planes=None)
+    assert whole.shape == shape
+    assert torch.equal(padded_box_sum(padded, kernel_size, planes=planes), whole)
+
+
+@pytest.mark.parametrize("planes", [0, -1, 2.0, True])
+def test_box_sum_names_a_bad_block_size(planes):
+    with pytest.raises(ValueError, match="planes must be a positive integer or None"):
+        padded_box_sum(torch.zeros(1, 1, 12, 12), 3, planes=planes)
 
 
 def test_support_box_is_the_nonzero_box_grown_and_clipped():

@@ -126,13 +126,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)  # ANTs' too; ITK reads it at its first use
     fixed = prepare_fixed(mni152_template_path())
     rows = {}
+    names = [None if f is None else Path(f).name for f in args.model_files]
     for model_file in args.model_files:
         model = load_model(model_file=model_file)
+        # weights named alike (the same weights beside other sidecars) are told apart by their folder
+        shown = model.model_file.name if names.count(model.model_file.name) < 2 else str(model_file)
         for steps in args.refine:
             options = RegistrationOptions(
                 samples=args.samples, refinement=model.refinement.with_fields(num_iterations=steps)
             )
-            name = f"{model.model_file.name}" + (f" + refine {steps}" if steps else "")
+            name = shown + (f" + refine {steps}" if steps else "")
             cases = {"identity": one_case(model, fixed, 0, IDENTITY, options)}
             for seed in args.seeds:
                 seeded = dataclasses.replace(options, seed=seed, affine=dataclasses.replace(options.affine, seed=seed))

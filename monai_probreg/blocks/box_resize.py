@@ -51,9 +51,7 @@ def resize_displacement_box(
     if spatial_dims not in (2, 3) or ddf.shape[1] != spatial_dims:
         raise ValueError(f"expected a (B, D, *S) field with D = 2 or 3 spatial dims; got {tuple(ddf.shape)}")
     if not len(size) == len(starts) == len(stops) == spatial_dims:
-        raise ValueError(
-            f"expected {spatial_dims} target sizes, starts and stops; got {size}, {starts} and {stops}"
-        )
+        raise ValueError(f"expected {spatial_dims} target sizes, starts and stops; got {size}, {starts} and {stops}")
     source = [int(n) for n in ddf.shape[2:]]
     scale = torch.tensor([(m - 1) / (n - 1) for n, m in zip(source, size)], dtype=ddf.dtype, device=ddf.device)
     field = ddf * scale.view([1, spatial_dims] + [1] * spatial_dims)  # linear: scale the small field first

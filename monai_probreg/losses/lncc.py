@@ -88,7 +88,7 @@ def padded_box_sum(padded: Tensor, kernel_size: int, planes: int | None = BOX_SU
         for dim in range(2, padded.ndim):
             padded = _window_sum(padded, kernel_size, dim)
         return padded
-    out = padded.new_empty(*padded.shape[:2], *(n - (kernel_size - 1) for n in padded.shape[2:]))
+    out = padded.new_empty((*padded.shape[:2], *(n - (kernel_size - 1) for n in padded.shape[2:])))
     for start in range(0, size, planes):
         count = min(planes, size - start)
         block = padded.narrow(2, start, count + kernel_size - 1)  # the planes and the window's reach around them

@@ -301,3 +301,12 @@ def test_fixed_image_lncc_names_a_bad_weight_shape():
     loss = FixedImageLNCC(torch.rand(1, 1, 8, 9), 3)
     with pytest.raises(ValueError, match=r"expected a weight broadcastable to pred's shape \(1, 1, 8, 9\), got"):
         loss(torch.rand(1, 1, 8, 9), torch.rand(1, 1, 9, 8))
+
+
+def test_box_sums_by_blocks_take_a_monai_metatensor():
+    """The bundle's path hands MONAI MetaTensors around: blocks of a MetaTensor give the plain tensor's sums."""
+    from monai.data import MetaTensor
+
+    padded = F.pad(torch.rand(1, 2, 12, 9, 8), [1, 1] * 3)
+    expected = padded_box_sum(padded, 3, planes=None)
+    torch.testing.assert_close(padded_box_sum(MetaTensor(padded), 3, planes=4).as_tensor(), expected)

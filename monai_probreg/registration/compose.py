@@ -103,18 +103,21 @@ class Inverse(NamedTuple):
 def inverse_outputs(
     grid: ModelGrid, inverse: np.ndarray, affine: np.ndarray, moving: Volume, fixed_label: Volume | None
 ) -> Inverse:
-    """``inverse``: the network's ``exp(-v)`` displacement (3, *grid.shape) in voxels of the model ``grid``.
+    """``inverse``: the network's ``exp(-v)`` displacement (3, *grid.shape) in voxels of the model ``grid``, float32;
+    consumed: overwritten with its millimetres.
 
-    Its millimetres are made per slab of the model grid straight into the float32, channels-first array that
+    Its millimetres are made per slab of the model grid and written back over the slab they came from (each slab is
+    computed whole before it is stored), which leaves the float32, channels-first array that
     :func:`~monai_probreg.spatial.physical.compose_inverse` samples (it rounds ``d_inv`` to float32 itself, and a
-    channels-first float32 array is taken without a copy): no (*S, 3) float64 field of the whole grid."""
-    d_inv = np.empty(inverse.shape, np.float32)  # (3, *S)
+    channels-first float32 array is taken without a copy): no second field of the model grid, no (*S, 3) float64
+    field of the whole grid."""
+    if inverse.dtype != np.float32:
+        raise ValueError(f"expected the float32 displacement the network's maps hold; got {inverse.dtype}")
     for rows in row_slabs(grid.shape):
-        d_inv[:, rows] = voxel_to_mm(inverse[:, rows], grid.index_to_lps).transpose(3, 0, 1, 2)
+        inverse[:, rows] = voxel_to_mm(inverse[:, rows], grid.index_to_lps).transpose(3, 0, 1, 2)
     warp = compose_inverse(
-        Volume(d_inv.transpose(1, 2, 3, 0), grid.index_to_lps), affine, moving.shape, moving.index_to_lps
+        Volume(inverse.transpose(1, 2, 3, 0), grid.index_to_lps), affine, moving.shape, moving.index_to_lps
     )
-    del d_inv
     label = None
     if fixed_label is not None:  # q + D_inv(q) for every voxel q of the moving grid, in the fixed label grid
         label = np.empty(moving.shape, fixed_label.array.dtype)
@@ -147,9 +150,15 @@ def compose_outputs(
     inverse: bool,
 ) -> Composed:
     """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice
-    (:func:`forward_outputs`, :func:`inverse_outputs`, slab by slab). ``model_maps.inverse`` is consumed: set to None
-    once read, so that the model grid's inverse (200 MB at 256^3) is not held beside the composed one."""
+    (:func:`forward_outputs`, :func:`inverse_outputs`, slab by slab). ``model_maps.inverse`` is consumed: turned
+    into millimetres in place and set to None once read, so that the model grid's inverse is not held beside the
+    composed one. The inverse comes first: the forward outputs are not yet held while it is made (the stage's
+    largest working set)."""
     grid = fixed.grid
+    backward = None
+    if inverse:
+        backward = inverse_outputs(grid, model_maps.inverse, affine, moving, fixed.label)
+        model_maps.inverse = None
     forward = forward_outputs(grid, fixed.image, moving, moving_label, affine, model_maps.displacement)
     maps = {
         "warped": forward.warped,
@@ -160,9 +169,7 @@ def compose_outputs(
         maps["displacement_std"] = grid.to_fixed(model_maps.std)
     labels = dict(forward.labels)
     inverse_warp = None
-    if inverse:
-        backward = inverse_outputs(grid, model_maps.inverse, affine, moving, fixed.label)
-        model_maps.inverse = None
+    if backward is not None:
         inverse_warp = backward.warp
         if backward.fixed_label is not None:
             labels["fixed_label_in_moving"] = backward.fixed_label

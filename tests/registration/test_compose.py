@@ -59,13 +59,17 @@ def test_forward_outputs_are_the_whole_grid_computation_to_the_bit(case, monkeyp
 def test_inverse_outputs_are_the_whole_grid_computation_to_the_bit(case, monkeypatch, slab_voxels):
     fixed, moving, _, fixed_label, affine, grid, _, inverse = case
     monkeypatch.setattr(physical, "SLAB_VOXELS", slab_voxels)
-    ours = inverse_outputs(grid, inverse, affine, moving, fixed_label)
+    consumed = inverse.copy()
+    ours = inverse_outputs(grid, consumed, affine, moving, fixed_label)
     field = Volume(voxel_to_mm(inverse, grid.index_to_lps), grid.index_to_lps)
+    assert np.array_equal(consumed, field.array.astype(np.float32).transpose(3, 0, 1, 2))  # its mm, in place
     warp = compose_inverse(field, affine, moving.shape, moving.index_to_lps)
     index = mapped_index(moving.shape, moving.index_to_lps, fixed_label.index_to_lps, field=warp)
     assert np.array_equal(ours.warp, warp)
     assert np.array_equal(ours.fixed_label, sample_nearest(fixed_label, None, index=index))
-    assert inverse_outputs(grid, inverse, affine, moving, None).fixed_label is None
+    assert inverse_outputs(grid, inverse.copy(), affine, moving, None).fixed_label is None
+    with pytest.raises(ValueError, match="expected the float32 displacement"):
+        inverse_outputs(grid, inverse.astype(np.float64), affine, moving, None)
 
 
 @pytest.mark.parametrize("slab_voxels", [1, 100, 10**9])

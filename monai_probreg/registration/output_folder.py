@@ -27,7 +27,7 @@ import itk
 import numpy as np
 
 from monai_probreg.registration.compose import Composed
-from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.inputs import FixedSpace, label_dtype
 from monai_probreg.registration.network import ModelMaps
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.output_files import OUTPUT_FILES
@@ -109,12 +109,6 @@ def write_volume(path: str | os.PathLike, volume: Volume, dtype: type = np.float
         return write_nifti(path, volume.array.astype(dtype, copy=False), volume.index_to_lps)
     image = volume_to_itk(volume, dtype)
     return atomic_write(path, lambda tmp: itk.imwrite(image, tmp, compression=True))
-
-
-def label_dtype(array: np.ndarray) -> type:
-    """The smallest of uint8 / int16 / int32 that holds a label map's values."""
-    top = int(array.max()) if array.size else 0
-    return np.uint8 if top < 256 else np.int16 if top < 32768 else np.int32
 
 
 def write_field(path: str | os.PathLike, field: np.ndarray, index_to_lps: np.ndarray) -> Path:

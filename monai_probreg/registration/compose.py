@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from monai_probreg.metrics.dice import label_dice, mean_dice
+from monai_probreg.metrics.jacobian import JacobianStats, jacobian_stats
 from monai_probreg.registration.inputs import FixedSpace
 from monai_probreg.registration.network import ModelMaps
 from monai_probreg.spatial.model_grid import ModelGrid
@@ -103,18 +104,21 @@ class Inverse(NamedTuple):
 def inverse_outputs(
     grid: ModelGrid, inverse: np.ndarray, affine: np.ndarray, moving: Volume, fixed_label: Volume | None
 ) -> Inverse:
-    """``inverse``: the network's ``exp(-v)`` displacement (3, *grid.shape) in voxels of the model ``grid``.
+    """``inverse``: the network's ``exp(-v)`` displacement (3, *grid.shape) in voxels of the model ``grid``, float32;
+    consumed: overwritten with its millimetres.
 
-    Its millimetres are made per slab of the model grid straight into the float32, channels-first array that
+    Its millimetres are made per slab of the model grid and written back over the slab they came from (each slab is
+    computed whole before it is stored), which leaves the float32, channels-first array that
     :func:`~monai_probreg.spatial.physical.compose_inverse` samples (it rounds ``d_inv`` to float32 itself, and a
-    channels-first float32 array is taken without a copy): no (*S, 3) float64 field of the whole grid."""
-    d_inv = np.empty(inverse.shape, np.float32)  # (3, *S)
+    channels-first float32 array is taken without a copy): no second field of the model grid, no (*S, 3) float64
+    field of the whole grid."""
+    if inverse.dtype != np.float32:
+        raise ValueError(f"expected the float32 displacement the network's maps hold; got {inverse.dtype}")
     for rows in row_slabs(grid.shape):
-        d_inv[:, rows] = voxel_to_mm(inverse[:, rows], grid.index_to_lps).transpose(3, 0, 1, 2)
+        inverse[:, rows] = voxel_to_mm(inverse[:, rows], grid.index_to_lps).transpose(3, 0, 1, 2)
     warp = compose_inverse(
-        Volume(d_inv.transpose(1, 2, 3, 0), grid.index_to_lps), affine, moving.shape, moving.index_to_lps
+        Volume(inverse.transpose(1, 2, 3, 0), grid.index_to_lps), affine, moving.shape, moving.index_to_lps
     )
-    del d_inv
     label = None
     if fixed_label is not None:  # q + D_inv(q) for every voxel q of the moving grid, in the fixed label grid
         label = np.empty(moving.shape, fixed_label.array.dtype)
@@ -129,13 +133,16 @@ def inverse_outputs(
 
 @dataclass
 class Composed:
-    """Everything on the fixed grid (and the inverse on the moving grid) that is written."""
+    """Everything on the fixed grid (and the inverse on the moving grid) that is written, and the Jacobian's
+    statistics; the fields are None once handed to their writers (:func:`~.scan.register_scan`: each goes once its
+    file is written)."""
 
-    warp: np.ndarray
-    inverse_warp: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse)
+    warp: np.ndarray | None
+    inverse_warp: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse), or handed to its writer
     maps: dict[str, np.ndarray]
     labels: dict[str, np.ndarray]
     dice: dict | None
+    jacobian_stats: JacobianStats
 
 
 def compose_outputs(
@@ -147,22 +154,29 @@ def compose_outputs(
     inverse: bool,
 ) -> Composed:
     """Affine + deformable -> one field each way; the original scan and labels resampled once; Dice
-    (:func:`forward_outputs`, :func:`inverse_outputs`, slab by slab). ``model_maps.inverse`` is consumed: set to None
-    once read, so that the model grid's inverse (200 MB at 256^3) is not held beside the composed one."""
+    (:func:`forward_outputs`, :func:`inverse_outputs`, slab by slab); the Jacobian's statistics.
+
+    ``model_maps``' volumes are consumed: each is set to None once read (the inverse turned into millimetres in place),
+    so that none is held beside what is made from it. The order keeps the stage's working set small: the maps and the
+    Jacobian's statistics first (their temporaries beside nothing composed yet), then the inverse (the largest
+    working set) before the forward outputs exist."""
     grid = fixed.grid
-    forward = forward_outputs(grid, fixed.image, moving, moving_label, affine, model_maps.displacement)
-    maps = {
-        "warped": forward.warped,
-        "jacobian": grid.to_fixed(model_maps.jacobian),
-        "entropy": grid.to_fixed(model_maps.entropy),
-    }
-    if model_maps.std is not None:
-        maps["displacement_std"] = grid.to_fixed(model_maps.std)
-    labels = dict(forward.labels)
-    inverse_warp = None
+    jacobian, entropy = grid.to_fixed(model_maps.jacobian), grid.to_fixed(model_maps.entropy)
+    std = None if model_maps.std is None else grid.to_fixed(model_maps.std)
+    model_maps.jacobian = model_maps.entropy = None
+    stats = jacobian_stats(torch.from_numpy(jacobian))
+    backward = None
     if inverse:
         backward = inverse_outputs(grid, model_maps.inverse, affine, moving, fixed.label)
         model_maps.inverse = None
+    forward = forward_outputs(grid, fixed.image, moving, moving_label, affine, model_maps.displacement)
+    model_maps.displacement = None
+    maps = {"warped": forward.warped, "jacobian": jacobian, "entropy": entropy}
+    if std is not None:
+        maps["displacement_std"] = std
+    labels = dict(forward.labels)
+    inverse_warp = None
+    if backward is not None:
         inverse_warp = backward.warp
         if backward.fixed_label is not None:
             labels["fixed_label_in_moving"] = backward.fixed_label
@@ -180,7 +194,7 @@ def compose_outputs(
                 labels="the non-zero labels of both label maps",
                 num_fixed_only_labels=len(fixed.label_ids) - len(ids),
             )
-    return Composed(forward.warp, inverse_warp, maps, labels, dice)
+    return Composed(forward.warp, inverse_warp, maps, labels, dice, stats)
 
 
 def _dice(warped: np.ndarray, fixed: Volume, ids: list[int]) -> dict:

@@ -22,7 +22,22 @@ from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import grid_points
 from monai_probreg.spatial.volume_io import Volume, check_same_grid, read_image, read_label, volume_to_itk
 
-__all__ = ["FixedSpace", "MovingScan", "prepare_fixed", "read_moving"]
+__all__ = ["FixedSpace", "MovingScan", "compact_label", "label_dtype", "prepare_fixed", "read_moving"]
+
+
+def label_dtype(array: np.ndarray) -> type:
+    """The smallest of uint8 / int16 / int32 that holds a label map's values."""
+    top = int(array.max()) if array.size else 0
+    return np.uint8 if top < 256 else np.int16 if top < 32768 else np.int32
+
+
+def compact_label(label: Volume) -> Volume:
+    """``label`` (non-negative, as :func:`~monai_probreg.spatial.volume_io.read_label` reads it: int32) in
+    :func:`label_dtype`, its values unchanged: a registration holds several label maps (the two read, and those
+    resampled from them, which keep their type), each a quarter of the size for fewer than 256 labels; their files
+    are written in that type anyway."""
+    dtype = label_dtype(label.array)
+    return label if label.array.dtype == dtype else label.with_array(label.array.astype(dtype))
 
 
 @dataclass
@@ -77,7 +92,7 @@ def prepare_fixed(
     image = read_image(path, "--fixed")
     label = None
     if label_path is not None:
-        label = read_label(label_path, "--fixed-label")
+        label = compact_label(read_label(label_path, "--fixed-label"))
         check_same_grid(label, image, "--fixed-label", "--fixed")
     fixed_mask = None if mask_path is None else read_mask(mask_path, "--fixed-mask", image, "--fixed")
     grid = ModelGrid.for_volume(image, divisor)
@@ -116,7 +131,7 @@ def read_moving(
     """The ``read`` stage: the scan (or a :class:`~monai_probreg.spatial.volume_io.Volume` already in memory, taken
     as it is), its labels on its grid and its mask; InputError (one line) for an unusable file."""
     moving = path if isinstance(path, Volume) else read_image(path, "--moving")
-    label = read_label(label_path, "--moving-label") if label_path is not None else None
+    label = compact_label(read_label(label_path, "--moving-label")) if label_path is not None else None
     if label is not None:
         check_same_grid(label, moving, "--moving-label", "--moving")
     mask = None

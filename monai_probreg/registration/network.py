@@ -4,7 +4,9 @@
   :func:`monai_probreg.engines.registration.register_pair`);
 - ``refine``: with the options' ``refinement`` enabled, that mean refined for the pair
   (:mod:`monai_probreg.engines.refinement`), its image term inside the cost-function masks when given;
-- ``maps``: the inverse displacement (``exp(-v)``; unless ``inverse`` is off), Jacobian, velocity entropy;
+- ``maps``: the Jacobian and the velocity entropy; then, after the quality estimate, the inverse displacement
+  (``exp(-v)``; unless ``inverse`` is off; :func:`add_inverse`), so that it is not held beside the quality estimate's
+  working set and the network's own registration;
 - ``samples``: with ``samples = K >= 2``, K posterior samples -> displacement standard deviation
   (:func:`monai_probreg.uncertainty.posterior_maps.posterior_maps`, calibrated as the model is).
 """
@@ -13,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -30,15 +32,19 @@ from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.tensors import float_numpy
 
-__all__ = ["ModelMaps", "posterior_entropy", "run_network"]
+__all__ = ["ModelMaps", "add_inverse", "posterior_entropy", "run_network"]
 
 
 @dataclass
 class ModelMaps:
-    """The network's results on the model grid: displacement and inverse (3, *S) voxels, maps (*S)."""
+    """The network's results on the model grid: displacement and inverse (3, *S) voxels, maps (*S).
+
+    A registration lets each volume go (None) once nothing left reads it (:func:`~.scan.register_scan`; the compose
+    stage consumes the ones it reads, :func:`~.compose.compose_outputs`); ``deformed`` (whether the displacement
+    moves any voxel) outlives them."""
 
     displacement: np.ndarray
-    inverse: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse)
+    inverse: np.ndarray | None  # None: not asked for (RegistrationOptions.inverse), or not yet made (add_inverse)
     jacobian: np.ndarray
     entropy: np.ndarray | None  # velocity entropy, filled in by run_network (with the samples when there are any)
     warped: np.ndarray
@@ -47,6 +53,11 @@ class ModelMaps:
     posterior: tuple[torch.Tensor, torch.Tensor] | None = None
     std: np.ndarray | None = None
     variance: np.ndarray | None = None  # (3, *S) mm^2 per model-grid axis, with the samples
+    deformed: bool = field(init=False)  # any voxel moved (the summary's "deformation_given_up" reads it)
+    velocity: torch.Tensor | None = None  # the answer's mean velocity, until add_inverse makes the inverse from it
+
+    def __post_init__(self) -> None:
+        self.deformed = bool(self.displacement.any())
 
 
 def run_network(
@@ -75,18 +86,15 @@ def run_network(
                 )
             output = refine_registration(model.network, moving_t, fixed_t, output, options.refinement, masks)
     with stage("maps"):
-        inverse = None
-        if options.inverse:
-            with eval_mode(model.network), torch.inference_mode():  # exp(-v)
-                inverse = float_numpy(model.network.velocity_to_displacement(-output.velocity_mean, shape)[0])
         maps = ModelMaps(
             float_numpy(output.displacement[0]),
-            inverse,
+            None,  # add_inverse's, later
             float_numpy(jacobian_determinant(output.displacement)[0]),
             None,
             float_numpy(output.warped[0, 0]),
             network=network_output,
             posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
+            velocity=output.velocity_mean if options.inverse else None,
         )
         residual = None  # the pair's residual, for the calibration's residual term (uncertainty.residual)
         if model.calibration.residual_weight > 0:
@@ -113,6 +121,17 @@ def run_network(
             maps.entropy, maps.std = float_numpy(sampled.velocity_entropy), float_numpy(sampled.displacement_std)
             maps.variance = float_numpy(sampled.displacement_variance)
     return maps
+
+
+def add_inverse(model: LoadedModel, maps: ModelMaps) -> None:
+    """The inverse displacement ``exp(-v)`` of ``maps.velocity`` (the answer's mean velocity; None: the inverse was
+    not asked for, nothing to do) on the maps' grid into ``maps.inverse``; the velocity is let go."""
+    if maps.velocity is None:
+        return
+    with eval_mode(model.network), torch.inference_mode():
+        shape = tuple(maps.displacement.shape[1:])
+        maps.inverse = float_numpy(model.network.velocity_to_displacement(-maps.velocity, shape)[0])
+    maps.velocity = None
 
 
 def posterior_entropy(

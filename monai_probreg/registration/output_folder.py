@@ -1,6 +1,6 @@
 """The output folder of one registration (``monai-probreg register``'s ``DIR``): all-or-nothing writing, ITK
-writers, the writer of each file of a registration (:func:`output_writers`) and the QC figure's panels
-(:func:`qc_data`, drawn by :mod:`.qc`). What each file is: :mod:`.output_files` (``README.txt``).
+writers, the writer of each file of a registration (:func:`output_writers`) and the QC figure's slices
+(:func:`network_qc_planes`, :func:`finished_qc_planes`, drawn by :mod:`.qc`). What each file is: :mod:`.output_files` (``README.txt``).
 
 All-or-nothing: every file is written into a hidden staging folder next to ``DIR`` (same file system) and moved
 into ``DIR`` only when the whole registration has succeeded (:func:`staged_output_dir`). On any error, including
@@ -15,6 +15,7 @@ ISA-L's gzip, far faster than ITK's writer), other formats by ITK; each write is
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import shutil
@@ -27,11 +28,11 @@ import itk
 import numpy as np
 
 from monai_probreg.registration.compose import Composed
-from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.inputs import FixedSpace, label_dtype
 from monai_probreg.registration.network import ModelMaps
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.output_files import OUTPUT_FILES
-from monai_probreg.registration.qc import QCData
+from monai_probreg.registration.qc import QCData, QCPlanes, qc_planes
 from monai_probreg.registration.quality_estimate import ScanQuality
 from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.checks import is_nifti
@@ -50,7 +51,8 @@ __all__ = [
     "write_field",
     "write_transform",
     "output_writers",
-    "qc_data",
+    "network_qc_planes",
+    "finished_qc_planes",
     "qc_title",
 ]
 
@@ -111,12 +113,6 @@ def write_volume(path: str | os.PathLike, volume: Volume, dtype: type = np.float
     return atomic_write(path, lambda tmp: itk.imwrite(image, tmp, compression=True))
 
 
-def label_dtype(array: np.ndarray) -> type:
-    """The smallest of uint8 / int16 / int32 that holds a label map's values."""
-    top = int(array.max()) if array.size else 0
-    return np.uint8 if top < 256 else np.int16 if top < 32768 else np.int32
-
-
 def write_field(path: str | os.PathLike, field: np.ndarray, index_to_lps: np.ndarray) -> Path:
     """Write a displacement field (*S, 3) in LPS mm as an ITK vector image (NIfTI intent "vector", float32)."""
     if is_nifti(path):
@@ -161,23 +157,17 @@ def output_writers(
     options: RegistrationOptions,
 ) -> list[Callable[[], object]]:
     """One call per output file (run in parallel by :func:`~monai_probreg.utils.files.parallel_writes`), largest
-    first so that the pool's last file is a small one."""
-    writers: list[tuple[int, Callable[[], object]]] = []
+    first so that the pool's last file is a small one; but one call for both displacement fields, which writes them
+    one after the other (:func:`_in_turn`): each holds its uncompressed and its compressed file while it is written
+    (:mod:`monai_probreg.spatial.nifti_write`), the largest of all the files, so two at once would hold both."""
+    fields = []
     if composed.inverse_warp is not None:
-        writers.append(
-            (
-                composed.inverse_warp.size,
-                functools.partial(
-                    write_field, stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps
-                ),
-            )
+        fields.append(
+            functools.partial(write_field, stage / "inverse_warp.nii.gz", composed.inverse_warp, moving.index_to_lps)
         )
-    writers.append(
-        (
-            composed.warp.size,
-            functools.partial(write_field, stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps),
-        )
-    )
+    fields.append(functools.partial(write_field, stage / "warp.nii.gz", composed.warp, fixed.image.index_to_lps))
+    field_size = composed.warp.size + (0 if composed.inverse_warp is None else composed.inverse_warp.size)
+    writers: list[tuple[int, Callable[[], object]]] = [(field_size, functools.partial(_in_turn, fields))]
     for name, array in composed.maps.items():
         if options.maps or name not in MAP_FILES:
             writers.append(
@@ -205,32 +195,43 @@ def output_writers(
     return [write for _, write in sorted(writers, key=lambda item: -item[0])]
 
 
-def qc_data(
-    fixed: FixedSpace,
-    moving_input: np.ndarray,
-    model_maps: ModelMaps,
-    composed: Composed,
-    title: str,
-    warning: str | None = None,
-) -> QCData:
-    """The QC figure's panels (:mod:`.qc`) on the model grid: the images, the network's maps, the labels."""
-    to_model, labels = fixed.grid.to_model, composed.labels
+def _in_turn(writers: list[Callable[[], object]]) -> None:
+    """Run ``writers`` one after the other, each let go once it has run (and with it the array it wrote, when it
+    held the last reference)."""
+    while writers:
+        writers.pop(0)()
+
+
+def network_qc_planes(fixed: FixedSpace, moving_input: np.ndarray, model_maps: ModelMaps) -> QCPlanes:
+    """The QC figure's slices (:mod:`.qc`) of the images, the network's maps and the fixed labels on the model grid;
+    the resampled labels, the title and the warning come later (:func:`finished_qc_planes`)."""
     sampled = model_maps.std is not None
-    return QCData(
-        fixed=fixed.model_input,
-        moving=moving_input,
-        warped=model_maps.warped,
-        displacement=model_maps.displacement,
-        jacobian=model_maps.jacobian,
-        uncertainty=model_maps.std if sampled else model_maps.entropy,
-        uncertainty_name="displacement std (mm)" if sampled else "velocity entropy",
-        spacing=tuple(fixed.grid.spacing),
-        title=title,
-        warning=warning,
-        fixed_label=to_model(fixed.label.array) if fixed.label is not None else None,
+    return qc_planes(
+        QCData(
+            fixed=fixed.model_input,
+            moving=moving_input,
+            warped=model_maps.warped,
+            displacement=model_maps.displacement,
+            jacobian=model_maps.jacobian,
+            uncertainty=model_maps.std if sampled else model_maps.entropy,
+            uncertainty_name="displacement std (mm)" if sampled else "velocity entropy",
+            spacing=tuple(fixed.grid.spacing),
+            fixed_label=fixed.grid.to_model(fixed.label.array) if fixed.label is not None else None,
+        )
+    )
+
+
+def finished_qc_planes(
+    planes: QCPlanes, fixed: FixedSpace, composed: Composed, title: str, warning: str | None = None
+) -> QCPlanes:
+    """``planes`` (:func:`network_qc_planes`) with the moving labels' slices (through the affine, and warped), the
+    title and the warning."""
+    to_model, labels = fixed.grid.to_model, composed.labels
+    planes = planes.with_labels(
         moving_label=to_model(labels["affine_label"]) if "affine_label" in labels else None,
         warped_label=to_model(labels["warped_label"]) if "warped_label" in labels else None,
     )
+    return dataclasses.replace(planes, title=title, warning=warning)
 
 
 def qc_title(

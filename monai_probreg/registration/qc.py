@@ -15,10 +15,15 @@ Inputs are arrays on the model grid (:class:`~monai_probreg.spatial.model_grid.M
 right, 1 posterior to anterior, 2 inferior to superior); slices are drawn in millimetres with the patient's right
 on the right of the axial and coronal panels (neurological convention), anterior on the right of the sagittal.
 Rendered with matplotlib's Agg backend (no display needed).
+
+The figure is drawn from slices (:class:`QCPlanes`, cut from the volumes by :func:`qc_planes`): a registration cuts
+them while it still holds the network's volumes and lets those go before its outputs are written; the labels it
+resamples later are cut then (:meth:`QCPlanes.with_labels`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +40,7 @@ from matplotlib.ticker import FormatStrFormatter  # noqa: E402
 
 from monai_probreg.utils.files import atomic_write  # noqa: E402
 
-__all__ = ["QCData", "qc_figure", "save_qc"]
+__all__ = ["QCData", "QCPlanes", "qc_figure", "qc_planes", "save_qc"]
 
 # (fixed axis, horizontal axis, vertical axis, name, left/right letters)
 _VIEWS = ((2, 0, 1, "axial", "LR"), (1, 0, 2, "coronal", "LR"), (0, 1, 2, "sagittal", "PA"))
@@ -73,6 +78,70 @@ def _plane(volume: np.ndarray, axis: int, index: int) -> np.ndarray:
     return np.take(volume, index, axis=axis).T  # rows = vertical axis, columns = horizontal axis
 
 
+_IMAGES = ("fixed", "moving", "warped")
+_LABELS = ("fixed_label", "moving_label", "warped_label")
+
+
+@dataclass
+class QCPlanes:
+    """What :func:`qc_figure` draws, cut from :class:`QCData`'s volumes by :func:`qc_planes`: ``rows``, one per view
+    of the figure (axial, coronal, sagittal), each the slices through the fixed image's centre of mass (``centre``,
+    model-grid voxels) by name: the images and labels (``QCData``'s names; a label None without it), ``jacobian``,
+    ``uncertainty``, and ``uh`` / ``uv``, the displacement's components along the slice's horizontal and vertical
+    axes; ``unc_range``: the uncertainty's colour range, over the whole volume's foreground."""
+
+    rows: list[dict[str, np.ndarray | None]]
+    centre: tuple[int, ...]
+    shape: tuple[int, ...]
+    spacing: tuple[float, float, float]
+    unc_range: tuple[float, float]
+    uncertainty_name: str
+    title: str = ""
+    grid_mm: float = 5.0
+    warning: str | None = None
+
+    def with_labels(self, **labels: np.ndarray | None) -> QCPlanes:
+        """A copy with the label volumes given by name (``fixed_label``, ``moving_label``, ``warped_label``; (X, Y,
+        Z) on the model grid, or None) cut through the same centre."""
+        unknown = set(labels) - set(_LABELS)
+        if unknown:
+            raise ValueError(f"expected label names among {_LABELS}; got {sorted(unknown)}")
+        rows = []
+        for row, (axis, *_) in zip(self.rows, _VIEWS):
+            cut = {k: None if v is None else _plane(v, axis, self.centre[axis]) for k, v in labels.items()}
+            rows.append({**row, **cut})
+        return dataclasses.replace(self, rows=rows)
+
+
+def qc_planes(data: QCData) -> QCPlanes:
+    """The slices of ``data`` that :func:`qc_figure` draws (:class:`QCPlanes`)."""
+    centre = _centre(data.fixed)
+    foreground = data.fixed > 0.05
+    unc = data.uncertainty[foreground] if foreground.any() else data.uncertainty.ravel()
+    unc_range = tuple(float(v) for v in np.percentile(unc, [2, 98]))  # one partial sort for both
+    del unc, foreground
+    if unc_range[1] - unc_range[0] < 1e-6 * max(1.0, abs(unc_range[0])):  # a constant map (e.g. untrained model)
+        unc_range = (unc_range[0] - 0.5, unc_range[0] + 0.5)
+    rows = []
+    for axis, h, v, *_ in _VIEWS:
+        index = centre[axis]
+        row = {name: _plane(getattr(data, name), axis, index) for name in (*_IMAGES, "jacobian", "uncertainty")}
+        row["uh"], row["uv"] = _plane(data.displacement[h], axis, index), _plane(data.displacement[v], axis, index)
+        rows.append(row)
+    planes = QCPlanes(
+        rows,
+        centre,
+        tuple(data.fixed.shape),
+        data.spacing,
+        unc_range,
+        data.uncertainty_name,
+        data.title,
+        data.grid_mm,
+        data.warning,
+    )
+    return planes.with_labels(**{name: getattr(data, name) for name in _LABELS})
+
+
 def _outline_rgba(labels: np.ndarray) -> np.ndarray:
     """RGBA image: label boundaries coloured by label id, transparent elsewhere."""
     edge = np.zeros(labels.shape, dtype=bool)
@@ -88,17 +157,17 @@ def _outline_rgba(labels: np.ndarray) -> np.ndarray:
     return rgba
 
 
-def qc_figure(data: QCData) -> plt.Figure:
-    """Build the figure (see the module docstring); the caller saves or closes it."""
-    centre = _centre(data.fixed)
-    spacing = np.asarray(data.spacing, dtype=np.float64)
+def qc_figure(data: QCData | QCPlanes) -> plt.Figure:
+    """Build the figure (see the module docstring) of ``data`` or of its slices; the caller saves or closes it."""
+    planes = data if isinstance(data, QCPlanes) else qc_planes(data)
+    spacing = np.asarray(planes.spacing, dtype=np.float64)
     columns = [
         "fixed",
         "moving (affine only)",
         "warped moving",
         "deformation (deformable part)",
         "Jacobian determinant",
-        data.uncertainty_name,
+        planes.uncertainty_name,
     ]
     # a fixed layout (matplotlib's constrained layout costs a large share of the figure's time): panels, then a strip for the
     # colour bars under the last two columns; the title above
@@ -109,42 +178,34 @@ def qc_figure(data: QCData) -> plt.Figure:
         squeeze=False,
         gridspec_kw={"left": 0.025, "right": 0.995, "top": 0.9, "bottom": 0.1, "wspace": 0.03, "hspace": 0.1},
     )
-    images = (data.fixed, data.moving, data.warped)
-    labels = (data.fixed_label, data.moving_label, data.warped_label)
-    foreground = data.fixed > 0.05
-    unc = data.uncertainty[foreground] if foreground.any() else data.uncertainty.ravel()
-    unc_range = tuple(float(v) for v in np.percentile(unc, [2, 98]))  # one partial sort for both
-    if unc_range[1] - unc_range[0] < 1e-6 * max(1.0, abs(unc_range[0])):  # a constant map (e.g. untrained model)
-        unc_range = (unc_range[0] - 0.5, unc_range[0] + 0.5)
+    unc_range = planes.unc_range
     jac_norm = TwoSlopeNorm(vmin=0.0, vcenter=1.0, vmax=2.0)
     mappables = {}
-    for row, (axis, h, v, name, letters) in enumerate(_VIEWS):
-        index = centre[axis]
+    for row, ((axis, h, v, name, letters), cut) in enumerate(zip(_VIEWS, planes.rows)):
+        index = planes.centre[axis]
         extent = (
             -0.5 * spacing[h],
-            (data.fixed.shape[h] - 0.5) * spacing[h],  # voxel i centred at i * spacing
+            (planes.shape[h] - 0.5) * spacing[h],  # voxel i centred at i * spacing
             -0.5 * spacing[v],
-            (data.fixed.shape[v] - 0.5) * spacing[v],
+            (planes.shape[v] - 0.5) * spacing[v],
         )
         show = dict(origin="lower", extent=extent, interpolation="nearest")
-        for col, (image, label) in enumerate(zip(images, labels)):
+        for col, (image, label) in enumerate(zip(_IMAGES, _LABELS)):
             ax = axes[row, col]
-            ax.imshow(_plane(image, axis, index), cmap="gray", vmin=0, vmax=1, **show)
-            outline = label if label is not None else data.fixed_label
+            ax.imshow(cut[image], cmap="gray", vmin=0, vmax=1, **show)
+            outline = cut[label] if cut[label] is not None else cut["fixed_label"]
             if outline is not None:
-                ax.imshow(_outline_rgba(_plane(outline, axis, index)), **show)
+                ax.imshow(_outline_rgba(outline), **show)
         ax = axes[row, 3]
-        ax.imshow(_plane(data.fixed, axis, index), cmap="gray", vmin=0, vmax=1, alpha=0.35, **show)
-        _draw_grid(ax, data.displacement, axis, h, v, index, spacing, data.grid_mm)
+        ax.imshow(cut["fixed"], cmap="gray", vmin=0, vmax=1, alpha=0.35, **show)
+        _draw_grid(ax, cut["uh"], cut["uv"], h, v, spacing, planes.grid_mm)
         ax = axes[row, 4]
-        jac = _plane(data.jacobian, axis, index)
+        jac = cut["jacobian"]
         mappables["jac"] = ax.imshow(jac, cmap="RdBu_r", norm=jac_norm, **show)
         folding = np.ma.masked_where(jac > 0, np.ones_like(jac))
         ax.imshow(folding, cmap=ListedColormap(["black"]), **show)
         ax = axes[row, 5]
-        mappables["unc"] = ax.imshow(
-            _plane(data.uncertainty, axis, index), cmap="magma", vmin=unc_range[0], vmax=unc_range[1], **show
-        )
+        mappables["unc"] = ax.imshow(cut["uncertainty"], cmap="magma", vmin=unc_range[0], vmax=unc_range[1], **show)
         for col in range(6):
             ax = axes[row, col]
             ax.set_xticks([])
@@ -166,26 +227,25 @@ def qc_figure(data: QCData) -> plt.Figure:
             if row == 0:
                 ax.set_title(columns[col], fontsize=11)
         axes[row, 0].set_ylabel(f"{name} {index}", fontsize=11)
-    for key, col, label in (("jac", 4, "|J| (black: <= 0)"), ("unc", 5, data.uncertainty_name)):
+    for key, col, label in (("jac", 4, "|J| (black: <= 0)"), ("unc", 5, planes.uncertainty_name)):
         cell = axes[-1, col].get_subplotspec().get_position(fig)  # the cell, not the (equal-aspect) image inside it
         strip = fig.add_axes((cell.x0 + 0.05 * cell.width, 0.055, 0.9 * cell.width, 0.012))
         bar = fig.colorbar(mappables[key], cax=strip, orientation="horizontal", label=label)
         bar.formatter = FormatStrFormatter("%.3g")
         bar.update_ticks()
-    title = "\n".join(t for t in (data.title, f"WARNING: {data.warning}" if data.warning else "") if t)
+    title = "\n".join(t for t in (planes.title, f"WARNING: {planes.warning}" if planes.warning else "") if t)
     if title:
         text = fig.suptitle(title, fontsize=12)
-        if data.warning:
+        if planes.warning:
             text.set_color("red")
     return fig
 
 
 def _draw_grid(
-    ax: plt.Axes, displacement: np.ndarray, axis: int, h: int, v: int, index: int, spacing: np.ndarray, grid_mm: float
+    ax: plt.Axes, uh: np.ndarray, uv: np.ndarray, h: int, v: int, spacing: np.ndarray, grid_mm: float
 ) -> None:
-    """Lines of constant h and constant v, every ``grid_mm``, drawn at (x + u(x)) in the plane, in mm."""
-    uh = _plane(displacement[h], axis, index)
-    uv = _plane(displacement[v], axis, index)
+    """Lines of constant h and constant v, every ``grid_mm``, drawn at (x + u(x)) in the plane, in mm; ``uh``,
+    ``uv``: the displacement's components along h and v in the plane (voxels)."""
     rows, cols = uh.shape
     hh, vv = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
     xs, ys = (hh + uh) * spacing[h], (vv + uv) * spacing[v]
@@ -196,7 +256,7 @@ def _draw_grid(
     ax.add_collection(LineCollection(lines, colors="tab:blue", linewidths=0.6))  # one artist, not one per line
 
 
-def save_qc(path: str | os.PathLike, data: QCData, dpi: int = 90) -> Path:
+def save_qc(path: str | os.PathLike, data: QCData | QCPlanes, dpi: int = 90) -> Path:
     """Render :func:`qc_figure` to a PNG atomically and close the figure."""
     fig = qc_figure(data)
     try:

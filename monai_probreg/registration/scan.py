@@ -5,14 +5,21 @@ Stages, timed under these names in ``summary.json["timings_s"]``, each in the mo
 - ``read``: read and validate the moving scan (and its labels, its mask) with their geometry (:mod:`.inputs`);
 - ``affine``, ``resample``: the affine pre-alignment, then the moving scan on the model grid as the network reads it
   (:mod:`.affine_stage`);
-- ``model``, ``refine``, ``maps``, ``samples``: the network's registration, its test-time refinement, the inverse,
-  Jacobian and entropy, the posterior samples (:mod:`.network`);
+- ``model``, ``refine``, ``maps``, ``samples``: the network's registration, its test-time refinement, the
+  Jacobian, entropy and inverse (the inverse after the quality estimate: ``maps`` is timed in two parts), the
+  posterior samples (:mod:`.network`);
 - ``quality``: the label-free quality estimate, with a quality model next to the weights (:mod:`.quality_estimate`);
 - ``compose``: affine + deformable -> one field fixed -> moving and its inverse; the original moving scan and labels
   resampled once through it; Dice (:mod:`.compose`);
 - ``qc``, ``write``: the files, in a staging folder moved into place at the end (:mod:`.output_folder`), compressed
-  in parallel threads while the QC figure is drawn (:mod:`.qc`): ``qc`` times the drawing, ``write`` the wait for
-  the files after it; then ``summary.json`` (:mod:`.summary`) and ``README.txt``.
+  in parallel threads while the QC figure is drawn (:mod:`.qc`): ``qc`` times the figure (its slices, cut before
+  ``compose`` while the network's volumes are held, and the drawing), ``write`` the wait for the files after it;
+  then ``summary.json`` (:mod:`.summary`) and ``README.txt``.
+
+Memory: each large array goes once nothing left reads it, so that each stage runs beside as little as possible: the
+network's own registration after the quality estimate, the network's volumes once the QC figure's slices are cut
+and as the compose stage reads them (:func:`~.compose.compose_outputs`), each composed field once its file is
+written (its writer holds the only reference).
 
 The model is loaded once (:func:`monai_probreg.registration.model.load_model`) and the fixed image prepared once
 (:func:`monai_probreg.registration.inputs.prepare_fixed`), so a batch pays for them once; neither is counted in a
@@ -34,18 +41,18 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from monai_probreg.metrics.jacobian import jacobian_stats
 from monai_probreg.registration.affine_stage import affine_stage, model_input
 from monai_probreg.registration.compose import Composed, compose_outputs
 from monai_probreg.registration.inputs import FixedSpace, read_moving
 from monai_probreg.registration.model import LoadedModel
-from monai_probreg.registration.network import ModelMaps, run_network
+from monai_probreg.registration.network import ModelMaps, add_inverse, run_network
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.output_files import OUTPUTS_README
 from monai_probreg.registration.output_folder import (
     check_output_dir,
+    finished_qc_planes,
+    network_qc_planes,
     output_writers,
-    qc_data,
     qc_title,
     staged_output_dir,
 )
@@ -84,11 +91,27 @@ def _registered(fixed: FixedSpace, affine: AffineResult, composed: Composed, mod
 
 @contextmanager
 def _timed(timings: dict[str, float], name: str, report: Callable[[str, float], None] | None) -> Iterator[None]:
+    """Time a stage; a stage run in parts (``maps``, ``qc``) is timed as their sum, each part reported on its own."""
     start = time.perf_counter()
     yield
-    timings[name] = round(time.perf_counter() - start, 3)
+    seconds = time.perf_counter() - start
+    if name in os.environ.get("PROBREG_TRIM", "").split(","):
+        from monai_probreg.utils.memory import trim_freed_memory
+
+        trim_freed_memory()
+    timings[name] = round(timings.get(name, 0.0) + seconds, 3)
     if report is not None:
-        report(name, timings[name])
+        report(name, round(seconds, 3))
+
+
+# summary.json's "timings_s" in the order of the stages (the module docstring), whatever order their parts ran in
+_STAGE_ORDER = ("read", "affine", "resample", "model", "refine", "maps", "samples", "quality", "compose", "qc", "write")
+
+
+def _in_stage_order(timings: dict[str, float]) -> dict[str, float]:
+    """``timings`` in :data:`_STAGE_ORDER`, any other name after them in its own order ("total" last)."""
+    rank = {name: n for n, name in enumerate(_STAGE_ORDER)}
+    return dict(sorted(timings.items(), key=lambda item: rank.get(item[0], len(rank))))
 
 
 def register_scan(
@@ -115,6 +138,10 @@ def register_scan(
     Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
     """
     options = options or RegistrationOptions()
+    if "start" in os.environ.get("PROBREG_TRIM", "").split(","):
+        from monai_probreg.utils.memory import trim_freed_memory
+
+        trim_freed_memory()
     if options.refinement is None:  # the model's (config's) refinement: what the command line runs by default
         options = replace(options, refinement=model.refinement)
     out = check_output_dir(out_dir, overwrite)
@@ -133,28 +160,39 @@ def register_scan(
         with stage("quality"):
             quality = estimate_quality(model, moving_input, fixed, model_maps)
     model_maps.network = None  # read by the quality estimate only: its fields (about 300 MB at 256^3) go now
+    with stage("maps"):  # the maps stage's last part, now that the quality estimate's memory is free
+        add_inverse(model, model_maps)
     warning = quality.estimate.warning if quality is not None else None
+    planes = None
+    if options.qc:  # the figure's slices, cut while the network's volumes are here; drawn with the files below
+        with stage("qc"):
+            planes = network_qc_planes(fixed, moving_input, model_maps)
+    del moving_input, masks  # read by the network, the quality estimate and the QC figure's slices only
+    model_maps.warped = None  # likewise; compose_outputs consumes the other volumes
     with stage("compose"):
         composed = compose_outputs(fixed, moving.image, moving.label, affine.matrix, model_maps, options.inverse)
-        stats = jacobian_stats(torch.from_numpy(composed.maps["jacobian"]))
+    stats = composed.jacobian_stats
     checked = check(_registered(fixed, affine, composed, model_maps)) if check is not None else {}
     with staged_output_dir(out, overwrite) as folder:
-        # the files compress in a pool of threads while this thread draws the QC figure: "qc" is the drawing,
-        # "write" the wait for the files after it (so the stages still add up to the wall time)
-        write_start = time.perf_counter()
+        # the files compress in a pool of threads while this thread draws the QC figure: "write" is the wait for the
+        # files after the drawing (so the stages still add up to the wall time)
+        write_start, qc_before = time.perf_counter(), timings.get("qc", 0.0)
         with parallel_writes(torch.get_num_threads()) as submit:
             for writer in output_writers(folder, fixed, moving.image, affine, composed, options):
                 submit(writer)
+            composed.warp = composed.inverse_warp = None  # their writers hold them now: each goes once written
             for name, write in (extra_outputs or {}).items():
                 submit(functools.partial(write, folder / name))
-            if options.qc:
+            if planes is not None:
                 with stage("qc"):
                     title = qc_title(moving.image, composed.dice, stats.num_folding, quality)
-                    save_qc(folder / "qc.png", qc_data(fixed, moving_input, model_maps, composed, title, warning))
-        timings["write"] = round(time.perf_counter() - write_start - timings.get("qc", 0.0), 3)
+                    save_qc(folder / "qc.png", finished_qc_planes(planes, fixed, composed, title, warning))
+        drawing = timings.get("qc", 0.0) - qc_before
+        timings["write"] = round(time.perf_counter() - write_start - drawing, 3)
         if report is not None:
             report("write", timings["write"])
         timings["total"] = round(time.perf_counter() - start, 3)
+        timings = _in_stage_order(timings)
         outputs = sorted(p.name for p in folder.iterdir()) + ["summary.json", "README.txt"]
         summary = scan_summary(
             model, fixed, moving, options, affine, model_maps, composed, stats, quality, timings, outputs

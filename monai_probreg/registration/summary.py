@@ -95,7 +95,7 @@ def scan_summary(
         # the refinement's similarity guard gave the deformation up (it left the images less alike than the
         # affine alone): warp.nii.gz is the affine alone
         "deformation_given_up": bool(
-            options.refinement.enabled and options.refinement.similarity_guard and not model_maps.displacement.any()
+            options.refinement.enabled and options.refinement.similarity_guard and not model_maps.deformed
         ),
         "quality": quality_summary(model, quality, options.refinement),
         "warning": None if quality is None else quality.estimate.warning,

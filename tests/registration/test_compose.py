@@ -1,12 +1,16 @@
 """monai_probreg.registration.compose: slab by slab, the same bits as the whole-grid computation it replaced
-(oblique grids, a model grid in another orientation, slabs of several heights)."""
+(oblique grids, a model grid in another orientation, slabs of several heights); the network's volumes consumed."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-from monai_probreg.registration.compose import affine_resample, forward_outputs, inverse_outputs
+from monai_probreg.metrics.jacobian import jacobian_stats
+from monai_probreg.registration.compose import affine_resample, compose_outputs, forward_outputs, inverse_outputs
+from monai_probreg.registration.inputs import FixedSpace
+from monai_probreg.registration.network import ModelMaps
 from monai_probreg.spatial import physical
 from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import compose_forward, compose_inverse, mapped_index, voxel_to_mm
@@ -59,13 +63,17 @@ def test_forward_outputs_are_the_whole_grid_computation_to_the_bit(case, monkeyp
 def test_inverse_outputs_are_the_whole_grid_computation_to_the_bit(case, monkeypatch, slab_voxels):
     fixed, moving, _, fixed_label, affine, grid, _, inverse = case
     monkeypatch.setattr(physical, "SLAB_VOXELS", slab_voxels)
-    ours = inverse_outputs(grid, inverse, affine, moving, fixed_label)
+    consumed = inverse.copy()
+    ours = inverse_outputs(grid, consumed, affine, moving, fixed_label)
     field = Volume(voxel_to_mm(inverse, grid.index_to_lps), grid.index_to_lps)
+    assert np.array_equal(consumed, field.array.astype(np.float32).transpose(3, 0, 1, 2))  # its mm, in place
     warp = compose_inverse(field, affine, moving.shape, moving.index_to_lps)
     index = mapped_index(moving.shape, moving.index_to_lps, fixed_label.index_to_lps, field=warp)
     assert np.array_equal(ours.warp, warp)
     assert np.array_equal(ours.fixed_label, sample_nearest(fixed_label, None, index=index))
-    assert inverse_outputs(grid, inverse, affine, moving, None).fixed_label is None
+    assert inverse_outputs(grid, inverse.copy(), affine, moving, None).fixed_label is None
+    with pytest.raises(ValueError, match="expected the float32 displacement"):
+        inverse_outputs(grid, inverse.astype(np.float64), affine, moving, None)
 
 
 @pytest.mark.parametrize("slab_voxels", [1, 100, 10**9])
@@ -77,3 +85,24 @@ def test_affine_resample_is_sample_linear_rounded_to_float32(case, monkeypatch, 
     ours = affine_resample(moving, fixed, affine, -3.0)
     assert ours.dtype == np.float32
     assert np.array_equal(ours, expected)
+
+
+def test_compose_outputs_consumes_the_network_volumes_and_keeps_the_bits(case):
+    """Each of the network's volumes is let go once read, and the outputs are those of the steps done on their own:
+    the forward and inverse outputs, the maps on the fixed grid, the Jacobian's statistics of the fixed-grid map."""
+    fixed, moving, moving_label, fixed_label, affine, grid, displacement, inverse = case
+    rng = np.random.default_rng(1)
+    jacobian, entropy = (rng.random(grid.shape, dtype=np.float32) + 0.5 for _ in range(2))
+    maps = ModelMaps(displacement.copy(), inverse.copy(), jacobian, entropy, rng.random(grid.shape, dtype=np.float32))
+    space = FixedSpace(fixed, fixed_label, grid, grid.to_model(fixed.array), label_ids=[1, 2, 3, 4])
+    composed = compose_outputs(space, moving, moving_label, affine, maps, inverse=True)
+    assert maps.displacement is None and maps.inverse is None and maps.jacobian is None and maps.entropy is None
+    assert maps.deformed  # what the summary reads, kept
+    forward = forward_outputs(grid, fixed, moving, moving_label, affine, displacement)
+    backward = inverse_outputs(grid, inverse.copy(), affine, moving, fixed_label)
+    assert np.array_equal(composed.warp, forward.warp) and np.array_equal(composed.inverse_warp, backward.warp)
+    assert np.array_equal(composed.maps["jacobian"], grid.to_fixed(jacobian))
+    assert list(composed.maps) == ["warped", "jacobian", "entropy"]
+    assert list(composed.labels) == ["warped_label", "affine_label", "fixed_label_in_moving"]
+    assert composed.jacobian_stats == jacobian_stats(torch.from_numpy(grid.to_fixed(jacobian)))
+    assert composed.dice is not None and 0.0 <= composed.dice["mean"] <= 1.0

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from conftest import asymmetric_phantom
 
-from monai_probreg.registration.qc import QCData, qc_figure, save_qc
+from monai_probreg.registration.qc import QCData, qc_figure, qc_planes, save_qc
 
 
 def _data(with_labels: bool, constant_uncertainty: bool = False) -> QCData:
@@ -63,8 +65,6 @@ def test_save_writes_a_png_and_closes_the_figure(tmp_path):
 
 
 def test_a_warning_is_drawn_in_red_under_the_title():
-    import dataclasses
-
     fig = qc_figure(dataclasses.replace(_data(True), warning="this registration probably failed"))
     try:
         text = fig._suptitle.get_text()
@@ -77,3 +77,18 @@ def test_a_warning_is_drawn_in_red_under_the_title():
         assert "WARNING" not in fig._suptitle.get_text() and fig._suptitle.get_color() != "red"
     finally:
         plt.close(fig)
+
+
+def test_the_slices_draw_the_same_figure_as_the_volumes(tmp_path):
+    """A figure drawn from the slices (cut before the volumes go, labels added later) is the volumes' to the byte."""
+    data = _data(True)
+    whole = save_qc(tmp_path / "whole.png", data).read_bytes()
+    no_labels = dataclasses.replace(data, fixed_label=None, moving_label=None, warped_label=None)
+    planes = qc_planes(no_labels).with_labels(
+        fixed_label=data.fixed_label, moving_label=data.moving_label, warped_label=data.warped_label
+    )
+    assert save_qc(tmp_path / "planes.png", planes).read_bytes() == whole
+    assert save_qc(tmp_path / "direct.png", qc_planes(data)).read_bytes() == whole
+    assert all(p.ndim == 2 for row in planes.rows for p in row.values())  # slices only, no volume kept
+    with pytest.raises(ValueError, match="expected label names"):
+        planes.with_labels(labels=data.fixed_label)

@@ -9,9 +9,11 @@ import itk
 import nibabel as nib
 import numpy as np
 import pytest
+from isal import igzip
 from scipy.spatial.transform import Rotation
 
-from monai_probreg.spatial.nifti_write import nifti_bytes, write_nifti
+from monai_probreg.spatial import nifti_write
+from monai_probreg.spatial.nifti_write import GZIP_LEVEL, nifti_buffer, nifti_bytes, write_nifti
 from monai_probreg.spatial.physical import field_from_itk, field_to_itk
 from monai_probreg.spatial.volume_io import Volume, geometry_of, volume_from_itk, volume_to_itk
 
@@ -102,3 +104,46 @@ def test_bad_path_and_shapes(tmp_path):
     with pytest.raises(ValueError, match=r"expected a 3-D volume \(I, J, K\); got shape \(7, 5, 6, 3\)"):
         nifti_bytes(np.zeros((*SHAPE, 3), np.float32), GRID)
     assert not list(tmp_path.iterdir())  # nothing half-written
+
+
+@pytest.mark.parametrize(
+    ("shape", "vector", "dtype"),
+    [(SHAPE, False, np.float32), (SHAPE, False, np.uint8), ((*SHAPE, 3), True, np.float32)],
+)
+def test_one_buffer_and_one_gzip_call_give_the_files_of_before(tmp_path, shape, vector, dtype):
+    """The file is built in one buffer of its size and its gzip header written before the stream, not joined to it:
+    the bytes are nibabel's ``to_bytes`` and igzip's one-shot ``compress`` of them (what was written before)."""
+    array = (np.random.default_rng(1).random(shape) * 200).astype(dtype)
+    image = nib.load(write_nifti(tmp_path / "v.nii", array, GRID, vector=vector))
+    assert nifti_bytes(array, GRID, vector) == image.to_bytes() == (tmp_path / "v.nii").read_bytes()
+    packed = write_nifti(tmp_path / "v.nii.gz", array, GRID, vector=vector).read_bytes()
+    assert packed == igzip.compress(nifti_bytes(array, GRID, vector), GZIP_LEVEL, mtime=0)
+    buffer = nifti_buffer(array, GRID, vector)
+    assert buffer.dtype == np.uint8 and buffer.tobytes() == nifti_bytes(array, GRID, vector)
+
+
+def test_a_file_of_another_size_than_expected_is_refused(monkeypatch):
+    """nibabel writing past (or short of) the file's expected size is an error, not a silently wrong file."""
+    array = np.zeros(SHAPE, np.float32)
+    to_stream = nib.Nifti1Image.to_stream
+
+    def longer(image, stream):
+        to_stream(image, stream)
+        stream.write(b"x")
+
+    monkeypatch.setattr(nib.Nifti1Image, "to_stream", longer)
+    with pytest.raises(ValueError, match="wrote past the expected 1192 bytes"):
+        nifti_buffer(array, GRID)
+    monkeypatch.setattr(nib.Nifti1Image, "to_stream", lambda image, stream: stream.write(b"header"))
+    with pytest.raises(ValueError, match="nibabel wrote 6 bytes; expected 1192"):
+        nifti_buffer(array, GRID)
+
+
+def test_a_failed_compression_leaves_no_file(tmp_path, monkeypatch):
+    def fail(*args, **kwargs):
+        raise MemoryError("no room")
+
+    monkeypatch.setattr(nifti_write.igzip_lib, "compress", fail)
+    with pytest.raises(MemoryError):
+        write_nifti(tmp_path / "v.nii.gz", np.zeros(SHAPE, np.float32), GRID)
+    assert not list(tmp_path.iterdir())

@@ -35,6 +35,7 @@ import numpy as np
 from common import DEFAULT_DATASET, DEFAULT_OUT, run_command, write_report
 
 from monai_probreg.data.template import mni152_template_path
+from monai_probreg.fitting.command_cases import moved_header  # the header moved, the voxels untouched
 from monai_probreg.spatial.physical import apply_affine, field_from_itk, grid_points
 from monai_probreg.spatial.volume_io import read_image, read_label
 
@@ -55,18 +56,6 @@ def rigid_motion_ras(degrees: float, shift_mm: float, centre: np.ndarray) -> np.
     motion[:3, :3] = rotation
     motion[:3, 3] = centre - rotation @ centre + shift
     return motion
-
-
-def moved_header(scan: Path, motion_ras: np.ndarray, out: Path) -> Path:
-    """``scan`` with ``motion_ras`` applied to its header only (the voxels untouched): voxel ``i`` now lies at
-    ``motion_ras @ affine @ i``, so the moving point of a fixed world point ``x`` is ``motion_ras @ x``."""
-    image = nib.load(scan)
-    affine = motion_ras @ image.affine
-    moved = nib.Nifti1Image(np.asanyarray(image.dataobj), affine, image.header)
-    moved.set_qform(affine, code=1)
-    moved.set_sform(affine, code=1)
-    nib.save(moved, out)
-    return out
 
 
 def grid_centre_ras(scan: Path) -> np.ndarray:

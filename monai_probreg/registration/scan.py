@@ -95,10 +95,6 @@ def _timed(timings: dict[str, float], name: str, report: Callable[[str, float], 
     start = time.perf_counter()
     yield
     seconds = time.perf_counter() - start
-    if name in os.environ.get("PROBREG_TRIM", "").split(","):
-        from monai_probreg.utils.memory import trim_freed_memory
-
-        trim_freed_memory()
     timings[name] = round(timings.get(name, 0.0) + seconds, 3)
     if report is not None:
         report(name, round(seconds, 3))
@@ -138,10 +134,6 @@ def register_scan(
     Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
     """
     options = options or RegistrationOptions()
-    if "start" in os.environ.get("PROBREG_TRIM", "").split(","):
-        from monai_probreg.utils.memory import trim_freed_memory
-
-        trim_freed_memory()
     if options.refinement is None:  # the model's (config's) refinement: what the command line runs by default
         options = replace(options, refinement=model.refinement)
     out = check_output_dir(out_dir, overwrite)

@@ -62,6 +62,7 @@ from monai_probreg.registration.summary import scan_summary
 from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.volume_io import Volume
 from monai_probreg.utils.files import parallel_writes, write_text
+from monai_probreg.utils.memory import trim_freed_memory
 
 __all__ = ["Registered", "register_scan"]
 
@@ -89,11 +90,20 @@ def _registered(fixed: FixedSpace, affine: AffineResult, composed: Composed, mod
     return Registered(composed.warp, affine.matrix, fixed.points, variance, grid.index_to_lps[:3, :3] / grid.spacing)
 
 
+# the stages after which the freed memory goes back (monai_probreg.utils.memory: with memory reuse the heap keeps it
+# and fragments): each leaves large temporaries freed behind it and is followed by stages that allocate otherwise
+# (the refinement, the quality estimate, the compose stage, the writing), which then start from the memory in use
+_TRIM_AFTER = frozenset({"model", "maps", "compose"})
+
+
 @contextmanager
 def _timed(timings: dict[str, float], name: str, report: Callable[[str, float], None] | None) -> Iterator[None]:
-    """Time a stage; a stage run in parts (``maps``, ``qc``) is timed as their sum, each part reported on its own."""
+    """Time a stage; a stage run in parts (``maps``, ``qc``) is timed as their sum, each part reported on its own.
+    After the stages of :data:`_TRIM_AFTER`, the freed memory is given back (in the stage's time)."""
     start = time.perf_counter()
     yield
+    if name in _TRIM_AFTER:
+        trim_freed_memory()
     seconds = time.perf_counter() - start
     timings[name] = round(timings.get(name, 0.0) + seconds, 3)
     if report is not None:

@@ -160,7 +160,7 @@ def compose_outputs(
     ``model_maps``' volumes are consumed: each is set to None once read (the inverse turned into millimetres in place),
     so that none is held beside what is made from it. The order keeps the stage's working set small: the maps and the
     Jacobian's statistics first (their temporaries beside nothing composed yet), then the inverse (the largest
-    working set) before the forward outputs exist; the freed memory is given back between the parts
+    working set) before the forward outputs exist, then Dice; the freed memory is given back between the parts
     (:func:`~monai_probreg.utils.memory.trim_freed_memory`)."""
     grid = fixed.grid
     jacobian, entropy = grid.to_fixed(model_maps.jacobian), grid.to_fixed(model_maps.entropy)
@@ -175,6 +175,7 @@ def compose_outputs(
         trim_freed_memory()
     forward = forward_outputs(grid, fixed.image, moving, moving_label, affine, model_maps.displacement)
     model_maps.displacement = None
+    trim_freed_memory()
     maps = {"warped": forward.warped, "jacobian": jacobian, "entropy": entropy}
     if std is not None:
         maps["displacement_std"] = std

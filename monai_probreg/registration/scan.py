@@ -92,8 +92,9 @@ def _registered(fixed: FixedSpace, affine: AffineResult, composed: Composed, mod
 
 # the stages after which the freed memory goes back (monai_probreg.utils.memory: with memory reuse the heap keeps it
 # and fragments): each leaves large temporaries freed behind it and is followed by stages that allocate otherwise
-# (the refinement, the quality estimate, the compose stage, the writing), which then start from the memory in use
-_TRIM_AFTER = frozenset({"model", "maps", "compose"})
+# (the refinement, the quality estimate, the inverse, the compose stage, the writing), which then start from the
+# memory in use
+_TRIM_AFTER = frozenset({"model", "maps", "quality", "compose"})
 
 
 @contextmanager

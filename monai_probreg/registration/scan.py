@@ -17,9 +17,10 @@ Stages, timed under these names in ``summary.json["timings_s"]``, each in the mo
   then ``summary.json`` (:mod:`.summary`) and ``README.txt``.
 
 Memory: each large array goes once nothing left reads it, so that each stage runs beside as little as possible: the
-network's own registration after the quality estimate, the network's volumes once the QC figure's slices are cut
-and as the compose stage reads them (:func:`~.compose.compose_outputs`), each composed field once its file is
-written (its writer holds the only reference).
+network's own registration once refined (the quality estimate reads its features before the refinement: ``quality``
+is timed in two parts), the network's volumes once the QC figure's slices are cut and as the compose stage reads
+them (:func:`~.compose.compose_outputs`), each composed field once its file is written (its writer holds the only
+reference); and the freed memory goes back between stages that allocate otherwise (:data:`_TRIM_AFTER`).
 
 The model is loaded once (:func:`monai_probreg.registration.model.load_model`) and the fixed image prepared once
 (:func:`monai_probreg.registration.inputs.prepare_fixed`), so a batch pays for them once; neither is counted in a
@@ -45,7 +46,7 @@ from monai_probreg.registration.affine_stage import affine_stage, model_input
 from monai_probreg.registration.compose import Composed, compose_outputs
 from monai_probreg.registration.inputs import FixedSpace, read_moving
 from monai_probreg.registration.model import LoadedModel
-from monai_probreg.registration.network import ModelMaps, add_inverse, run_network
+from monai_probreg.registration.network import ModelMaps, add_inverse, register_network, run_network
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.output_files import OUTPUTS_README
 from monai_probreg.registration.output_folder import (
@@ -57,7 +58,7 @@ from monai_probreg.registration.output_folder import (
     staged_output_dir,
 )
 from monai_probreg.registration.qc import save_qc
-from monai_probreg.registration.quality_estimate import estimate_quality
+from monai_probreg.registration.quality_estimate import estimate_quality, network_quality_features
 from monai_probreg.registration.summary import scan_summary
 from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.volume_io import Volume
@@ -92,9 +93,9 @@ def _registered(fixed: FixedSpace, affine: AffineResult, composed: Composed, mod
 
 # the stages after which the freed memory goes back (monai_probreg.utils.memory: with memory reuse the heap keeps it
 # and fragments): each leaves large temporaries freed behind it and is followed by stages that allocate otherwise
-# (the refinement, the quality estimate, the inverse, the compose stage, the writing), which then start from the
-# memory in use
-_TRIM_AFTER = frozenset({"model", "maps", "quality", "compose"})
+# (the quality estimate, the refinement, the maps, the inverse, the compose stage, the writing), which then start
+# from the memory in use
+_TRIM_AFTER = frozenset({"model", "quality", "refine", "maps", "compose"})
 
 
 @contextmanager
@@ -157,12 +158,17 @@ def register_scan(
         affine = affine_stage(fixed, moving, options)
     with stage("resample"):
         moving_input, masks = model_input(fixed, moving, affine.matrix)
-    model_maps = run_network(model, moving_input, fixed.model_input, options, fixed.grid.spacing, stage, masks)
+    output = register_network(model, moving_input, fixed.model_input, stage)
+    network_features = None
+    if model.quality is not None and options.refinement.enabled:  # the quality stage's first part
+        with stage("quality"):
+            network_features = network_quality_features(model, moving_input, fixed, output)
+    model_maps = run_network(model, output, moving_input, fixed.model_input, options, fixed.grid.spacing, stage, masks)
+    del output  # the network's own registration: read by the refinement and the quality estimate only
     quality = None
     if model.quality is not None:  # weights without a quality model: no stage, "quality": null
         with stage("quality"):
-            quality = estimate_quality(model, moving_input, fixed, model_maps)
-    model_maps.network = None  # read by the quality estimate only: its fields (about 300 MB at 256^3) go now
+            quality = estimate_quality(model, moving_input, fixed, model_maps, network_features)
     with stage("maps"):  # the maps stage's last part, now that the quality estimate's memory is free
         add_inverse(model, model_maps)
     warning = quality.estimate.warning if quality is not None else None

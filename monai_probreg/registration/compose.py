@@ -29,6 +29,7 @@ from monai_probreg.spatial.model_grid import ModelGrid
 from monai_probreg.spatial.physical import compose_forward, compose_inverse, mapped_index, row_slabs, voxel_to_mm
 from monai_probreg.spatial.point_sampling import LinearSampler, sample_nearest
 from monai_probreg.spatial.volume_io import Volume
+from monai_probreg.utils.memory import trim_freed_memory
 
 __all__ = ["Composed", "Forward", "Inverse", "affine_resample", "compose_outputs", "forward_outputs", "inverse_outputs"]
 
@@ -159,18 +160,22 @@ def compose_outputs(
     ``model_maps``' volumes are consumed: each is set to None once read (the inverse turned into millimetres in place),
     so that none is held beside what is made from it. The order keeps the stage's working set small: the maps and the
     Jacobian's statistics first (their temporaries beside nothing composed yet), then the inverse (the largest
-    working set) before the forward outputs exist."""
+    working set) before the forward outputs exist, then Dice; the freed memory is given back between the parts
+    (:func:`~monai_probreg.utils.memory.trim_freed_memory`)."""
     grid = fixed.grid
     jacobian, entropy = grid.to_fixed(model_maps.jacobian), grid.to_fixed(model_maps.entropy)
     std = None if model_maps.std is None else grid.to_fixed(model_maps.std)
     model_maps.jacobian = model_maps.entropy = None
     stats = jacobian_stats(torch.from_numpy(jacobian))
+    trim_freed_memory()  # each part's temporaries go back before the next, which allocates otherwise (memory.py)
     backward = None
     if inverse:
         backward = inverse_outputs(grid, model_maps.inverse, affine, moving, fixed.label)
         model_maps.inverse = None
+        trim_freed_memory()
     forward = forward_outputs(grid, fixed.image, moving, moving_label, affine, model_maps.displacement)
     model_maps.displacement = None
+    trim_freed_memory()
     maps = {"warped": forward.warped, "jacobian": jacobian, "entropy": entropy}
     if std is not None:
         maps["displacement_std"] = std

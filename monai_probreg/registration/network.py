@@ -1,9 +1,11 @@
 """The network's stages of one registration, on the model grid (the moving scan as :mod:`.affine_stage` made it):
 
 - ``model``: the network's posterior mean velocity -> displacement and the warped scan (network, integration, warp;
-  :func:`monai_probreg.engines.registration.register_pair`);
+  :func:`monai_probreg.engines.registration.register_pair`; :func:`register_network`);
 - ``refine``: with the options' ``refinement`` enabled, that mean refined for the pair
-  (:mod:`monai_probreg.engines.refinement`), its image term inside the cost-function masks when given;
+  (:mod:`monai_probreg.engines.refinement`), its image term inside the cost-function masks when given
+  (:func:`run_network`, as the stages below; the caller reads what it needs of the network's own registration before,
+  :func:`~.quality_estimate.network_quality_features`, and does not keep it);
 - ``maps``: the Jacobian and the velocity entropy; then, after the quality estimate, the inverse displacement
   (``exp(-v)``; unless ``inverse`` is off; :func:`add_inverse`), so that it is not held beside the quality estimate's
   working set and the network's own registration;
@@ -32,7 +34,7 @@ from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.tensors import float_numpy
 
-__all__ = ["ModelMaps", "add_inverse", "posterior_entropy", "run_network"]
+__all__ = ["ModelMaps", "add_inverse", "posterior_entropy", "register_network", "run_network"]
 
 
 @dataclass
@@ -48,7 +50,6 @@ class ModelMaps:
     jacobian: np.ndarray
     entropy: np.ndarray | None  # velocity entropy, filled in by run_network (with the samples when there are any)
     warped: np.ndarray
-    network: RegistrationOutput | None = None  # the network's own registration when refined (the quality reads it)
     # the answer's velocity (mean, log-variance), kept for the quality estimate's entropy (None without a quality model)
     posterior: tuple[torch.Tensor, torch.Tensor] | None = None
     std: np.ndarray | None = None
@@ -60,8 +61,25 @@ class ModelMaps:
         self.deformed = bool(self.displacement.any())
 
 
+def _image_tensor(image: np.ndarray, model: LoadedModel) -> torch.Tensor:
+    """A model-grid image (*S) as the network reads it: (1, 1, *S) on the model's device (no copy on a CPU)."""
+    return torch.from_numpy(image)[None, None].to(model.device)
+
+
+def register_network(
+    model: LoadedModel,
+    moving_input: np.ndarray,
+    fixed_input: np.ndarray,
+    stage: Callable[[str], AbstractContextManager],
+) -> RegistrationOutput:
+    """The ``model`` stage, inside ``stage("model")`` (the caller's clock): the network's own registration."""
+    with stage("model"):  # eval mode: the posterior mean velocity
+        return register_pair(model.network, _image_tensor(moving_input, model), _image_tensor(fixed_input, model))
+
+
 def run_network(
     model: LoadedModel,
+    output: RegistrationOutput,
     moving_input: np.ndarray,
     fixed_input: np.ndarray,
     options: RegistrationOptions,
@@ -69,17 +87,13 @@ def run_network(
     stage: Callable[[str], AbstractContextManager],
     masks: tuple[np.ndarray | None, np.ndarray | None] | None = None,
 ) -> ModelMaps:
-    """The stages of the module docstring, each run inside ``stage(name)`` (the caller's clock); ``masks``: the
-    refinement's (fixed, moving) on the model grid (:class:`~.affine_stage.ModelInput`), or None."""
+    """The stages after ``model`` (module docstring) from the network's registration ``output``
+    (:func:`register_network`), each run inside ``stage(name)`` (the caller's clock); ``masks``: the refinement's
+    (fixed, moving) on the model grid (:class:`~.affine_stage.ModelInput`), or None."""
     shape, samples, seed = moving_input.shape, options.samples, options.seed
-    moving_t = torch.from_numpy(moving_input)[None, None].to(model.device)
-    fixed_t = torch.from_numpy(fixed_input)[None, None].to(model.device)
-    with stage("model"):
-        output = register_pair(model.network, moving_t, fixed_t)  # eval mode: the posterior mean velocity
-    network_output = None
+    moving_t, fixed_t = _image_tensor(moving_input, model), _image_tensor(fixed_input, model)
     if options.refinement.enabled:
         with stage("refine"), eval_mode(model.network):
-            network_output = output if model.quality is not None else None  # kept only for the quality estimate
             if masks is not None:
                 masks = RefinementMasks(
                     *(None if m is None else torch.from_numpy(m)[None, None].to(model.device) for m in masks)
@@ -92,7 +106,6 @@ def run_network(
             float_numpy(jacobian_determinant(output.displacement)[0]),
             None,
             float_numpy(output.warped[0, 0]),
-            network=network_output,
             posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
             velocity=output.velocity_mean if options.inverse else None,
         )

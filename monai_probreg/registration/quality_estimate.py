@@ -1,6 +1,7 @@
 """The ``quality`` stage of one registration: the label-free quality estimate on the model grid
 (:mod:`monai_probreg.uncertainty.quality`), read from the network's own registration before refinement (what its
-models were fitted on: docs/uncertainty.md, "Whose features"), with the refined answer's features beside it; and its
+models were fitted on: docs/uncertainty.md, "Whose features"; read as soon as the network has run,
+:func:`network_quality_features`), with the refined answer's features beside it (:func:`estimate_quality`); and its
 record in ``summary.json``. Weights without a quality model have no stage (``"quality": null``)."""
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, qua
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.tensors import float_numpy
 
-__all__ = ["ScanQuality", "estimate_quality", "quality_summary"]
+__all__ = ["ScanQuality", "estimate_quality", "network_quality_features", "quality_summary"]
 
 
 class ScanQuality(NamedTuple):
@@ -42,57 +43,73 @@ class _QualityInputs(NamedTuple):
     entropy: np.ndarray
 
 
-def _feature_entropy(model: LoadedModel, maps: ModelMaps, posterior: tuple[torch.Tensor, torch.Tensor]) -> np.ndarray:
-    """The velocity entropy of ``posterior`` (mean, log-variance) as the quality estimate reads it: under the quality
-    model's own calibration (:meth:`~monai_probreg.uncertainty.quality.QualityModel.feature_calibration`); the maps'
-    entropy itself when ``posterior`` is the answer's and that calibration is the one in use (computed once)."""
+def _feature_entropy(
+    model: LoadedModel, posterior: tuple[torch.Tensor, torch.Tensor], shape: tuple[int, ...], maps: ModelMaps | None
+) -> np.ndarray:
+    """The velocity entropy of ``posterior`` (mean, log-variance) on ``shape`` as the quality estimate reads it: under
+    the quality model's own calibration (:meth:`~monai_probreg.uncertainty.quality.QualityModel.feature_calibration`);
+    the ``maps``' entropy itself when ``posterior`` is their answer's and that calibration is the one in use (computed
+    once)."""
     calibration = model.quality.feature_calibration(model.std_scale, model.bias_fraction)
     # an entropy depends on every number of the calibration but the intervals' dof (the feature's has no residual term)
-    if posterior is maps.posterior and calibration._replace(interval_dof=None) == model.calibration._replace(
-        interval_dof=None
+    if (
+        maps is not None
+        and posterior is maps.posterior
+        and calibration._replace(interval_dof=None) == model.calibration._replace(interval_dof=None)
     ):
         return maps.entropy
-    return posterior_entropy(model, *posterior, tuple(maps.warped.shape), calibration)
+    return posterior_entropy(model, *posterior, shape, calibration)
 
 
-def _network_quality_inputs(model: LoadedModel, output: RegistrationOutput, maps: ModelMaps) -> _QualityInputs:
-    """The network's registration ``output`` (before refinement) as the quality estimate reads it."""
-    return _QualityInputs(
+def _features(model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, inputs: _QualityInputs):
+    t = torch.from_numpy
+    return quality_features(
+        t(moving_input),
+        t(fixed.model_input),
+        t(inputs.warped),
+        t(inputs.displacement),
+        t(inputs.entropy),
+        fixed.grid.spacing,
+        jacobian=t(inputs.jacobian),
+    )
+
+
+def network_quality_features(
+    model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, output: RegistrationOutput
+) -> QualityFeatures:
+    """The features of the network's own registration ``output`` (before refinement: what the quality models read),
+    for :func:`estimate_quality` once the answer is made; read as soon as the network has run, so that the
+    caller need not keep ``output`` (its displacement and warped image) beside the refinement's answer."""
+    shape = tuple(moving_input.shape)
+    inputs = _QualityInputs(
         float_numpy(output.warped[0, 0]),
         float_numpy(output.displacement[0]),
         float_numpy(jacobian_determinant(output.displacement)[0]),
-        _feature_entropy(model, maps, (output.velocity_mean, output.velocity_log_var)),
+        _feature_entropy(model, (output.velocity_mean, output.velocity_log_var), shape, None),
     )
+    return _features(model, moving_input, fixed, inputs)
 
 
 def estimate_quality(
-    model: LoadedModel, moving_input: np.ndarray, fixed: FixedSpace, maps: ModelMaps
+    model: LoadedModel,
+    moving_input: np.ndarray,
+    fixed: FixedSpace,
+    maps: ModelMaps,
+    network_features: QualityFeatures | None = None,
 ) -> ScanQuality | None:
-    """The label-free quality estimate on the model grid (module docstring); None when the weights have no quality
-    model."""
+    """The label-free quality estimate on the model grid (module docstring) of the answer ``maps``, with the
+    network's own registration's ``network_features`` when the answer was refined (:func:`network_quality_features`;
+    None: not refined, the answer is the network's own); None when the weights have no quality model."""
     if model.quality is None:
         return None
-    t = torch.from_numpy
-
-    def features_of(m: _QualityInputs) -> QualityFeatures:
-        return quality_features(
-            t(moving_input),
-            t(fixed.model_input),
-            t(m.warped),
-            t(m.displacement),
-            t(m.entropy),
-            fixed.grid.spacing,
-            jacobian=t(m.jacobian),
-        )
-
     # the answer the user gets; its entropy as the estimate reads it (the same rule for both feature sets)
-    answer = features_of(
-        _QualityInputs(maps.warped, maps.displacement, maps.jacobian, _feature_entropy(model, maps, maps.posterior))
+    entropy = _feature_entropy(model, maps.posterior, tuple(maps.warped.shape), maps)
+    answer = _features(
+        model, moving_input, fixed, _QualityInputs(maps.warped, maps.displacement, maps.jacobian, entropy)
     )
-    if maps.network is None:  # not refined: the answer is the network's own registration
+    if network_features is None:
         return ScanQuality(answer, model.quality.estimate(answer), None)
-    features = features_of(_network_quality_inputs(model, maps.network, maps))
-    return ScanQuality(features, model.quality.estimate(features, answer), answer)
+    return ScanQuality(network_features, model.quality.estimate(network_features, answer), answer)
 
 
 def quality_summary(model: LoadedModel, quality: ScanQuality | None, refinement: RefinementSettings) -> dict | None:

@@ -17,9 +17,10 @@ Stages, timed under these names in ``summary.json["timings_s"]``, each in the mo
   then ``summary.json`` (:mod:`.summary`) and ``README.txt``.
 
 Memory: each large array goes once nothing left reads it, so that each stage runs beside as little as possible: the
-network's own registration after the quality estimate, the network's volumes once the QC figure's slices are cut
-and as the compose stage reads them (:func:`~.compose.compose_outputs`), each composed field once its file is
-written (its writer holds the only reference).
+network's own registration once refined (the quality estimate reads its features before the refinement: ``quality``
+is timed in two parts), the network's volumes once the QC figure's slices are cut and as the compose stage reads
+them (:func:`~.compose.compose_outputs`), each composed field once its file is written (its writer holds the only
+reference); and the freed memory goes back between stages that allocate otherwise (:data:`_TRIM_AFTER`).
 
 The model is loaded once (:func:`monai_probreg.registration.model.load_model`) and the fixed image prepared once
 (:func:`monai_probreg.registration.inputs.prepare_fixed`), so a batch pays for them once; neither is counted in a
@@ -45,7 +46,7 @@ from monai_probreg.registration.affine_stage import affine_stage, model_input
 from monai_probreg.registration.compose import Composed, compose_outputs
 from monai_probreg.registration.inputs import FixedSpace, read_moving
 from monai_probreg.registration.model import LoadedModel
-from monai_probreg.registration.network import ModelMaps, add_inverse, run_network
+from monai_probreg.registration.network import ModelMaps, add_inverse, register_network, run_network
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.output_files import OUTPUTS_README
 from monai_probreg.registration.output_folder import (
@@ -57,11 +58,12 @@ from monai_probreg.registration.output_folder import (
     staged_output_dir,
 )
 from monai_probreg.registration.qc import save_qc
-from monai_probreg.registration.quality_estimate import estimate_quality
+from monai_probreg.registration.quality_estimate import estimate_quality, network_quality_features
 from monai_probreg.registration.summary import scan_summary
 from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.volume_io import Volume
 from monai_probreg.utils.files import parallel_writes, write_text
+from monai_probreg.utils.memory import trim_freed_memory
 
 __all__ = ["Registered", "register_scan"]
 
@@ -89,16 +91,22 @@ def _registered(fixed: FixedSpace, affine: AffineResult, composed: Composed, mod
     return Registered(composed.warp, affine.matrix, fixed.points, variance, grid.index_to_lps[:3, :3] / grid.spacing)
 
 
+# the stages after which the freed memory goes back (monai_probreg.utils.memory: with memory reuse the heap keeps it
+# and fragments): each leaves large temporaries freed behind it and is followed by stages that allocate otherwise
+# (the quality estimate, the refinement, the maps, the inverse, the compose stage, the writing), which then start
+# from the memory in use
+_TRIM_AFTER = frozenset({"model", "quality", "refine", "maps", "compose"})
+
+
 @contextmanager
 def _timed(timings: dict[str, float], name: str, report: Callable[[str, float], None] | None) -> Iterator[None]:
-    """Time a stage; a stage run in parts (``maps``, ``qc``) is timed as their sum, each part reported on its own."""
+    """Time a stage; a stage run in parts (``maps``, ``qc``) is timed as their sum, each part reported on its own.
+    After the stages of :data:`_TRIM_AFTER`, the freed memory is given back (in the stage's time)."""
     start = time.perf_counter()
     yield
-    seconds = time.perf_counter() - start
-    if name in os.environ.get("PROBREG_TRIM", "").split(","):
-        from monai_probreg.utils.memory import trim_freed_memory
-
+    if name in _TRIM_AFTER:
         trim_freed_memory()
+    seconds = time.perf_counter() - start
     timings[name] = round(timings.get(name, 0.0) + seconds, 3)
     if report is not None:
         report(name, round(seconds, 3))
@@ -138,10 +146,6 @@ def register_scan(
     Raises :class:`~monai_probreg.utils.errors.InputError` (one line) for unusable inputs, before anything is written.
     """
     options = options or RegistrationOptions()
-    if "start" in os.environ.get("PROBREG_TRIM", "").split(","):
-        from monai_probreg.utils.memory import trim_freed_memory
-
-        trim_freed_memory()
     if options.refinement is None:  # the model's (config's) refinement: what the command line runs by default
         options = replace(options, refinement=model.refinement)
     out = check_output_dir(out_dir, overwrite)
@@ -154,12 +158,17 @@ def register_scan(
         affine = affine_stage(fixed, moving, options)
     with stage("resample"):
         moving_input, masks = model_input(fixed, moving, affine.matrix)
-    model_maps = run_network(model, moving_input, fixed.model_input, options, fixed.grid.spacing, stage, masks)
+    output = register_network(model, moving_input, fixed.model_input, stage)
+    network_features = None
+    if model.quality is not None and options.refinement.enabled:  # the quality stage's first part
+        with stage("quality"):
+            network_features = network_quality_features(model, moving_input, fixed, output)
+    model_maps = run_network(model, output, moving_input, fixed.model_input, options, fixed.grid.spacing, stage, masks)
+    del output  # the network's own registration: read by the refinement and the quality estimate only
     quality = None
     if model.quality is not None:  # weights without a quality model: no stage, "quality": null
         with stage("quality"):
-            quality = estimate_quality(model, moving_input, fixed, model_maps)
-    model_maps.network = None  # read by the quality estimate only: its fields (about 300 MB at 256^3) go now
+            quality = estimate_quality(model, moving_input, fixed, model_maps, network_features)
     with stage("maps"):  # the maps stage's last part, now that the quality estimate's memory is free
         add_inverse(model, model_maps)
     warning = quality.estimate.warning if quality is not None else None

@@ -52,7 +52,10 @@ __all__ = [
     "voxel_to_mm",
 ]
 
-SLAB_VOXELS = 1 << 21  # voxels per slab of :func:`row_slabs`: a slab's (n, 3) float64 points stay near 50 MB
+# voxels per slab of :func:`row_slabs` and :func:`compose_inverse`: a slab's (n, 3) float64 points stay near 25 MB,
+# under glibc's largest mmap threshold (32 MB: without memory reuse they then come from the heap, freed slab after
+# slab and reused), and a slab's several temporaries stay a small part of a 256^3 registration's peak
+SLAB_VOXELS = 1 << 20
 
 
 def row_slabs(shape: tuple[int, ...], voxels: int | None = None) -> list[slice]:
@@ -178,7 +181,8 @@ def compose_inverse(
     Computed per slab of the moving grid's first axis without any point array: ``a`` and the continuous index of
     ``a`` in ``d_inv``'s grid are affine in the moving voxel index (``A^-1 @ moving_index_to_lps``), so both come from
     :func:`index_map` and ``d_inv`` is read with one ``grid_sample`` per slab (float32 coordinates: at most 1e-5
-    voxel off on a 256-voxel axis). ``rows_per_chunk``: slab height (default: about two million voxels per slab).
+    voxel off on a 256-voxel axis). ``rows_per_chunk``: slab height (default: about :data:`SLAB_VOXELS` voxels per
+    slab).
     """
     moving_grid = np.asarray(moving_index_to_lps, np.float64)
     moving_to_fixed = np.linalg.inv(np.asarray(affine, np.float64)) @ moving_grid
@@ -189,7 +193,7 @@ def compose_inverse(
     shift = moving_to_fixed - moving_grid  # a - q, affine in the index
     source = torch.from_numpy(np.ascontiguousarray(field.transpose(3, 0, 1, 2)))[None]
     shape = tuple(int(n) for n in moving_shape)
-    rows = rows_per_chunk or max(1, 2_000_000 // max(1, shape[1] * shape[2]))
+    rows = rows_per_chunk or max(1, SLAB_VOXELS // max(1, shape[1] * shape[2]))
     out = torch.empty((*shape, 3), dtype=torch.float32)
     for start in range(0, shape[0], rows):
         slab = (min(rows, shape[0] - start), *shape[1:])

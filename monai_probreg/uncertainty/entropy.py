@@ -83,6 +83,20 @@ def label_entropy(label_samples: Tensor) -> Tensor:
     return entropy / num
 
 
+def _sums(samples: Tensor) -> tuple[Tensor, Tensor]:
+    """The sum and the sum of squares of ``samples`` (n, ...) over its first axis, in float64, added sample after
+    sample: one sample's float64 copy at a time rather than all of them and their squares at once. torch's reduction
+    over that axis can add in another order, so the sums agree to float64 rounding (the float32 std maps computed
+    from them were the same bits on a 16-sample velocity grid)."""
+    total = samples[0].to(torch.float64, copy=True)
+    squares = total**2
+    for sample in samples[1:]:
+        sample = sample.double()
+        total += sample
+        squares += sample**2
+    return total, squares
+
+
 def sampled_displacement_moments(
     mean: Tensor,
     log_var: Tensor,
@@ -107,7 +121,8 @@ def sampled_displacement_moments(
     for start in range(0, num_samples, chunk):
         z = sample_velocity(mean, log_var, min(chunk, num_samples - start), generator=generator)
         disp = to_displacement(z.flatten(0, 1)).unflatten(0, (z.shape[0], batch))  # (n, B, D, *S)
-        part, part_sq = disp.sum(0, dtype=torch.float64), (disp.double() ** 2).sum(0)
+        part, part_sq = _sums(disp)
+        del disp
         total = part if total is None else total + part
         squares = part_sq if squares is None else squares + part_sq
     variance = ((squares - total**2 / num_samples) / (num_samples - 1)).clamp(min=0)

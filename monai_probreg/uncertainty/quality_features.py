@@ -51,10 +51,21 @@ class QualityFeatures(NamedTuple):
     folding_percent: float
 
 
-def _ncc(a: Tensor, b: Tensor) -> float:
-    a, b = a - a.mean(), b - b.mean()
+def _ncc(image: Tensor, fixed: Tensor, mask: Tensor) -> float:
+    """Pearson correlation of ``image`` and ``fixed`` over ``mask``'s voxels (their copies centred in place)."""
+    a, b = image[mask], fixed[mask]
+    a, b = a.sub_(a.mean()), b.sub_(b.mean())
     denominator = float((a.square().sum() * b.square().sum()).sqrt())
     return float((a * b).sum()) / denominator if denominator > 0 else 0.0
+
+
+def _length_mm(displacement: Tensor, spacing: Tensor) -> Tensor:
+    """The displacement's length in mm per voxel: the components' squares added in axis order (as a sum over the
+    first axis adds them: the same values) into one map, one component's temporary at a time."""
+    length = (displacement[0] * spacing[0]).square_()
+    for axis in range(1, len(displacement)):
+        length += (displacement[axis] * spacing[axis]).square_()
+    return length.sqrt_()
 
 
 def _check(name: str, value: Tensor, shape: tuple[int, ...], channels: int | None = None) -> None:
@@ -140,17 +151,21 @@ def quality_features(
             f"quality features need at least {_MIN_FOREGROUND}"
         )
     lncc_before, lncc_after = local_ncc(torch.stack([moving, warped])[:, None], fixed.expand(2, 1, *shape))
-    # in place on the product, the one temporary the size of the field (the same values)
-    length_mm = (displacement * spacing_t.view(dims, *([1] * dims))).square_().sum(0).sqrt_()
+    # one feature after the other, each one's temporaries gone before the next one's are made (the same values)
+    ncc_before, ncc_after = _ncc(moving, fixed, mask), _ncc(warped, fixed, mask)
+    entropy_mean = float(entropy[mask].mean())
+    displacement_mm = float(_length_mm(displacement, spacing_t)[mask].mean())
     det = (jacobian_determinant(displacement[None])[0] if jacobian is None else torch.as_tensor(jacobian).float())[mask]
     positive = det[det > 0]
+    std_log_jacobian = float(positive.log().std()) if positive.numel() > 1 else 0.0
+    del positive
     return QualityFeatures(
-        ncc_before=_ncc(moving[mask], fixed[mask]),
-        ncc_after=_ncc(warped[mask], fixed[mask]),
+        ncc_before=ncc_before,
+        ncc_after=ncc_after,
         lncc_before=float(lncc_before),
         lncc_after=float(lncc_after),
-        entropy=float(entropy[mask].mean()),
-        displacement_mm=float(length_mm[mask].mean()),
-        std_log_jacobian=float(positive.log().std()) if positive.numel() > 1 else 0.0,
+        entropy=entropy_mean,
+        displacement_mm=displacement_mm,
+        std_log_jacobian=std_log_jacobian,
         folding_percent=100.0 * float((det <= 0).float().mean()),
     )

@@ -34,3 +34,31 @@ def test_the_library_default_is_the_models_refinement_as_on_the_command_line(tmp
     plain = RegistrationOptions(**fast, refinement=RefinementSettings())
     network = register_scan(model, fixed, moving, tmp_path / "network", options=plain)
     assert network["model"]["refinement"]["num_iterations"] == 0 and "refine" not in network["timings_s"]
+
+
+def test_the_freed_memory_goes_back_between_the_stages_that_allocate_otherwise(tmp_path, monkeypatch):
+    """register_scan gives the freed memory back after the model, the refinement, the maps (both parts), the quality
+    estimate (both parts, with a quality model) and the compose stage, and the compose stage between its parts;
+    every file is still written."""
+    from monai_probreg.registration import compose, scan
+
+    events = []
+    monkeypatch.setattr(scan, "trim_freed_memory", lambda: events.append("trim"))
+    monkeypatch.setattr(compose, "trim_freed_memory", lambda: events.append("trim inside compose"))
+    case = moved_phantom([6.0, -4.0, 5.0], [2.0, -1.0, 1.5])
+    model = load_model(tiny_bundle(tmp_path / "bundle", BUNDLE_DIR))
+    fixed = prepare_fixed(save_lps(tmp_path / "fixed.nii.gz", case.image, FIXED_LPS))
+    moving = save_lps(tmp_path / "moving.nii.gz", case.moved, case.grid)
+    options = RegistrationOptions(affine=FAST_AFFINE_SETTINGS)
+    summary = register_scan(
+        model, fixed, moving, tmp_path / "out", options=options, report=lambda s, _: events.append(s)
+    )
+    stages = [e for e in events if not e.startswith("trim")]
+    assert [events[events.index(s) - 1] for s in ("model", "refine", "compose")] == ["trim"] * 3
+    maps = [n for n, e in enumerate(events) if e == "maps"]
+    assert len(maps) == 2 and all(events[n - 1] == "trim" for n in maps)  # before the quality estimate, and after
+    quality = [n for n, e in enumerate(events) if e == "quality"]  # two parts with a quality model, else none
+    assert all(events[n - 1] == "trim" for n in quality)
+    assert events.count("trim") == 5 + len(quality) and events.count("trim inside compose") == 3
+    assert stages.index("refine") == stages.index("model") + 1
+    assert "warp.nii.gz" in summary["outputs"] and "inverse_warp.nii.gz" in summary["outputs"]

@@ -122,3 +122,28 @@ def test_the_local_ncc_of_a_batch_is_each_items_and_the_features(shape):
 def test_the_local_ncc_names_shapes_it_cannot_compare(images, fixed):
     with pytest.raises(ValueError, match="images and fixed"):
         local_ncc(torch.rand(images), torch.rand(fixed))
+
+
+@pytest.mark.parametrize("shape", [(9, 8, 7), (12, 10)])
+def test_the_features_are_the_whole_array_expressions_to_the_bit(shape):
+    """The features computed one after the other, each one's temporaries gone before the next (a 256^3 pair's
+    transient memory), are bit for bit the expressions on whole arrays: the centred copies, the summed squares."""
+    g = torch.Generator().manual_seed(7)
+    fixed, moving, warped, entropy = (torch.rand(shape, generator=g) for _ in range(4))
+    displacement = torch.randn((len(shape), *shape), generator=g) * 2
+    jacobian = torch.rand(shape, generator=g) * 2 - 0.2
+    spacing = (1.1, 0.8, 1.3)[: len(shape)]
+    ours = quality_features(moving, fixed, warped, displacement, entropy, spacing, jacobian=jacobian)
+    mask = fixed > FOREGROUND_LEVEL
+
+    def ncc(a: torch.Tensor, b: torch.Tensor) -> float:
+        a, b = a - a.mean(), b - b.mean()
+        return float((a * b).sum()) / float((a.square().sum() * b.square().sum()).sqrt())
+
+    s = torch.as_tensor(spacing).view(len(shape), *([1] * len(shape)))
+    length = (displacement * s).square_().sum(0).sqrt_()
+    det = jacobian[mask]
+    assert ours.ncc_before == ncc(moving[mask], fixed[mask]) and ours.ncc_after == ncc(warped[mask], fixed[mask])
+    assert ours.entropy == float(entropy[mask].mean()) and ours.displacement_mm == float(length[mask].mean())
+    assert ours.std_log_jacobian == float(det[det > 0].log().std())
+    assert ours.folding_percent == 100.0 * float((det <= 0).float().mean())

@@ -1,4 +1,5 @@
-"""reuse_freed_memory: after it, repeated large allocations fault in no new pages; the arithmetic is unchanged."""
+"""reuse_freed_memory: after it, repeated large allocations fault in no new pages; the arithmetic is unchanged.
+trim_freed_memory gives the pages kept back."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 
 from monai_probreg import ProbRegNet
 from monai_probreg.engines.registration import register_pair
-from monai_probreg.utils.memory import reuse_freed_memory
+from monai_probreg.utils.memory import reuse_freed_memory, trim_freed_memory
 
 GLIBC = platform.libc_ver()[0] == "glibc"
 BUFFER_ELEMENTS = 16 * 1024 * 1024  # 64 MB of float32: above glibc's largest mmap threshold (32 MB)
@@ -78,3 +79,44 @@ def test_other_c_libraries_are_left_alone(monkeypatch):
 
     monkeypatch.setattr(memory, "_glibc_mallopt", lambda: None)  # what the lookup gives on macOS or musl
     assert memory.reuse_freed_memory() is False
+
+
+TRIM_SCRIPT = f"""
+import torch
+from monai_probreg.utils.memory import reuse_freed_memory, trim_freed_memory
+
+def resident() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1])  # pages
+
+assert reuse_freed_memory()
+kept = torch.empty(1024)  # allocated after the buffers: the heap's top stays in use, the buffers' pages in a hole
+buffers = [torch.empty({BUFFER_ELEMENTS}).fill_(1.0) for _ in range(4)]
+kept = torch.empty(1024)
+before = resident()
+del buffers
+freed = resident()
+trimmed = trim_freed_memory()
+print(before - freed, freed - resident(), int(trimmed))
+"""
+
+
+@pytest.mark.skipif(not GLIBC, reason="the setting is glibc's")
+def test_trim_gives_back_the_pages_reuse_keeps():
+    """With reuse on, freed buffers stay resident (in a hole of the heap: no top to trim); trim_freed_memory gives
+    their pages back."""
+    done = subprocess.run(
+        [sys.executable, "-c", TRIM_SCRIPT], capture_output=True, text=True, timeout=120, env=os.environ.copy()
+    )
+    assert done.returncode == 0, done.stderr
+    kept_by_free, given_back, trimmed = (int(v) for v in done.stdout.split())
+    assert kept_by_free < 0.01 * 4 * PAGES  # freeing alone keeps them (reuse)
+    assert given_back > 0.9 * 4 * PAGES
+    assert trimmed == 1
+
+
+def test_trim_elsewhere_than_glibc_does_nothing(monkeypatch):
+    import monai_probreg.utils.memory as memory
+
+    monkeypatch.setattr(memory, "_glibc", lambda: None)
+    assert trim_freed_memory() is False

@@ -46,7 +46,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import accuracy_table
@@ -57,7 +57,7 @@ from demo_recovery import ants_case, one_case
 
 from monai_probreg.cli.synth_space import render_head
 from monai_probreg.data.augmentation import RandDiffeomorphicd
-from monai_probreg.data.label_synthesis import ASEG_LABELS
+from monai_probreg.data.label_synthesis import ASEG_LABELS, T1_LIKE
 from monai_probreg.data.synthetic import SyntheticSettings
 from monai_probreg.data.template import mni152_template_path
 from monai_probreg.engines.refinement import RefinementSettings
@@ -83,6 +83,7 @@ SYNTH_SEEDS = (0, 1)
 SYNTH_DEFORM_RMS_MM = 2.5  # the random deformation of each synthetic head: RMS velocity, mm (1 mm voxels)
 SYNTH_DEFORM_SPACING_MM = 16.0  # its control-point spacing, mm (the demo's)
 SYNTH_CROP_MARGIN = 8  # voxels kept around the head's bounding box (a scanner's field of view)
+EXTRA_CEREBRAL_FROM = 500  # SynthSeg's maps: labels from 500 on are outside the brain (skull, scalp, eyes...)
 ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
 
 
@@ -251,10 +252,16 @@ def part_native(models: dict, options: dict, native_dir: Path, ants: AntsCache |
     return rows
 
 
-def synthetic_head(label_map: Path, seed: int, out_dir: Path) -> tuple[Path, Path]:
-    """A label map cropped to its head, deformed by a random diffeomorphism (``seed``), rendered T1-like; written as
-    ``<stem>_<seed>_image.nii.gz`` and ``_label.nii.gz`` in ``out_dir``. Returns their paths."""
+def synthetic_head(
+    label_map: Path, seed: int, out_dir: Path, brain: Mapping[int, float] = T1_LIKE, brain_only: bool = False
+) -> tuple[Path, Path]:
+    """A label map cropped to its head, deformed by a random diffeomorphism (``seed``), rendered with the brain's
+    intensities of ``brain`` (T1-like by default); written as ``<stem>_<seed>_image.nii.gz`` and ``_label.nii.gz`` in
+    ``out_dir``. Returns their paths. ``brain_only``: the extra-cerebral labels (500 and above) set to background
+    first, a skull-stripped brain cropped to itself."""
     labels = read_label(label_map)
+    if brain_only:
+        labels = labels.with_array(np.where(labels.array < EXTRA_CEREBRAL_FROM, labels.array, 0))
     nonzero = np.argwhere(labels.array > 0)
     lo = np.maximum(nonzero.min(0) - SYNTH_CROP_MARGIN, 0)
     hi = np.minimum(nonzero.max(0) + SYNTH_CROP_MARGIN + 1, labels.shape)
@@ -273,7 +280,7 @@ def synthetic_head(label_map: Path, seed: int, out_dir: Path) -> tuple[Path, Pat
     volume = Volume(warped.astype(np.int32), index_to_lps)
     stem = f"{label_map.name.split('.')[0]}_{seed}"
     image_path, label_path = out_dir / f"{stem}_image.nii.gz", out_dir / f"{stem}_label.nii.gz"
-    write_volume(image_path, render_head(volume, seed))
+    write_volume(image_path, render_head(volume, seed, brain))
     write_volume(label_path, volume, label_dtype(volume.array))
     return image_path, label_path
 

@@ -25,6 +25,7 @@ import argparse
 import logging
 import os
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -50,12 +51,13 @@ RENDER_BLUR_VOXELS = 0.6  # its partial-volume blur, voxels of the label map
 _LOG = logging.getLogger("monai_probreg.synth_space")
 
 
-def render_head(labels: Volume, seed: int = 0) -> Volume:
-    """A T1-like rendering of a label map on its own grid: the brain by :data:`T1_LIKE`, every other label (skull,
-    scalp, eyes...) at a random intensity drawn from ``seed``; float32 in [0, 1]."""
+def render_head(labels: Volume, seed: int = 0, brain: Mapping[int, float] = T1_LIKE) -> Volume:
+    """A rendering of a label map on its own grid: the brain by ``brain`` (T1-like by default; :data:`T2_LIKE` for a
+    T2-weighted look), every other label (skull, scalp, eyes...) at a random intensity drawn from ``seed``; float32 in
+    [0, 1]."""
     values = np.unique(labels.array)
     rng = np.random.default_rng(seed)
-    table = {int(v): T1_LIKE.get(int(v), float(rng.uniform())) for v in values if v > 0}
+    table = {int(v): brain.get(int(v), float(rng.uniform())) for v in values if v > 0}
     generator = torch.Generator().manual_seed(seed)
     image = render_labels(
         torch.from_numpy(labels.array.astype(np.int64))[None], table, RENDER_TEXTURE, RENDER_BLUR_VOXELS, generator

@@ -8,6 +8,7 @@ whole heads (the SynthSeg repository's ``training_label_maps``: brain structures
 - **T1-like** (:data:`T1_LIKE`): each brain structure at its usual T1-weighted brightness relative to cerebral white
   matter (1.0), jittered per draw by ``jitter`` (a relative standard deviation); labels the table does not know
   (the extra-cerebral classes, lesions) get a uniform random intensity in [0, 1];
+- **T2-like** (:data:`T2_LIKE`, for benchmarks of a second contrast): fluid bright, white matter dark;
 - **random** (with probability ``random_prob``): every label uniform in [0, 1], SynthMorph's contrast-agnostic draw.
 
 One intensity table is drawn per *pair* and used for both images, so the Gaussian image likelihood still compares
@@ -30,7 +31,7 @@ from monai.transforms import GaussianSmooth, MapTransform, RandomizableTransform
 from monai_probreg.data.dataset import IMAGE_KEYS, LABEL_KEYS
 from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 
-__all__ = ["ASEG_LABELS", "T1_LIKE", "RandLabelContrastd", "SlotLabelsd", "render_labels", "scale_to_unit"]
+__all__ = ["ASEG_LABELS", "T1_LIKE", "T2_LIKE", "RandLabelContrastd", "SlotLabelsd", "render_labels", "scale_to_unit"]
 
 # FreeSurfer label -> T1-weighted intensity relative to cerebral white matter (left and right alike)
 _BILATERAL = {  # (left, right): intensity
@@ -53,6 +54,29 @@ _BILATERAL = {  # (left, right): intensity
 # 3rd and 4th ventricle, brainstem, CSF, 5th ventricle, optic chiasm
 _MIDLINE = {14: 0.18, 15: 0.18, 16: 0.90, 24: 0.18, 72: 0.18, 85: 0.90}
 T1_LIKE: dict[int, float] = {**{lab: v for pair, v in _BILATERAL.items() for lab in pair}, **_MIDLINE}
+
+# FreeSurfer label -> T2-weighted intensity relative to CSF (1.0): fluid bright, white matter darkest of the tissues,
+# the iron-rich pallidum dark, vessels a flow void (typical 1.5-3 T turbo spin echo ratios, not fitted to any dataset);
+# for cross-contrast pairs (a T2-weighted scan onto a T1-weighted atlas: benchmarks/cross_contrast.py)
+_BILATERAL_T2 = {
+    (2, 41): 0.30,  # cerebral white matter
+    (3, 42): 0.50,  # cerebral cortex
+    (4, 43): 1.00,  # lateral ventricle
+    (5, 44): 0.95,  # inferior lateral ventricle
+    (7, 46): 0.32,  # cerebellum white matter
+    (8, 47): 0.52,  # cerebellum cortex
+    (10, 49): 0.40,  # thalamus
+    (11, 50): 0.50,  # caudate
+    (12, 51): 0.44,  # putamen
+    (13, 52): 0.33,  # pallidum
+    (17, 53): 0.56,  # hippocampus
+    (18, 54): 0.54,  # amygdala
+    (26, 58): 0.50,  # accumbens
+    (28, 60): 0.38,  # ventral diencephalon
+    (30, 62): 0.15,  # vessel
+}
+_MIDLINE_T2 = {14: 1.00, 15: 1.00, 16: 0.36, 24: 1.00, 72: 1.00, 85: 0.35}
+T2_LIKE: dict[int, float] = {**{lab: v for pair, v in _BILATERAL_T2.items() for lab in pair}, **_MIDLINE_T2}
 
 # the structures Dice is scored on (FreeSurfer's aseg as SynthMorph reports it): the table less vessels, the 5th
 # ventricle and the chiasm (tens of voxels at 1 mm: no overlap measure is stable on them)

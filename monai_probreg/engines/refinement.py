@@ -58,6 +58,7 @@ from monai_probreg.blocks.warp import warp_box, warp_image
 from monai_probreg.losses.kl import LaplacianKLLoss
 from monai_probreg.losses.likelihood import IMAGE_LOSSES, GaussianImageLoss, make_image_loss
 from monai_probreg.losses.lncc import FixedImageLNCC, support_box
+from monai_probreg.losses.mind import FixedImageMIND, MINDLoss
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
 from monai_probreg.spatial.masks import MASK_LEVEL  # a mask resampled linearly is inside where it is at least this
@@ -107,8 +108,10 @@ class RefinementSettings:
     prior_lambda: precision scale of the Laplacian prior, velocity-grid voxel units (larger = smoother, fewer folds).
     posterior_weight: weight of the pull towards the network's mean, in units of its posterior std (0 = none).
     image_loss: the image term: "lncc" (MONAI's local normalised cross-correlation over ``lncc_kernel_size``, in
-        [-1, 0]; the default: it scored better than "gaussian" on training pairs) or "gaussian" (the model's own
-        likelihood with ``image_sigma``, unused for "lncc").
+        [-1, 0]; the default: it scored better than "gaussian" on training pairs), "gaussian" (the model's own
+        likelihood with ``image_sigma``, unused otherwise) or "mind" (the squared difference of the two images' MIND-SSC
+        descriptors, :mod:`monai_probreg.losses.mind`, in [0, 1]: for a pair of different contrasts, where a local
+        correlation assumes one contrast).
     image_weight: multiplies the image term (20 for "lncc", chosen on training pairs: a larger weight bought no
         Dice and a rougher field; use 1 with "gaussian", whose values are about two orders of magnitude larger).
     lncc_kernel_size: side of LNCC's local window, in voxels of the loss's grid (odd; 9 = 18 mm on the shipped
@@ -150,10 +153,14 @@ class RefinementSettings:
         of LNCC's variance floor (nearly flat windows, where the images give no evidence) moves the velocity as far
         as a real one: a scan onto a copy of itself then ends displaced. Where the gradient is well below this value
         the step shrinks in proportion (torch's default, 1e-8, leaves no such floor).
+    mind_radius: the MIND descriptor's patch half-width, voxels of the loss's grid ("mind" only).
+    mind_dilation: how far the MIND descriptor's neighbours are, voxels of the loss's grid ("mind" only).
     similarity_guard: keep no deformation that leaves the images less alike than none: when the registration (after
         the fold guard) has a lower local NCC with the fixed image than the moving image itself has (the quality
         estimate's measure, :func:`~monai_probreg.uncertainty.quality_features.local_ncc`), the deformation is given
-        up and the identity returned (zero velocity mean, the affine alone on the command line). A scan onto a copy
+        up and the identity returned (zero velocity mean, the affine alone on the command line); with "mind", when
+        the MIND term of the registration is larger than the moving image's own (a correlation does not compare two
+        contrasts). A scan onto a copy
         of itself has nothing to register, and every step there only moves tissue the network invents; on pairs
         with something to register the deformable step always raised the local NCC (``benchmarks/identity_cases.py``,
         ``benchmarks/failure_detection.py``). False: the refined (or fold-guarded) registration whatever it scores.
@@ -176,6 +183,8 @@ class RefinementSettings:
     coarse_lncc_kernel_size: int | None = None
     adam_eps: float = 1e-8
     similarity_guard: bool = False
+    mind_radius: int = 1
+    mind_dilation: int = 2
 
     def __post_init__(self) -> None:
         for name in ("num_iterations", "fold_backtracks", "fold_local_steps", "coarse_iterations"):
@@ -183,6 +192,8 @@ class RefinementSettings:
         _check_integer("velocity_grid_factor", self.velocity_grid_factor, minimum=1)
         _check_integer("image_grid_factor", self.image_grid_factor, minimum=1)
         _check_integer("lncc_kernel_size", self.lncc_kernel_size, minimum=3)
+        _check_integer("mind_radius", self.mind_radius, minimum=0)
+        _check_integer("mind_dilation", self.mind_dilation, minimum=1)
         if self.lncc_kernel_size % 2 == 0:
             raise ValueError(f"lncc_kernel_size must be an odd integer >= 3; got {self.lncc_kernel_size!r}")
         for name in ("learning_rate", "image_sigma", "prior_lambda", "adam_eps"):
@@ -255,6 +266,8 @@ LATER_SETTINGS = {
     "coarse_lncc_kernel_size": None,
     "adam_eps": 1e-8,
     "similarity_guard": False,
+    "mind_radius": 1,
+    "mind_dilation": 2,
 }
 
 
@@ -326,8 +339,8 @@ class _ImageTerm:
     pair, and the moving image warped and compared only inside the box around the fixed image's nonzero voxels where a
     window can add to the loss (:func:`support_box`; the same value as over the whole grid, the background of a
     skull-stripped fixed image adding exactly 0), the displacement resized onto that box alone
-    (:func:`resize_displacement_box`). Otherwise the warp and the loss of :func:`make_image_loss` over the whole
-    grid."""
+    (:func:`resize_displacement_box`). MIND is :class:`FixedImageMIND` (the fixed image's descriptor once per pair)
+    over the whole grid. Otherwise the warp and the loss of :func:`make_image_loss` over the whole grid."""
 
     def __init__(
         self,
@@ -340,10 +353,12 @@ class _ImageTerm:
     ) -> None:
         self.network, self.moving = network, moving
         self.grid = tuple(int(n) for n in fixed.shape[2:])
-        self.lncc = None
+        self.lncc = self.mind = None
         self.region = None  # the box of the loss's grid the displacement is needed on (None: the whole grid)
         self.masks = masks if masks is not None and (masks.fixed is not None or masks.moving is not None) else None
-        if settings.image_loss == "lncc" and network.fast_sampling:
+        if settings.image_loss == "mind":  # the fixed image's descriptor once per pair
+            self.mind = FixedImageMIND(fixed, settings.mind_radius, settings.mind_dilation)
+        elif settings.image_loss == "lncc" and network.fast_sampling:
             # windows with no nonzero fixed voxel add 0: the box holds the nonzero voxels and every window that
             # reaches them (one radius) with whole windows of their own (a second radius)
             region = support_box(fixed, margin=2 * (kernel_size // 2))
@@ -384,6 +399,9 @@ class _ImageTerm:
 
     def __call__(self, displacement: Tensor) -> Tensor:
         net = self.network
+        if self.mind is not None:
+            warped = warp_image(self.moving, displacement, padding_mode=net.padding_mode, fast=net.fast_sampling)
+            return self.mind(warped, self._weight(displacement, crop=False))
         if self.lncc is None:
             warped = warp_image(self.moving, displacement, padding_mode=net.padding_mode, fast=net.fast_sampling)
             if self.masks is None:
@@ -486,7 +504,7 @@ def refine_registration(
         mean, displacement = guarded
         warped = warp_image(moving, displacement, padding_mode=network.padding_mode, fast=network.fast_sampling)
         if settings.similarity_guard:
-            mean, displacement, warped = _similarity_guard(moving, fixed, mean, displacement, warped, masks)
+            mean, displacement, warped = _similarity_guard(moving, fixed, mean, displacement, warped, masks, settings)
         inverse = warped_fixed = None
         if output.inverse_displacement is not None:
             inverse = network.velocity_to_displacement(-mean, full)
@@ -503,12 +521,19 @@ def _similarity_guard(
     displacement: Tensor,
     warped: Tensor,
     masks: RefinementMasks | None = None,
+    settings: RefinementSettings | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(mean, displacement, warped) with the identity (zeros, the moving image itself) for every item of the batch
-    whose ``warped`` is less alike ``fixed`` than ``moving`` is (:func:`local_ncc` of the first channel), compared
-    inside the masks when given (the fixed mask and the moving mask, unwarped before, warped after): an artefact the
-    masks leave out must not decide the guard either."""
-    if masks is None or (masks.fixed is None and masks.moving is None):
+    whose ``warped`` is less alike ``fixed`` than ``moving`` is (:func:`local_ncc` of the first channel; with
+    ``settings.image_loss`` "mind", the MIND term of the first channel, lower is more alike), compared inside the masks
+    when given (the fixed mask and the moving mask, unwarped before, warped after): an artefact the masks leave out
+    must not decide the guard either."""
+    if settings is not None and settings.image_loss == "mind":
+        before, after = (
+            _mind_similarity(image, fixed, settings, masks, displacement if image is warped else None)
+            for image in (moving, warped)
+        )
+    elif masks is None or (masks.fixed is None and masks.moving is None):
         before = local_ncc(moving[:, :1], fixed[:, :1])
         after = local_ncc(warped[:, :1], fixed[:, :1])
     else:
@@ -530,6 +555,28 @@ def _similarity_guard(
         return torch.where(give_up.view(-1, *[1] * (t.ndim - 1)), instead.to(t.dtype), t)
 
     return keep(mean, torch.zeros_like(mean)), keep(displacement, torch.zeros_like(displacement)), keep(warped, moving)
+
+
+def _mind_similarity(
+    image: Tensor,
+    fixed: Tensor,
+    settings: RefinementSettings,
+    masks: RefinementMasks | None,
+    displacement: Tensor | None,
+) -> Tensor:
+    """(B,): minus the MIND term of ``image`` against ``fixed`` (first channels; larger is more alike, as the local
+    NCC), the mean over the voxels inside the masks (the moving mask warped by ``displacement`` when given)."""
+    per_voxel = MINDLoss(settings.mind_radius, settings.mind_dilation, reduction="none")(image[:, :1], fixed[:, :1])
+    inside = torch.ones_like(per_voxel, dtype=torch.bool)
+    if masks is not None and masks.fixed is not None:
+        inside = inside & (masks.fixed >= MASK_LEVEL)
+    if masks is not None and masks.moving is not None:
+        moving_mask = masks.moving.float()
+        if displacement is not None:
+            moving_mask = warp_image(moving_mask, displacement, padding_mode="zeros")
+        inside = inside & (moving_mask >= MASK_LEVEL)
+    counts = inside.flatten(1).sum(1).clamp_min(1)
+    return -(per_voxel * inside).flatten(1).sum(1) / counts
 
 
 def resize_log_var(log_var: Tensor, spatial_size: Sequence[int]) -> Tensor:

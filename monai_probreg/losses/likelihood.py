@@ -10,6 +10,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 
 from monai_probreg.losses.lncc import BoxLNCCLoss
+from monai_probreg.losses.mind import MINDLoss
 
 __all__ = ["IMAGE_LOSSES", "GaussianImageLoss", "gaussian_image_loss", "make_image_loss"]
 
@@ -51,16 +52,26 @@ class GaussianImageLoss(nn.Module):
         return gaussian_image_loss(warped, fixed, self.image_sigma, self.reduction)
 
 
-IMAGE_LOSSES = ("gaussian", "lncc")  # the names make_image_loss accepts
+IMAGE_LOSSES = ("gaussian", "lncc", "mind")  # the names make_image_loss accepts
 
 
 def make_image_loss(
-    name: str, spatial_dims: int = 3, image_sigma: float = 0.04, lncc_kernel_size: int = 9, reduction: str = "mean"
+    name: str,
+    spatial_dims: int = 3,
+    image_sigma: float = 0.04,
+    lncc_kernel_size: int = 9,
+    reduction: str = "mean",
+    mind_radius: int = 1,
+    mind_dilation: int = 2,
 ) -> nn.Module:
-    """Build the likelihood term by name: ``"gaussian"`` (the paper's) or ``"lncc"`` (MONAI's local NCC with a
-    rectangular window, in [-1, 0]; its window sums by pooling, :class:`~monai_probreg.losses.lncc.BoxLNCCLoss`)."""
+    """Build the likelihood term by name: ``"gaussian"`` (the paper's), ``"lncc"`` (MONAI's local NCC with a
+    rectangular window, in [-1, 0]; its window sums by pooling, :class:`~monai_probreg.losses.lncc.BoxLNCCLoss`) or
+    ``"mind"`` (MIND-SSC descriptors compared, for two contrasts, :class:`~monai_probreg.losses.mind.MINDLoss`; its
+    "none" reduction is per voxel, (B, 1, *S))."""
     if name == "gaussian":
         return GaussianImageLoss(image_sigma=image_sigma, reduction=reduction)
     if name == "lncc":
         return BoxLNCCLoss(spatial_dims=spatial_dims, kernel_size=lncc_kernel_size, reduction=reduction)
-    raise ValueError(f"image loss must be 'gaussian' or 'lncc'; got {name!r}")
+    if name == "mind":
+        return MINDLoss(radius=mind_radius, dilation=mind_dilation, reduction=reduction)
+    raise ValueError(f"image loss must be one of {IMAGE_LOSSES}; got {name!r}")

@@ -204,3 +204,20 @@ def test_the_lpba40_part_runs_each_variant_as_refine_overrides(tmp_path, monkeyp
 def test_a_refined_variant_with_an_unknown_field_is_named(tmp_path):
     with pytest.raises(SystemExit, match="'odd'.*grid_size"):
         generalization.main(["--parts", "synthetic", "--no-ants", "--refined-variants", "odd=grid_size:3"])
+
+
+def test_a_skull_stripped_t2_like_brain_drops_the_head_and_turns_the_contrast(label_maps, tmp_path):
+    """brain_only: no label from 500 on is left and the crop is the brain's; the T2-like table renders white matter
+    (2, 41) darker than the putamen (12), the T1-like one brighter."""
+    from monai_probreg.data.label_synthesis import T1_LIKE, T2_LIKE
+
+    source = label_maps / f"{generalization.SYNTH_MAPS[0]}.nii.gz"
+    brightness = {}
+    for name, table in (("t1", T1_LIKE), ("t2", T2_LIKE)):
+        (tmp_path / name).mkdir()
+        image_path, label_path = generalization.synthetic_head(source, 0, tmp_path / name, table, brain_only=True)
+        labels, image = read_label(label_path).array, nib.load(image_path).get_fdata()
+        assert labels.max() < generalization.EXTRA_CEREBRAL_FROM and set(np.unique(labels)) == {0, 2, 12, 41}
+        assert image.shape == labels.shape
+        brightness[name] = {v: image[labels == v].mean() for v in (2, 12)}
+    assert brightness["t1"][2] > brightness["t1"][12] and brightness["t2"][2] < brightness["t2"][12]

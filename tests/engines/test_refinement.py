@@ -20,6 +20,7 @@ from monai_probreg.engines.refinement import (
     resize_log_var,
 )
 from monai_probreg.engines.registration import register_pair, timed_register_pair
+from monai_probreg.losses.mind import MINDLoss
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet
 
@@ -105,6 +106,11 @@ def _pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor
         ("coarse_lncc_kernel_size", 4),
         ("coarse_lncc_kernel_size", 1),
         ("coarse_lncc_kernel_size", 5.0),
+        ("image_loss", "mi"),
+        ("mind_radius", -1),
+        ("mind_radius", 1.0),
+        ("mind_dilation", 0),
+        ("mind_dilation", True),
     ],
 )
 def test_bad_setting_names_itself(name, value):
@@ -637,3 +643,65 @@ def test_a_larger_prior_gives_a_smoother_refined_field(spatial_dims):
         energy[prior] = sum(torch.diff(velocity, dim=d + 1).square().sum() for d in range(spatial_dims)).item()
         spread[prior] = jacobian_determinant(refined.displacement).std().item()
     assert energy[50.0] < 0.5 * energy[0.05] and spread[50.0] < spread[0.05]
+
+
+def _two_contrast_pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_pair` with the moving image's contrast inverted (1 - image: bright where the fixed one is dark, as CSF
+    between T2- and T1-weighted scans): a local correlation of the aligned pair is -1."""
+    moving, fixed = _pair(shape, axis)
+    return 1.0 - moving, fixed
+
+
+@pytest.mark.parametrize(("shape", "axis"), [((32, 48), 1), ((32, 32, 48), 2)])
+def test_the_mind_term_finds_a_known_shift_across_contrasts(shape, axis):
+    """MIND compares the two contrasts: from the identity, the refined displacement inside the structure is +SHIFT
+    along ``axis`` (the pull-back of the other terms) and the MIND term drops."""
+    net = _identity_net(len(shape))
+    moving, fixed = _two_contrast_pair(shape, axis)
+    settings = RefinementSettings(
+        num_iterations=60,
+        learning_rate=0.1,
+        prior_lambda=10.0,
+        posterior_weight=0.0,
+        image_loss="mind",
+        image_weight=100.0,
+        mind_dilation=1,
+    )
+    start = register_pair(net, moving, fixed)
+    refined = refine_registration(net, moving, fixed, start, settings)
+    inside = fixed[0, 0] > 0.3
+    for k in range(len(shape)):
+        mean_k = refined.displacement[0, k][inside].mean().item()
+        # 0.35 voxel: as the LNCC test's tolerance (prior bias, finite steps); a wrong sign or axis is off by >= 1.5
+        assert mean_k == pytest.approx(SHIFT if k == axis else 0.0, abs=0.35), (k, mean_k)
+    term = MINDLoss(dilation=1)
+    assert term(refined.warped, fixed) < 0.5 * term(moving, fixed)
+
+
+def test_the_similarity_guard_compares_two_contrasts_by_mind():
+    """With the MIND term the guard compares by MIND: a right deformation across contrasts is kept, bit for bit; a
+    pair of copies still gets the identity."""
+    net = _identity_net(2)
+    moving, fixed = _two_contrast_pair((32, 48), axis=1)
+    output = register_pair(net, moving, fixed)
+    settings = RefinementSettings(
+        num_iterations=30,
+        learning_rate=0.1,
+        prior_lambda=10.0,
+        posterior_weight=0.0,
+        image_loss="mind",
+        image_weight=100.0,
+        mind_dilation=1,
+    )
+    unguarded = refine_registration(net, moving, fixed, output, settings)
+    guarded = refine_registration(net, moving, fixed, output, replace(settings, similarity_guard=True))
+    assert guarded.displacement.abs().max() > 0.5
+    torch.testing.assert_close(guarded.displacement, unguarded.displacement, rtol=0, atol=0)
+    copies = refine_registration(
+        _trained_like_net(2),
+        fixed,
+        fixed,
+        register_pair(_trained_like_net(2), fixed, fixed),
+        replace(settings, similarity_guard=True, num_iterations=3),
+    )
+    assert not copies.displacement.any()

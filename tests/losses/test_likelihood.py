@@ -119,5 +119,5 @@ def test_make_image_loss_lncc_is_monais_and_minus_one_for_identical_images(ndims
 
 
 def test_make_image_loss_unknown_name_raises():
-    with pytest.raises(ValueError, match=r"'gaussian' or 'lncc'; got 'mse'"):
+    with pytest.raises(ValueError, match=r"one of \('gaussian', 'lncc', 'mind'\); got 'mse'"):
         make_image_loss("mse")

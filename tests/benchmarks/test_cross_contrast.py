@@ -1,0 +1,32 @@
+"""benchmarks/cross_contrast.py: the summary of its cases by hand, its table, and a clean skip without the label
+maps (the real run is the benchmark itself)."""
+
+from __future__ import annotations
+
+import pytest
+from bench_helpers import load_benchmark
+
+cross_contrast = load_benchmark("cross_contrast")
+
+
+def _case(kind: str, contrast: str, rows: dict) -> dict:
+    return {"pair": "a->b", "seed": 0, "kind": kind, "contrast": contrast, "rows": rows}
+
+
+def test_the_summary_averages_dice_and_counts_folds_and_warnings_per_group():
+    cases = [
+        _case("brain", "T2->T1", {"m": {"dice": 0.6, "num_folding": 2, "warning": ""}}),
+        _case("brain", "T2->T1", {"m": {"dice": 0.8, "num_folding": 1, "warning": "less alike"}}),
+        _case("head", "T2->T1", {"m": {"dice": 0.5, "num_folding": 0, "warning": ""}}),
+    ]
+    summary = cross_contrast.summarise(cases)
+    assert summary["brain T2->T1"]["m"] == {"dice": pytest.approx(0.7), "num_folding": 3, "warned": 1, "pairs": 2}
+    assert summary["head T2->T1"]["m"]["pairs"] == 1
+    table = cross_contrast.markdown({"summary": summary})
+    assert "| brain T2->T1 | m | 0.7000 | 3 | 1 of 2 |" in table
+
+
+def test_without_the_label_maps_it_skips(tmp_path, capsys):
+    assert cross_contrast.main(["--label-maps", str(tmp_path / "none"), "--out-dir", str(tmp_path / "out")]) == 0
+    assert capsys.readouterr().out.startswith("skipped:")
+    assert not (tmp_path / "out").exists()

@@ -10,10 +10,11 @@ onto the other; as whole heads (skull and scalp kept, each at a random intensity
 the cross-contrast path must not change). Rows, each through the code path a user runs (``register --fixed`` with
 labels, the bundle's settings):
 
-- "refined (lncc)": the shipped refinement (local NCC: assumes one contrast);
-- "refined (mind)": the same with ``image_loss: mind`` (MIND-SSC descriptors, :mod:`monai_probreg.losses.mind`), what
-  ``register --contrast other`` runs;
-- ``--refined-variants NAME=FIELD:VALUE,...``: more rows, the shipped settings with fields replaced;
+- "--contrast same": the shipped refinement as ``register`` runs it by default;
+- "--contrast other": the refinement with the config's ``other_contrast`` fields, as ``register --contrast other``
+  runs it (no pull towards the network's mean);
+- ``--refined-variants NAME=FIELD:VALUE,...``: more rows, the shipped settings with fields replaced (e.g.
+  ``image_loss:mind,image_weight:100``: MIND-SSC descriptors, :mod:`monai_probreg.losses.mind`);
 - "ANTs SyN": ``ants.registration(fixed, moving, type_of_transform="SyN")``, antspyx defaults (Mattes MI for the
   affine and the SyN stages), whole (read, register, resample, write).
 
@@ -23,7 +24,7 @@ in ``summary.json``).
     python benchmarks/cross_contrast.py --label-maps SynthSeg/data/training_label_maps --threads 2
 
 Prints one table and writes ``OUT_DIR/cross_contrast.json``; without the label maps it prints "skipped: ..." and exits
-0. Tuning (the MIND weight, docs/accuracy.md) used maps 01-04 (``--maps training_seg_01 ...``), never 11-12.
+0. The ``other_contrast`` settings were chosen on maps 01-02 (``--maps training_seg_01 training_seg_02``), never 11-12.
 """
 
 from __future__ import annotations
@@ -57,11 +58,12 @@ MAPS = ("training_seg_11", "training_seg_12")  # never in a training run (train_
 SEEDS = (0,)
 KINDS = ("head", "brain")
 ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
-MIND_ROW = {"image_loss": "mind"}  # the cross-contrast path's fields over the shipped refinement
 
 
 def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
     model = load_model()
+    if not args.variants_only:
+        rows_options = {"--contrast same": {}, "--contrast other": dict(model.other_contrast), **rows_options}
     paths = [args.label_maps / f"{m}.nii.gz" for m in args.maps]
     contrasts = {"T2->T1": T2_LIKE} | ({"T1->T1": T1_LIKE} if args.same_contrast else {})
     cases: list[dict] = []
@@ -111,7 +113,7 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
                             flush=True,
                         )
                         cases.append(case)
-    return {"cases": cases, "summary": summarise(cases)}
+    return {"cases": cases, "summary": summarise(cases), "rows": rows_options}
 
 
 def summarise(cases: list[dict]) -> dict:
@@ -156,7 +158,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="NAME=FIELD:VALUE,...",
         help="more rows, the shipped refinement with RefinementSettings fields replaced",
     )
-    ap.add_argument("--variants-only", action="store_true", help="only the --refined-variants rows (tuning)")
+    ap.add_argument(
+        "--variants-only", action="store_true", help="only the --refined-variants rows (and ANTs): no --contrast rows"
+    )
     ap.add_argument("--no-ants", dest="ants", action="store_false", help="leave ANTs SyN out")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
@@ -165,9 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not paths or not all(p.is_file() for p in paths):
         print(f"skipped: no {args.maps} in {args.label_maps} (git clone https://github.com/BBillot/SynthSeg)")
         return 0
-    rows_options: dict[str, dict] = (
-        {} if args.variants_only else {"refined (lncc)": {}, "refined (mind)": dict(MIND_ROW)}
-    )
+    rows_options: dict[str, dict] = {}
     for name, fields in (parse_variant(v) for v in args.refined_variants):
         try:
             RefinementSettings(**fields)
@@ -188,7 +190,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "maps": list(args.maps),
         "seeds": list(args.seeds),
         "kinds": list(args.kinds),
-        "rows": rows_options,
+        "rows": result.pop("rows"),
         "ants": ANTS_CALL if args.ants else None,
         "threads": args.threads,
         "seconds": round(time.perf_counter() - start, 1),

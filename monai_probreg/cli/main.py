@@ -184,6 +184,16 @@ def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
         "warp, below 1 a sharper one that follows the images more closely (docs/cli.md, its effect on LPBA40); "
         "default 1; needs the refinement (not --refine 0)",
     )
+    reg.add_argument(
+        "--contrast",
+        choices=("same", "other"),
+        default="same",
+        help="same (default): both scans of one contrast (or contrasts a local correlation relates, e.g. two "
+        "T1-weighted scanners); other: a T2-weighted or FLAIR scan onto a T1-weighted atlas or template, the "
+        "refinement then follows the images without the pull towards the network's estimate, which was trained on "
+        "pairs of one contrast (the config's other_contrast settings; docs/cli.md); needs the refinement (not "
+        "--refine 0)",
+    )
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     reg.add_argument(
         "--no-inverse",
@@ -434,6 +444,8 @@ def _options(args: argparse.Namespace):
         raise InputError(f"--smoothness must be a number > 0 (1: the shipped prior); got {args.smoothness}")
     if args.smoothness is not None and args.refine == 0:
         raise InputError("--smoothness scales the refinement's prior: expected refinement on, got --refine 0")
+    if args.contrast == "other" and args.refine == 0:
+        raise InputError("--contrast other sets the refinement's image term: expected refinement on, got --refine 0")
     initial = _initial_transform(args)
     affine = None
     if _affine_stage_runs(args):
@@ -536,17 +548,26 @@ def _setup(args: argparse.Namespace):
     return model, fixed
 
 
-def _with_refinement(options, model, iterations: int | None, smoothness: float | None = None):
-    """The config's refinement settings (``model.refinement``), with ``--refine N`` steps and ``--smoothness S`` (the
-    prior's ``prior_lambda`` times S) when given; without either the options keep ``refinement=None``, which
-    ``register_scan`` reads as the config's."""
+def _with_refinement(
+    options, model, iterations: int | None, smoothness: float | None = None, contrast: str = "same"
+):
+    """The config's refinement settings (``model.refinement``), with the config's ``other_contrast`` fields for
+    ``--contrast other``, ``--refine N`` steps and ``--smoothness S`` (the prior's ``prior_lambda`` times S) when
+    given; without any the options keep ``refinement=None``, which ``register_scan`` reads as the config's."""
     import dataclasses
 
     from monai_probreg.utils.errors import InputError
 
-    if iterations is None and smoothness is None:
+    if iterations is None and smoothness is None and contrast == "same":
         return options
     refinement = model.refinement
+    if contrast == "other":
+        if not model.other_contrast:
+            raise InputError(
+                f"--contrast other: expected the config's 'other_contrast' settings, got none in "
+                f"{str(model.config_file)!r}"
+            )
+        refinement = refinement.with_fields(**model.other_contrast)
     if iterations is not None:
         try:
             refinement = refinement.with_fields(num_iterations=iterations)
@@ -600,7 +621,7 @@ def _register_one(args: argparse.Namespace, files: Sequence[str], ready: str, re
     check_output_dir(args.out, args.overwrite)  # fail before loading anything
     start = time.perf_counter()
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine, args.smoothness)
+    options = _with_refinement(options, model, args.refine, args.smoothness, args.contrast)
     _say(args, f"{ready} ready in {time.perf_counter() - start:.1f} s")
     summary = register(model, fixed, options, lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
     return _print_result(args, summary)
@@ -656,7 +677,7 @@ def _register_batch(args: argparse.Namespace) -> int:
     for item in items:  # fail fast on what is cheap to check and would hit every scan
         check_output_dir(out / item.name, args.overwrite)
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine, args.smoothness)
+    options = _with_refinement(options, model, args.refine, args.smoothness, args.contrast)
     per_scan = args.initial_transform is not None and Path(args.initial_transform).is_dir()
     rows = register_batch(
         model,

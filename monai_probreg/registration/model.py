@@ -49,6 +49,9 @@ class LoadedModel:
     quality: QualityModel | None = None  # the weights' quality estimate (<weights stem>.quality.json), None without
     # the refinement settings the calibration was fitted around ({}: the network's mean); None: raw, or not recorded
     calibration_refinement: dict | None = None
+    # the refinement's fields replaced for a pair of two contrasts (the config's ``other_contrast``; register
+    # --contrast other): {} where the config has none
+    other_contrast: dict = field(default_factory=dict)
 
     @property
     def std_scale(self) -> float:
@@ -106,6 +109,7 @@ def load_model(
         refinement = parser.get_parsed_content("refinement") if "refinement" in parser else RefinementSettings()
     except Exception as err:  # noqa: BLE001 - any config error becomes one line
         raise InputError(f"--config {str(config)!r}: bad 'refinement' settings ({first_line(err)})") from None
+    other_contrast = _other_contrast(parser, refinement, config)
     try:
         load_weights(network, weights, device)
     except InputError as err:  # untrusted (a pickle that could run code), truncated or corrupt: its own message
@@ -130,4 +134,18 @@ def load_model(
         weights_sha256=file_sha256(weights),
         quality=quality_model,
         calibration_refinement=None if record is None else record.refinement,
+        other_contrast=other_contrast,
     )
+
+
+def _other_contrast(parser, refinement: RefinementSettings, config: Path) -> dict:
+    """The config's ``other_contrast`` (RefinementSettings fields by name), checked against ``refinement``: {} when
+    the config has none; one line naming the config and the bad field otherwise."""
+    if "other_contrast" not in parser:
+        return {}
+    try:
+        fields = dict(parser.get_parsed_content("other_contrast"))
+        refinement.with_fields(**fields)
+    except Exception as err:  # noqa: BLE001 - any config error becomes one line
+        raise InputError(f"--config {str(config)!r}: bad 'other_contrast' settings ({first_line(err)})") from None
+    return fields

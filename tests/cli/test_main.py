@@ -426,6 +426,53 @@ def test_smoothness_scales_the_refinements_prior(scene, tmp_path):
     assert refinement["num_iterations"] == 3
 
 
+def test_contrast_other_needs_the_refinement(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--contrast", "other", "--refine", "0")
+    assert "--contrast other" in line and "got --refine 0" in line
+
+
+def test_contrast_other_refines_with_the_configs_other_contrast_settings(scene, tmp_path):
+    """--contrast other: the refinement's fields of the config's ``other_contrast`` (no pull towards the network's
+    mean, recorded in summary.json), its other settings as shipped; --smoothness still scales the prior."""
+    out = tmp_path / "other"
+    result = _register(scene, out, "--contrast", "other", "--smoothness", "2", "--refine", "3", "--no-qc", *FAST_AFFINE)
+    assert result.rc == 0, result.err
+    refinement = json.loads((out / "summary.json").read_text())["model"]["refinement"]
+    config = ConfigParser.load_config_file(str(Path(scene.bundle) / "configs" / "inference.yaml"))
+    assert refinement["posterior_weight"] == config["contrast_posterior_weight"] == 0.0
+    assert config["refine_posterior_weight"] > 0  # what --contrast same keeps
+    assert refinement["image_loss"] == config["refine_image_loss"]
+    assert refinement["prior_lambda"] == pytest.approx(config["refine_prior_lambda"] * 2)
+    assert refinement["num_iterations"] == 3
+
+
+def test_contrast_other_without_the_configs_settings_says_so(tmp_path):
+    from monai_probreg.cli.main import _with_refinement
+    from monai_probreg.engines.refinement import RefinementSettings
+    from monai_probreg.registration.options import RegistrationOptions
+    from monai_probreg.utils.errors import InputError
+
+    model = SimpleNamespace(
+        refinement=RefinementSettings(num_iterations=3), other_contrast={}, config_file=tmp_path / "mine.yaml"
+    )
+    with pytest.raises(
+        InputError, match=r"--contrast other: expected the config's 'other_contrast' settings, got none"
+    ):
+        _with_refinement(RegistrationOptions(), model, None, None, "other")
+    assert _with_refinement(RegistrationOptions(), model, None, None, "same").refinement is None  # the config's
+
+
+def test_a_bad_other_contrast_setting_names_the_config(tmp_path):
+    from monai_probreg.engines.refinement import RefinementSettings
+    from monai_probreg.registration.model import _other_contrast
+    from monai_probreg.utils.errors import InputError
+
+    parser = ConfigParser({"other_contrast": {"image_loss": "mind", "mind_dilation": 0}})
+    with pytest.raises(InputError, match=r"mine.yaml.*bad 'other_contrast' settings.*mind_dilation"):
+        _other_contrast(parser, RefinementSettings(num_iterations=3), tmp_path / "mine.yaml")
+    assert _other_contrast(ConfigParser({}), RefinementSettings(), tmp_path / "mine.yaml") == {}
+
+
 def _register(scene, out: Path, *extra: str):
     """``register`` of the scene's moving scan into ``out`` with the scene's fixed image and bundle, plus ``extra``."""
     return run_cli("register", "--moving", str(scene.moving), "--out", str(out), *extra, *scene.common)

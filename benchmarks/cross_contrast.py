@@ -117,15 +117,17 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
 
 
 def summarise(cases: list[dict]) -> dict:
-    """Per (kind, contrast) and row: mean Dice, folded voxels, warned pairs, pairs."""
+    """Per (kind, contrast) and row: mean Dice, folded voxels, warned pairs (None for a method without a quality
+    estimate: ANTs), pairs."""
     out: dict[str, dict] = {}
     for case in cases:
         group = out.setdefault(f"{case['kind']} {case['contrast']}", {})
         for row, record in case["rows"].items():
-            entry = group.setdefault(row, {"dice": [], "num_folding": 0, "warned": 0})
+            entry = group.setdefault(row, {"dice": [], "num_folding": 0, "warned": 0 if "warning" in record else None})
             entry["dice"].append(record["dice"])
             entry["num_folding"] += int(record.get("num_folding", 0))
-            entry["warned"] += int(bool(record.get("warning")))
+            if entry["warned"] is not None:  # ANTs has no quality estimate: None
+                entry["warned"] += int(bool(record.get("warning")))
     for group in out.values():
         for entry in group.values():
             entry["pairs"] = len(entry["dice"])
@@ -139,7 +141,7 @@ def markdown(result: dict) -> str:
         for row, entry in rows.items():
             lines.append(
                 f"| {group} | {row} | {entry['dice']:.4f} | {entry['num_folding']} | "
-                f"{entry['warned']} of {entry['pairs']} |"
+                + ("– |" if entry["warned"] is None else f"{entry['warned']} of {entry['pairs']} |")
             )
     return "\n".join(lines)
 

@@ -45,7 +45,7 @@ from monai_probreg.uncertainty.entropy import (
     velocity_entropy,
 )
 
-__version__ = "0.25.0"  # the bundle release (bundle/configs/metadata.json "version"); pyproject reads it
+__version__ = "0.26.0"  # the bundle release (bundle/configs/metadata.json "version"); pyproject reads it
 
 __all__ = [
     "CachedWarp",

@@ -548,9 +548,7 @@ def _setup(args: argparse.Namespace):
     return model, fixed
 
 
-def _with_refinement(
-    options, model, iterations: int | None, smoothness: float | None = None, contrast: str = "same"
-):
+def _with_refinement(options, model, iterations: int | None, smoothness: float | None = None, contrast: str = "same"):
     """The config's refinement settings (``model.refinement``), with the config's ``other_contrast`` fields for
     ``--contrast other``, ``--refine N`` steps and ``--smoothness S`` (the prior's ``prior_lambda`` times S) when
     given; without any the options keep ``refinement=None``, which ``register_scan`` reads as the config's."""

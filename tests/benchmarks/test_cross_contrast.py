@@ -30,3 +30,10 @@ def test_without_the_label_maps_it_skips(tmp_path, capsys):
     assert cross_contrast.main(["--label-maps", str(tmp_path / "none"), "--out-dir", str(tmp_path / "out")]) == 0
     assert capsys.readouterr().out.startswith("skipped:")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_method_without_a_quality_estimate_has_no_warned_count():
+    cases = [_case("head", "T2->T1", {"ANTs SyN": {"dice": 0.6, "num_folding": 0, "seconds": 3.0}})]
+    summary = cross_contrast.summarise(cases)
+    assert summary["head T2->T1"]["ANTs SyN"]["warned"] is None
+    assert "| head T2->T1 | ANTs SyN | 0.6000 | 0 | – |" in cross_contrast.markdown({"summary": summary})

@@ -33,50 +33,40 @@ from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 
 __all__ = ["ASEG_LABELS", "T1_LIKE", "T2_LIKE", "RandLabelContrastd", "SlotLabelsd", "render_labels", "scale_to_unit"]
 
-# FreeSurfer label -> T1-weighted intensity relative to cerebral white matter (left and right alike)
-_BILATERAL = {  # (left, right): intensity
-    (2, 41): 1.00,  # cerebral white matter
-    (3, 42): 0.62,  # cerebral cortex
-    (4, 43): 0.18,  # lateral ventricle
-    (5, 44): 0.20,  # inferior lateral ventricle
-    (7, 46): 0.95,  # cerebellum white matter
-    (8, 47): 0.66,  # cerebellum cortex
-    (10, 49): 0.86,  # thalamus
-    (11, 50): 0.72,  # caudate
-    (12, 51): 0.76,  # putamen
-    (13, 52): 0.88,  # pallidum
-    (17, 53): 0.63,  # hippocampus
-    (18, 54): 0.66,  # amygdala
-    (26, 58): 0.70,  # accumbens
-    (28, 60): 0.88,  # ventral diencephalon
-    (30, 62): 0.55,  # vessel
+# FreeSurfer label -> (T1-weighted intensity relative to cerebral white matter, T2-weighted intensity relative to CSF),
+# left and right alike. T2: fluid bright, white matter darkest of the tissues, the iron-rich pallidum dark, vessels a
+# flow void (typical 1.5-3 T MPRAGE and turbo spin echo ratios, not fitted to any dataset); the T2 column is for
+# cross-contrast pairs (a T2-weighted scan onto a T1-weighted atlas: benchmarks/cross_contrast.py)
+_BILATERAL = {  # (left, right): (T1, T2)
+    (2, 41): (1.00, 0.30),  # cerebral white matter
+    (3, 42): (0.62, 0.50),  # cerebral cortex
+    (4, 43): (0.18, 1.00),  # lateral ventricle
+    (5, 44): (0.20, 0.95),  # inferior lateral ventricle
+    (7, 46): (0.95, 0.32),  # cerebellum white matter
+    (8, 47): (0.66, 0.52),  # cerebellum cortex
+    (10, 49): (0.86, 0.40),  # thalamus
+    (11, 50): (0.72, 0.50),  # caudate
+    (12, 51): (0.76, 0.44),  # putamen
+    (13, 52): (0.88, 0.33),  # pallidum
+    (17, 53): (0.63, 0.56),  # hippocampus
+    (18, 54): (0.66, 0.54),  # amygdala
+    (26, 58): (0.70, 0.50),  # accumbens
+    (28, 60): (0.88, 0.38),  # ventral diencephalon
+    (30, 62): (0.55, 0.15),  # vessel
 }
 # 3rd and 4th ventricle, brainstem, CSF, 5th ventricle, optic chiasm
-_MIDLINE = {14: 0.18, 15: 0.18, 16: 0.90, 24: 0.18, 72: 0.18, 85: 0.90}
-T1_LIKE: dict[int, float] = {**{lab: v for pair, v in _BILATERAL.items() for lab in pair}, **_MIDLINE}
+_MIDLINE = {14: (0.18, 1.00), 15: (0.18, 1.00), 16: (0.90, 0.36), 24: (0.18, 1.00), 72: (0.18, 1.00), 85: (0.90, 0.35)}
 
-# FreeSurfer label -> T2-weighted intensity relative to CSF (1.0): fluid bright, white matter darkest of the tissues,
-# the iron-rich pallidum dark, vessels a flow void (typical 1.5-3 T turbo spin echo ratios, not fitted to any dataset);
-# for cross-contrast pairs (a T2-weighted scan onto a T1-weighted atlas: benchmarks/cross_contrast.py)
-_BILATERAL_T2 = {
-    (2, 41): 0.30,  # cerebral white matter
-    (3, 42): 0.50,  # cerebral cortex
-    (4, 43): 1.00,  # lateral ventricle
-    (5, 44): 0.95,  # inferior lateral ventricle
-    (7, 46): 0.32,  # cerebellum white matter
-    (8, 47): 0.52,  # cerebellum cortex
-    (10, 49): 0.40,  # thalamus
-    (11, 50): 0.50,  # caudate
-    (12, 51): 0.44,  # putamen
-    (13, 52): 0.33,  # pallidum
-    (17, 53): 0.56,  # hippocampus
-    (18, 54): 0.54,  # amygdala
-    (26, 58): 0.50,  # accumbens
-    (28, 60): 0.38,  # ventral diencephalon
-    (30, 62): 0.15,  # vessel
-}
-_MIDLINE_T2 = {14: 1.00, 15: 1.00, 16: 0.36, 24: 1.00, 72: 1.00, 85: 0.35}
-T2_LIKE: dict[int, float] = {**{lab: v for pair, v in _BILATERAL_T2.items() for lab in pair}, **_MIDLINE_T2}
+
+def _column(k: int) -> dict[int, float]:
+    return {
+        **{lab: values[k] for pair, values in _BILATERAL.items() for lab in pair},
+        **{lab: values[k] for lab, values in _MIDLINE.items()},
+    }
+
+
+T1_LIKE: dict[int, float] = _column(0)
+T2_LIKE: dict[int, float] = _column(1)
 
 # the structures Dice is scored on (FreeSurfer's aseg as SynthMorph reports it): the table less vessels, the 5th
 # ventricle and the chiasm (tens of voxels at 1 mm: no overlap measure is stable on them)

@@ -645,6 +645,18 @@ def test_a_larger_prior_gives_a_smoother_refined_field(spatial_dims):
     assert energy[50.0] < 0.5 * energy[0.05] and spread[50.0] < spread[0.05]
 
 
+# the MIND term from the identity: no pull (the untrained posterior would pin it), a prior that favours the translation
+MIND_SETTINGS = RefinementSettings(
+    num_iterations=1,
+    learning_rate=0.1,
+    prior_lambda=10.0,
+    posterior_weight=0.0,
+    image_loss="mind",
+    image_weight=100.0,
+    mind_dilation=1,
+)
+
+
 def _two_contrast_pair(shape: tuple[int, ...], axis: int) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`_pair` with the moving image's contrast inverted (1 - image: bright where the fixed one is dark, as CSF
     between T2- and T1-weighted scans): a local correlation of the aligned pair is -1."""
@@ -658,15 +670,7 @@ def test_the_mind_term_finds_a_known_shift_across_contrasts(shape, axis):
     along ``axis`` (the pull-back of the other terms) and the MIND term drops."""
     net = _identity_net(len(shape))
     moving, fixed = _two_contrast_pair(shape, axis)
-    settings = RefinementSettings(
-        num_iterations=60,
-        learning_rate=0.1,
-        prior_lambda=10.0,
-        posterior_weight=0.0,
-        image_loss="mind",
-        image_weight=100.0,
-        mind_dilation=1,
-    )
+    settings = replace(MIND_SETTINGS, num_iterations=60)
     start = register_pair(net, moving, fixed)
     refined = refine_registration(net, moving, fixed, start, settings)
     inside = fixed[0, 0] > 0.3
@@ -684,15 +688,7 @@ def test_the_similarity_guard_compares_two_contrasts_by_mind():
     net = _identity_net(2)
     moving, fixed = _two_contrast_pair((32, 48), axis=1)
     output = register_pair(net, moving, fixed)
-    settings = RefinementSettings(
-        num_iterations=30,
-        learning_rate=0.1,
-        prior_lambda=10.0,
-        posterior_weight=0.0,
-        image_loss="mind",
-        image_weight=100.0,
-        mind_dilation=1,
-    )
+    settings = replace(MIND_SETTINGS, num_iterations=30)
     unguarded = refine_registration(net, moving, fixed, output, settings)
     guarded = refine_registration(net, moving, fixed, output, replace(settings, similarity_guard=True))
     assert guarded.displacement.abs().max() > 0.5

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import parse_variant
-from generalization import _options, ants_whole, dice, synthetic_head
+from generalization import ants_whole, command_options, dice, synthetic_head
 
 from monai_probreg.data.label_synthesis import ASEG_LABELS, T1_LIKE, T2_LIKE
 from monai_probreg.engines.refinement import RefinementSettings
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
                             out = sub / f"{i}{j}_{row.replace(' ', '_')}"
                             start = time.perf_counter()
                             summary = register_scan(
-                                model, fixed, moving, out, moving_label, _options(model, fields, seed)
+                                model, fixed, moving, out, moving_label, command_options(model, fields, seed)
                             )
                             case["rows"][row] = {
                                 "dice": dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS),

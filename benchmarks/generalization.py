@@ -184,7 +184,7 @@ def part_demo(models: dict, options: dict, fixed, ants: AntsCache | None) -> dic
         for method, refine in options.items():
             cases = {}
             for seed in DEMO_SEEDS:
-                opts = _options(model, refine, seed, samples=True)
+                opts = command_options(model, refine, seed, samples=True)
                 cases[seed] = one_case(model, fixed, seed, SyntheticSettings(), opts)
             rows[f"{method} ({name})"] = _demo_row(cases)
             print(f"[demo] {method} ({name}): {rows[f'{method} ({name})']}", flush=True)
@@ -230,7 +230,7 @@ def part_native(models: dict, options: dict, native_dir: Path, ants: AntsCache |
             for method, refine in options.items():
                 out = Path(tmp) / f"{name}_{method}"
                 start = time.perf_counter()
-                summary = register_scan(model, fixed, scan, out, None, _options(model, refine, 0))
+                summary = register_scan(model, fixed, scan, out, None, command_options(model, refine, 0))
                 seconds = time.perf_counter() - start
                 warped = read_image(out / "warped.nii.gz").array
                 rows[f"{method} ({name})"] = {
@@ -300,7 +300,9 @@ def part_synthetic(models: dict, options: dict, label_maps: Path | None, ants: A
                 for name, model in models.items():
                     for method, refine in options.items():
                         out = Path(tmp) / f"{pair}_{name}_{method}"
-                        summary = register_scan(model, fixed, moving, out, moving_label, _options(model, refine, seed))
+                        summary = register_scan(
+                            model, fixed, moving, out, moving_label, command_options(model, refine, seed)
+                        )
                         score = dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS)
                         _add(rows, f"{method} ({name})", pair, score, summary["jacobian"]["num_nonpositive"])
                 if ants is not None:
@@ -393,7 +395,7 @@ def _lpba40_row(row: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------------- running
-def _options(model, refine: dict, seed: int, samples: bool = False) -> RegistrationOptions:
+def command_options(model, refine: dict, seed: int, samples: bool = False) -> RegistrationOptions:
     """The command's options with the bundle's refinement settings, ``refine``'s fields replaced, and ``seed``;
     ``samples``: the demo's posterior samples (its coverage), else none and no maps (what is scored needs none)."""
     base = (

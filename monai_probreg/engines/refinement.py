@@ -159,9 +159,8 @@ class RefinementSettings:
         the fold guard) has a lower local NCC with the fixed image than the moving image itself has (the quality
         estimate's measure, :func:`~monai_probreg.uncertainty.quality_features.local_ncc`), the deformation is given
         up and the identity returned (zero velocity mean, the affine alone on the command line); with "mind", when
-        the MIND term of the registration is larger than the moving image's own (a correlation does not compare two
-        contrasts). A scan onto a copy
-        of itself has nothing to register, and every step there only moves tissue the network invents; on pairs
+        the MIND term of the registration is larger than the moving image's own. A scan onto a copy of itself has
+        nothing to register, and every step there only moves tissue the network invents; on pairs
         with something to register the deformable step always raised the local NCC (``benchmarks/identity_cases.py``,
         ``benchmarks/failure_detection.py``). False: the refined (or fold-guarded) registration whatever it scores.
     """
@@ -529,10 +528,8 @@ def _similarity_guard(
     when given (the fixed mask and the moving mask, unwarped before, warped after): an artefact the masks leave out
     must not decide the guard either."""
     if settings is not None and settings.image_loss == "mind":
-        before, after = (
-            _mind_similarity(image, fixed, settings, masks, displacement if image is warped else None)
-            for image in (moving, warped)
-        )
+        before = _mind_similarity(moving, fixed, settings, masks, None)
+        after = _mind_similarity(warped, fixed, settings, masks, displacement)
     elif masks is None or (masks.fixed is None and masks.moving is None):
         before = local_ncc(moving[:, :1], fixed[:, :1])
         after = local_ncc(warped[:, :1], fixed[:, :1])

@@ -131,7 +131,7 @@ class FixedImageMIND(nn.Module):
 
     def __init__(self, fixed: Tensor, radius: int = 1, dilation: int = 2) -> None:
         super().__init__()
-        self.loss = MINDLoss(radius, dilation, reduction="none")
+        self.radius, self.dilation = _check("radius", radius, 0), _check("dilation", dilation, 1)
         self.shape = tuple(fixed.shape)
         with torch.no_grad():
             self.descriptor = mind_descriptor(fixed.detach(), radius, dilation)
@@ -140,7 +140,7 @@ class FixedImageMIND(nn.Module):
         """(B, 1, *S): the mean over channels of the squared descriptor difference at each voxel."""
         if tuple(warped.shape) != self.shape:
             raise ValueError(f"expected warped of shape {self.shape} (the fixed image's); got {tuple(warped.shape)}")
-        descriptor = mind_descriptor(warped, self.loss.radius, self.loss.dilation)
+        descriptor = mind_descriptor(warped, self.radius, self.dilation)
         return (descriptor - self.descriptor).square().mean(dim=1, keepdim=True)
 
     def forward(self, warped: Tensor, weight: Tensor | None = None) -> Tensor:

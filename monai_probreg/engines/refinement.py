@@ -63,6 +63,7 @@ from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.networks.probreg_net import ProbRegNet, RegistrationOutput
 from monai_probreg.spatial.masks import MASK_LEVEL  # a mask resampled linearly is inside where it is at least this
 from monai_probreg.uncertainty.quality_features import local_ncc
+from monai_probreg.utils.errors import check_integer
 
 __all__ = [
     "LATER_SETTINGS",
@@ -187,12 +188,12 @@ class RefinementSettings:
 
     def __post_init__(self) -> None:
         for name in ("num_iterations", "fold_backtracks", "fold_local_steps", "coarse_iterations"):
-            _check_integer(name, getattr(self, name), minimum=0)
-        _check_integer("velocity_grid_factor", self.velocity_grid_factor, minimum=1)
-        _check_integer("image_grid_factor", self.image_grid_factor, minimum=1)
-        _check_integer("lncc_kernel_size", self.lncc_kernel_size, minimum=3)
-        _check_integer("mind_radius", self.mind_radius, minimum=0)
-        _check_integer("mind_dilation", self.mind_dilation, minimum=1)
+            check_integer(name, getattr(self, name), minimum=0)
+        check_integer("velocity_grid_factor", self.velocity_grid_factor, minimum=1)
+        check_integer("image_grid_factor", self.image_grid_factor, minimum=1)
+        check_integer("lncc_kernel_size", self.lncc_kernel_size, minimum=3)
+        check_integer("mind_radius", self.mind_radius, minimum=0)
+        check_integer("mind_dilation", self.mind_dilation, minimum=1)
         if self.lncc_kernel_size % 2 == 0:
             raise ValueError(f"lncc_kernel_size must be an odd integer >= 3; got {self.lncc_kernel_size!r}")
         for name in ("learning_rate", "image_sigma", "prior_lambda", "adam_eps"):
@@ -204,7 +205,7 @@ class RefinementSettings:
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
                 raise ValueError(f"{name} must be a number >= 0; got {value!r}")
         if self.coarse_lncc_kernel_size is not None:
-            _check_integer("coarse_lncc_kernel_size", self.coarse_lncc_kernel_size, minimum=3)
+            check_integer("coarse_lncc_kernel_size", self.coarse_lncc_kernel_size, minimum=3)
             if self.coarse_lncc_kernel_size % 2 == 0:
                 raise ValueError(f"coarse_lncc_kernel_size must be odd; got {self.coarse_lncc_kernel_size!r}")
         for name in ("symmetric_start", "similarity_guard"):
@@ -225,7 +226,7 @@ class RefinementSettings:
     def with_iterations(self, num_iterations: int) -> RefinementSettings:
         """These settings with ``num_iterations`` steps in all, the schedule's finer steps kept last: as many finer
         steps as now (fewer if ``num_iterations`` is smaller), the rest coarse (the command's ``--refine N``)."""
-        _check_integer("num_iterations", num_iterations, minimum=0)
+        check_integer("num_iterations", num_iterations, minimum=0)
         fine = self.num_iterations - self.coarse_iterations
         return replace(self, num_iterations=num_iterations, coarse_iterations=max(num_iterations - fine, 0))
 
@@ -268,11 +269,6 @@ LATER_SETTINGS = {
     "mind_radius": 1,
     "mind_dilation": 2,
 }
-
-
-def _check_integer(name: str, value: object, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
 
 
 def _on_grid(image: Tensor, size: tuple[int, ...]) -> Tensor:

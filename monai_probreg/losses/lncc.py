@@ -26,6 +26,8 @@ from monai.losses import LocalNormalizedCrossCorrelationLoss
 from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
+from monai_probreg.utils.errors import check_integer
+
 __all__ = [
     "BOX_SUM_PLANES",
     "POOLED_FROM_VOXELS",
@@ -131,9 +133,7 @@ class BoxLNCCLoss(LocalNormalizedCrossCorrelationLoss):
         pooled_from_voxels: int = POOLED_FROM_VOXELS,
     ) -> None:
         super().__init__(spatial_dims, kernel_size, "rectangular", reduction, smooth_nr, smooth_dr)
-        if isinstance(pooled_from_voxels, bool) or not isinstance(pooled_from_voxels, int) or pooled_from_voxels < 0:
-            raise ValueError(f"pooled_from_voxels must be an integer >= 0; got {pooled_from_voxels!r}")
-        self.pooled_from_voxels = pooled_from_voxels
+        self.pooled_from_voxels = check_integer("pooled_from_voxels", pooled_from_voxels, 0)
 
     def forward(self, pred: Tensor, target: Tensor) -> Tensor:
         if pred.ndim - 2 != self.ndim:

@@ -29,6 +29,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from monai_probreg.utils.errors import check_integer
+
 __all__ = ["VARIANCE_CLAMP", "FixedImageMIND", "MINDLoss", "mind_descriptor", "mind_pairs"]
 
 # the local variance estimate v(x) is kept within [mean / VARIANCE_CLAMP, mean * VARIANCE_CLAMP] of its image mean
@@ -52,19 +54,13 @@ def mind_pairs(spatial_dims: int, dilation: int = 2) -> list[tuple[tuple[int, ..
     return [(p, q) for p, q in itertools.combinations(offsets, 2) if [a != 0 for a in p] != [b != 0 for b in q]]
 
 
-def _check(name: str, value: object, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
-    return value
-
-
 def mind_descriptor(image: Tensor, radius: int = 1, dilation: int = 2) -> Tensor:
     """MIND-SSC of ``image`` (B, C, *S), 2-d or 3-d (module docstring): (B, C * P, *S), channel ``c * P + j`` the
     ``j``-th pair of :func:`mind_pairs` of image channel ``c``. ``radius``: the patch's half-width in voxels (0: a
     single voxel); ``dilation``: how far the neighbours are, in voxels. Differentiable (float32 or float64)."""
     if image.ndim not in (4, 5):
         raise ValueError(f"image must be (B, C, *S) with 2 or 3 spatial dims; got shape {tuple(image.shape)}")
-    radius, dilation = _check("radius", radius, 0), _check("dilation", dilation, 1)
+    radius, dilation = check_integer("radius", radius, 0), check_integer("dilation", dilation, 1)
     spatial_dims = image.ndim - 2
     spatial = image.shape[2:]
     padded = F.pad(image, [dilation] * (2 * spatial_dims), mode="replicate")
@@ -104,7 +100,7 @@ class MINDLoss(nn.Module):
 
     def __init__(self, radius: int = 1, dilation: int = 2, reduction: str = "mean") -> None:
         super().__init__()
-        self.radius, self.dilation = _check("radius", radius, 0), _check("dilation", dilation, 1)
+        self.radius, self.dilation = check_integer("radius", radius, 0), check_integer("dilation", dilation, 1)
         if reduction not in ("mean", "none"):
             raise ValueError(f"reduction must be 'mean' or 'none'; got {reduction!r}")
         self.reduction = reduction
@@ -131,7 +127,7 @@ class FixedImageMIND(nn.Module):
 
     def __init__(self, fixed: Tensor, radius: int = 1, dilation: int = 2) -> None:
         super().__init__()
-        self.radius, self.dilation = _check("radius", radius, 0), _check("dilation", dilation, 1)
+        self.radius, self.dilation = check_integer("radius", radius, 0), check_integer("dilation", dilation, 1)
         self.shape = tuple(fixed.shape)
         with torch.no_grad():
             self.descriptor = mind_descriptor(fixed.detach(), radius, dilation)

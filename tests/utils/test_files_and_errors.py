@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from monai_probreg.utils.errors import InputError, UntrustedFileError, first_line
+from monai_probreg.utils.errors import InputError, UntrustedFileError, check_integer, first_line
 from monai_probreg.utils.files import (
     PARTIAL_FILE,
     atomic_write,
@@ -119,3 +119,14 @@ def test_first_line_quotes_the_first_non_blank_line_within_the_limit():
 
 def test_input_error_is_a_value_error_and_untrusted_an_input_error():
     assert issubclass(InputError, ValueError) and issubclass(UntrustedFileError, InputError)
+
+
+@pytest.mark.parametrize("value", [0, 3, 10**9])
+def test_check_integer_returns_an_integer_at_or_above_the_minimum(value):
+    assert check_integer("steps", value, 0) == value
+
+
+@pytest.mark.parametrize("value", [True, False, 2.0, "2", None, -1])
+def test_check_integer_names_the_setting_the_minimum_and_the_value(value):
+    with pytest.raises(ValueError, match=rf"^steps must be an integer >= 0; got {value!r}$".replace("(", r"\(")):
+        check_integer("steps", value, 0)

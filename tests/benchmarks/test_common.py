@@ -1,6 +1,6 @@
 """benchmarks/common.py, the helpers the scripts share, and how the scripts reach it: plain imports (the script's own
-folder is on sys.path when it runs; pytest's pythonpath gives the tests the same), no sys.path edits, no private
-name of another script."""
+folder is on sys.path when it runs, and benchmarks/ through PYTHONPATH for the experiments; pytest's pythonpath gives
+the tests the same), no sys.path edits, no private name of another script."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import common
 import pytest
 from bench_helpers import REPO
 
-SCRIPTS = sorted((REPO / "benchmarks").glob("*.py"))
+SCRIPTS = sorted((REPO / "benchmarks").glob("*.py")) + sorted((REPO / "experiments").glob("*.py"))
 LOCAL = {p.stem for p in SCRIPTS}
 
 

@@ -25,6 +25,8 @@ from bench_helpers import REPO
         "benchmarks/smoothness",
         "experiments/affine_levers",
         "experiments/uncertainty_ceiling",
+        "experiments/laplace_posterior",
+        "experiments/label_entropy_ranking",
         "experiments/lncc_margin",
         "experiments/speed_levers",
         "experiments/ddp_scaling",

@@ -75,7 +75,8 @@ from monai_probreg.metrics.calibration import (
     uncertainty_calibration_error,
 )
 from monai_probreg.uncertainty.calibration import FIT_LEVELS, POSTERIOR_SAMPLES, Calibration, calibrate_log_var
-from monai_probreg.uncertainty.entropy import label_entropy, velocity_entropy
+from monai_probreg.uncertainty.entropy import velocity_entropy
+from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
 from monai_probreg.weights.loading import load_weights
@@ -148,7 +149,8 @@ def propagated_labels(network, velocities: torch.Tensor, atlas_label: torch.Tens
 
 
 def label_case(network, pair, calibration: Calibration, num_samples, seed, refinement=None) -> dict[str, Any]:
-    """Atlas labels into the subject by K sampled inverse warps; label entropy vs wrongly labelled voxels.
+    """Atlas labels into the subject by K sampled inverse warps, read with partial volume as the bundle's
+    ``label_entropy`` reads them; label entropy vs wrongly labelled voxels.
     ``refinement``: around the refined mean (:func:`posterior_for`)."""
     moving, fixed = pair["moving"], pair["fixed"]
     size = tuple(moving.shape[2:])
@@ -165,11 +167,12 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed, refin
         atlas_label = pair["fixed_label"].to(torch.int16)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
         generator = torch.Generator().manual_seed(seed)
-        samples = []
+        reader = PartialVolumeLabels(atlas_label)  # the bundle's label entropy (posterior_maps)
         for start in range(0, num_samples, 4):
             z = sample_velocity(posterior.mean, log_var, min(4, num_samples - start), generator=generator)
-            samples += propagated_labels(network, z.flatten(0, 1), atlas_label, size)
-        entropy = label_entropy(torch.stack(samples))
+            for inverse in network.velocity_to_displacement(-z.flatten(0, 1), size):
+                reader.add(inverse[None])
+        entropy = reader.entropy()
     truth = pair["moving_label"][0, 0].to(torch.int16)
     region = (predicted > 0) | (truth > 0)
     wrong = (predicted != truth)[region]

@@ -44,8 +44,9 @@ from monai_probreg.uncertainty.entropy import (
     label_entropy,
     velocity_entropy,
 )
+from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
 
-__version__ = "0.26.0"  # the bundle release (bundle/configs/metadata.json "version"); pyproject reads it
+__version__ = "0.27.0"  # the bundle release (bundle/configs/metadata.json "version"); pyproject reads it
 
 __all__ = [
     "CachedWarp",
@@ -55,6 +56,7 @@ __all__ = [
     "JacobianStats",
     "LaplacianKLLoss",
     "LossTerms",
+    "PartialVolumeLabels",
     "PosteriorSamples",
     "ProbRegLoss",
     "ProbRegNet",

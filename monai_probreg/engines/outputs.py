@@ -64,8 +64,10 @@ that grid's affine, so it overlays the atlas in world coordinates.
                        calibrated p-interval is +- t(p) times its own std (about this map / sqrt(3)), t the
                        Student-t quantile with the calibration sidecar's interval_dof (calibration and its limits:
                        the bundle docs, "Uncertainty")
-  label_entropy.nii.gz entropy (nats) of the moving labels warped by the K samples: 0 = every sample agrees;
-                       high values flag voxels whose warped label is likely wrong (written when labels exist)
+  label_entropy.nii.gz entropy (nats) of the moving labels read by the K samples with partial volume (each
+                       sample weighs the labels around its point as linear interpolation does): 0 = every sample
+                       reads one label wholly; high values flag voxels whose warped label is likely wrong (written
+                       when labels exist)
 """
 
 
@@ -118,7 +120,7 @@ def write_outputs(
             None,
         ),
         "displacement_std": (lambda: maps.displacement_std, "displacement std over posterior samples, voxels", None),
-        "label_entropy": (lambda: maps.label_entropy, "entropy of labels warped by posterior samples", None),
+        "label_entropy": (lambda: maps.label_entropy, "entropy of labels read by posterior samples (partial volume)", None),
         "warped_label": (
             lambda: warp_labels(plain_tensor(moving_label).to(disp.device), disp)[0, 0].to(torch.int16),
             "moving labels warped to the fixed grid, nearest neighbour",

@@ -7,8 +7,9 @@
 - ``displacement_std``: sqrt(sum_c var_c) of K displacements drawn from the calibrated posterior, in voxels of
   the image grid: the radius-like spread of where each voxel maps. On held-out LPBA40 subjects its coverage is
   reported by ``benchmarks/uncertainty_calibration.py``.
-- ``label_entropy`` (when moving labels are given): entropy (nats) of the moving labels warped nearest-neighbour
-  by each of the K sampled displacements: 0 where every sample gives the same label, log K at most.
+- ``label_entropy`` (when moving labels are given): entropy (nats) of the moving labels read by each of the K
+  sampled displacements with partial volume, each sample giving the labels around its point the weights of linear
+  interpolation (:mod:`monai_probreg.uncertainty.partial_volume`): 0 where every sample reads one label wholly.
 
 All maps live on the fixed grid, like the rest of the outputs. The K samples use a seeded generator, so the
 maps are reproducible.
@@ -22,9 +23,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from monai_probreg.blocks.warp import warp_labels
 from monai_probreg.uncertainty.calibration import calibrate_log_var
-from monai_probreg.uncertainty.entropy import label_entropy, sampled_displacement_moments, velocity_entropy
+from monai_probreg.uncertainty.entropy import sampled_displacement_moments, velocity_entropy
+from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
 
 __all__ = ["PosteriorMaps", "posterior_maps"]
 
@@ -80,12 +81,13 @@ def posterior_maps(
     if num_samples == 0:
         return PosteriorMaps(entropy, None, None)
     generator = torch.Generator(device=velocity_mean.device).manual_seed(seed)
-    labels: list[Tensor] = []
+    labels = None if moving_label is None else PartialVolumeLabels(moving_label.to(velocity_mean.device))
 
     def to_displacement(z: Tensor) -> Tensor:
         disp = network.velocity_to_displacement(z, size)  # (n, D, *S)
-        if moving_label is not None:  # each sample's label map, kept for the entropy
-            labels.extend(warp_labels(moving_label.to(disp.device), d[None])[0, 0] for d in disp)
+        if labels is not None:  # each sample's reading of the labels, kept for the entropy
+            for d in disp:
+                labels.add(d[None])
         return disp
 
     _, variance = sampled_displacement_moments(
@@ -97,4 +99,4 @@ def posterior_maps(
         weights = torch.as_tensor([float(v) ** 2 for v in spacing], dtype=variance.dtype, device=variance.device)
         variance = variance * weights.view(1, -1, *([1] * (variance.ndim - 2)))
     std = variance[0].sum(0).sqrt()
-    return PosteriorMaps(entropy, std, label_entropy(torch.stack(labels)) if labels else None, variance[0])
+    return PosteriorMaps(entropy, std, None if labels is None else labels.entropy(), variance[0])

@@ -120,7 +120,11 @@ def write_outputs(
             None,
         ),
         "displacement_std": (lambda: maps.displacement_std, "displacement std over posterior samples, voxels", None),
-        "label_entropy": (lambda: maps.label_entropy, "entropy of labels read by posterior samples (partial volume)", None),
+        "label_entropy": (
+            lambda: maps.label_entropy,
+            "entropy of labels read by posterior samples (partial volume)",
+            None,
+        ),
         "warped_label": (
             lambda: warp_labels(plain_tensor(moving_label).to(disp.device), disp)[0, 0].to(torch.int16),
             "moving labels warped to the fixed grid, nearest neighbour",

@@ -41,7 +41,7 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -74,7 +74,13 @@ from monai_probreg.metrics.calibration import (
     spearman,
     uncertainty_calibration_error,
 )
-from monai_probreg.uncertainty.calibration import FIT_LEVELS, POSTERIOR_SAMPLES, Calibration, calibrate_log_var
+from monai_probreg.uncertainty.calibration import (
+    FIT_LEVELS,
+    POSTERIOR_SAMPLES,
+    Calibration,
+    calibrate_log_var,
+    calibration_for,
+)
 from monai_probreg.uncertainty.entropy import velocity_entropy
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
 from monai_probreg.utils.errors import InputError
@@ -211,6 +217,40 @@ def validation_model(args: argparse.Namespace):
     network = load_weights(evaluate.get_parsed_content("network_def", lazy=False), model_file, "cpu")
     subjects = args.subjects or list(bundle_parser(bundle_root, ["train.yaml"]).get_parsed_content("val_ids"))
     return evaluate, model_file, network, subjects
+
+
+class ValidationRun(NamedTuple):
+    """What a study on the validation subjects starts from (:func:`validation_run`)."""
+
+    evaluate: Any  # evaluate.yaml's parser
+    model_file: Path
+    network: Any
+    subjects: list[str]
+    calibration: Calibration  # the weights' sidecar's (raw, with a warning, without one)
+    index: Any  # the dataset's DatasetIndex
+    preprocessing: Any  # evaluate.yaml's
+
+
+def validation_run(args: argparse.Namespace) -> ValidationRun | None:
+    """The start of a study over ``args`` of :func:`validation_arguments`: None after printing the skip line when the
+    dataset is absent; ``--samples`` below 2 refused (a spread needs two); the threads set; the model, subjects,
+    calibration, dataset index and preprocessing."""
+    if not args.dataset_dir.is_dir():
+        print(f"skipped: dataset not found at {args.dataset_dir}")
+        return None
+    if args.samples < 2:
+        raise SystemExit(f"--samples must be >= 2; got {args.samples}")
+    torch.set_num_threads(args.threads)
+    evaluate, model_file, network, subjects = validation_model(args)
+    return ValidationRun(
+        evaluate,
+        model_file,
+        network,
+        subjects,
+        calibration_for(model_file),
+        index_dataset(args.dataset_dir),
+        evaluate.get_parsed_content("preprocessing"),
+    )
 
 
 def main(argv=None) -> int:

@@ -23,26 +23,25 @@ Prints a table and writes ``experiments/results/label_entropy_ranking.json``.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from common import write_report
 from monai.data import Dataset
-from uncertainty_calibration import validation_arguments, validation_model
+from uncertainty_calibration import validation_arguments, validation_run
 from uncertainty_ceiling import boundary_distance, scores
 
 from monai_probreg.blocks.sampling import sample_velocity
 from monai_probreg.blocks.warp import warp_labels
-from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.data.dataset import labelled_pairs
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.fitting.population_probe import SEED_STRIDE
-from monai_probreg.uncertainty.calibration import calibrate_log_var, calibration_for
+from monai_probreg.uncertainty.calibration import calibrate_log_var
 from monai_probreg.uncertainty.entropy import label_entropy
 from monai_probreg.uncertainty.residual import residual_variance
-from monai_probreg.utils.files import write_text
 from monai_probreg.utils.tensors import plain_tensor
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -142,20 +141,14 @@ def main(argv=None) -> int:
     parser = validation_arguments(__doc__)
     parser.set_defaults(out_dir=RESULTS)
     args = parser.parse_args(argv)
-    if not args.dataset_dir.is_dir():
-        print(f"skipped: dataset not found at {args.dataset_dir}")
-        return 0
-    if args.samples < 2:
-        raise SystemExit(f"--samples must be >= 2; got {args.samples}")
-    torch.set_num_threads(args.threads)
     start = time.time()
-    evaluate, model_file, network, subjects = validation_model(args)
-    refinement = evaluate.get_parsed_content("refinement")
-    calibration = calibration_for(model_file)
-    preprocessing = evaluate.get_parsed_content("preprocessing")
-    index = index_dataset(args.dataset_dir)
+    run = validation_run(args)
+    if run is None:
+        return 0
+    network, subjects, calibration = run.network, run.subjects, run.calibration
+    refinement = run.evaluate.get_parsed_content("refinement")
     per_subject = {}
-    for n, item in enumerate(Dataset(labelled_pairs(index, subjects), transform=preprocessing)):
+    for n, item in enumerate(Dataset(labelled_pairs(run.index, subjects), transform=run.preprocessing)):
         pair = {k: plain_tensor(v)[None] if isinstance(v, torch.Tensor) else v for k, v in item.items()}
         per_subject[pair["id"]] = row = subject_maps(
             network, pair, calibration, refinement, args.samples, args.seed + SEED_STRIDE * n + 2
@@ -165,23 +158,19 @@ def main(argv=None) -> int:
             flush=True,
         )
     summary = {k: float(np.nanmean([r[k] for r in per_subject.values()])) for k in row}
-    table = ["| label map (real pairs, the shipped calibration) | AUROC, wrongly propagated voxels |", "|---|---|"]
-    table += [f"| {k} | {v:.3f} |" for k, v in summary.items()]
-    markdown = "\n".join(table)
+    lines = ["| label map (real pairs, the shipped calibration) | AUROC, wrongly propagated voxels |", "|---|---|"]
+    lines += [f"| {k} | {v:.3f} |" for k, v in summary.items()]
     result = {
-        "model_file": str(model_file),
+        "model_file": str(run.model_file),
         "calibration": calibration._asdict(),
         "refinement_steps": refinement.num_iterations,
         "subjects": list(per_subject),
         "settings": {"samples": args.samples, "seed": args.seed, "threads": args.threads},
         "summary": summary,
         "per_subject": per_subject,
-        "markdown": markdown,
         "wall_time_s": time.time() - start,
     }
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    path = write_text(args.out_dir / "label_entropy_ranking.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{markdown}\n\nwrote {path} ({time.time() - start:.0f} s)")
+    write_report(args.out_dir, "label_entropy_ranking", result, lines)
     return 0
 
 

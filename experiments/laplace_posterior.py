@@ -33,7 +33,6 @@ diagonal above approximates.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -41,13 +40,14 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from common import write_report
 from monai.data import Dataset
-from uncertainty_calibration import propagated_labels, validation_arguments, validation_model
+from uncertainty_calibration import propagated_labels, validation_arguments, validation_run
 from uncertainty_ceiling import scores
 
 from monai_probreg.blocks.sampling import sample_velocity
 from monai_probreg.blocks.warp import warp_image, warp_labels
-from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.data.dataset import labelled_pairs
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.fitting.population_probe import (
     SEED_STRIDE,
@@ -59,10 +59,8 @@ from monai_probreg.fitting.population_probe import (
 )
 from monai_probreg.losses.lncc import box_sum
 from monai_probreg.metrics.calibration import spearman
-from monai_probreg.uncertainty.calibration import calibration_for
 from monai_probreg.uncertainty.entropy import label_entropy
 from monai_probreg.uncertainty.residual import residual_variance
-from monai_probreg.utils.files import write_text
 from monai_probreg.utils.tensors import plain_tensor
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -216,18 +214,13 @@ def main(argv=None) -> int:
     ap.set_defaults(out_dir=RESULTS)
     ap.add_argument("--kappa", type=float, default=KAPPA, help="the image term's weight in the Laplace precision")
     args = ap.parse_args(argv)
-    if not args.dataset_dir.is_dir():
-        print(f"skipped: dataset not found at {args.dataset_dir}")
-        return 0
-    if args.samples < 2:
-        raise SystemExit(f"--samples must be >= 2; got {args.samples}")
-    torch.set_num_threads(args.threads)
     start = time.time()
-    evaluate, model_file, network, subjects = validation_model(args)
-    refinement = evaluate.get_parsed_content("refinement")
-    calibration = calibration_for(model_file)
-    preprocessing = evaluate.get_parsed_content("preprocessing")
-    index = index_dataset(args.dataset_dir)
+    run = validation_run(args)
+    if run is None:
+        return 0
+    network, subjects, calibration, index = run.network, run.subjects, run.calibration, run.index
+    refinement = run.evaluate.get_parsed_content("refinement")
+    preprocessing = run.preprocessing
     train_ids = [i for i in index.ids if i not in subjects]
     population = population_velocities(network, Dataset(labelled_pairs(index, train_ids), transform=preprocessing))
     per_subject = {}
@@ -240,17 +233,13 @@ def main(argv=None) -> int:
         name: {k: float(np.nanmean([r[name][k] for r in per_subject.values()])) for k in metrics}
         for name, metrics in first.items()
     }
-    table = [
-        "| posterior (velocity variance) | Spearman per component | + bias | label AUROC |",
-        "|---|---|---|---|",
-    ]
-    table += [
+    lines = ["| posterior (velocity variance) | Spearman per component | + bias | label AUROC |", "|---|---|---|---|"]
+    lines += [
         f"| {name} | {m['spearman']:.3f} | {m['spearman + bias']:.3f} | {m['label_auroc']:.3f} |"
         for name, m in summary.items()
     ]
-    markdown = "\n".join(table)
     result = {
-        "model_file": str(model_file),
+        "model_file": str(run.model_file),
         "calibration": calibration._asdict(),
         "refinement_steps": refinement.num_iterations,
         "subjects": list(per_subject),
@@ -258,12 +247,9 @@ def main(argv=None) -> int:
         "settings": {"samples": args.samples, "seed": args.seed, "kappa": args.kappa, "threads": args.threads},
         "summary": summary,
         "per_subject": per_subject,
-        "markdown": markdown,
         "wall_time_s": time.time() - start,
     }
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    path = write_text(args.out_dir / "laplace_posterior.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{markdown}\n\nwrote {path} ({time.time() - start:.0f} s)")
+    write_report(args.out_dir, "laplace_posterior", result, lines)
     return 0
 
 

@@ -27,7 +27,6 @@ Prints a table and writes ``experiments/results/uncertainty_ceiling.json``.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -36,13 +35,14 @@ from typing import Any
 
 import numpy as np
 import torch
+from common import write_report
 from monai.data import Dataset
 from scipy.ndimage import distance_transform_edt
-from uncertainty_calibration import propagated_labels, validation_arguments, validation_model
+from uncertainty_calibration import propagated_labels, validation_arguments, validation_run
 
 from monai_probreg.blocks.sampling import sample_velocity
 from monai_probreg.blocks.warp import warp_image, warp_labels
-from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.data.dataset import labelled_pairs
 from monai_probreg.fitting.population_probe import (
     SEED_STRIDE,
     TRUTH_STEPS,
@@ -51,9 +51,8 @@ from monai_probreg.fitting.population_probe import (
     population_velocity,
 )
 from monai_probreg.metrics.calibration import auroc
-from monai_probreg.uncertainty.calibration import calibrate_log_var, calibration_for
+from monai_probreg.uncertainty.calibration import calibrate_log_var
 from monai_probreg.uncertainty.entropy import label_entropy
-from monai_probreg.utils.files import write_text
 from monai_probreg.utils.tensors import plain_tensor
 
 RESULTS = Path(__file__).resolve().parent / "results"  # experiments/results, next to this script
@@ -183,17 +182,12 @@ def main(argv=None) -> int:
     parser = validation_arguments(__doc__)
     parser.set_defaults(out_dir=RESULTS)
     args = parser.parse_args(argv)
-    if not args.dataset_dir.is_dir():
-        print(f"skipped: dataset not found at {args.dataset_dir}")
-        return 0
-    if args.samples < 2:
-        raise SystemExit(f"--samples must be >= 2; got {args.samples}")
-    torch.set_num_threads(args.threads)
     start = time.time()
-    evaluate, model_file, network, subjects = validation_model(args)
-    calibration = calibration_for(model_file)
-    index = index_dataset(args.dataset_dir)
-    preprocessing = evaluate.get_parsed_content("preprocessing")
+    run = validation_run(args)
+    if run is None:
+        return 0
+    network, subjects, calibration, index = run.network, run.subjects, run.calibration, run.index
+    model_file, preprocessing = run.model_file, run.preprocessing
     train_ids = [i for i in index.ids if i not in subjects]
     population = population_velocities(network, Dataset(labelled_pairs(index, train_ids), transform=preprocessing))
     per_subject = {}
@@ -222,7 +216,6 @@ def main(argv=None) -> int:
     ]
     for kind, m in summary.items():
         table.append(f"| {names[kind]} | " + " | ".join(f"{m[c]:.3f}" if c in m else "–" for c in columns) + " |")
-    markdown = "\n".join(table)
     result = {
         "model_file": str(model_file),
         "calibration": calibration._asdict(),
@@ -237,12 +230,9 @@ def main(argv=None) -> int:
         },
         "summary": summary,
         "per_subject": per_subject,
-        "markdown": markdown,
         "wall_time_s": time.time() - start,
     }
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    path = write_text(args.out_dir / "uncertainty_ceiling.json", json.dumps(result, indent=2) + "\n")
-    print(f"\n{markdown}\n\nwrote {path} ({time.time() - start:.0f} s)")
+    write_report(args.out_dir, "uncertainty_ceiling", result, table)
     return 0
 
 

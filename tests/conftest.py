@@ -115,6 +115,20 @@ def bundle_with_random_model(root: Path, bundle_dir: Path, network_size: Sequenc
     return root
 
 
+def run_validation_study(script: ModuleType, tmp_path: Path, dataset: Path, name: str, *args: str) -> dict:
+    """Run a validation-subject study (``main`` of a script built on ``uncertainty_calibration.validation_run``) on
+    ``dataset`` with a bundle of random weights, which has no calibration sidecar (the warning is expected), and
+    return its record ``name.json``."""
+    import json
+
+    bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
+    out = tmp_path / "out"
+    with pytest.warns(UserWarning, match="no calibration"):
+        code = script.main(["--dataset-dir", str(dataset), "--bundle-root", str(bundle), "--out-dir", str(out), *args])
+    assert code == 0
+    return json.loads((out / f"{name}.json").read_text())
+
+
 def numpy_mean_dice(dataset: Path, sid: str) -> float:
     """Mean Dice over the atlas' labels between subject ``sid``'s and the atlas' label files (same grid here)."""
     atlas = np.asarray(nib.load(dataset / "atlas" / "A01_label.nii.gz").dataobj)

@@ -3,12 +3,11 @@ run on the tiny dataset."""
 
 from __future__ import annotations
 
-import json
 import math
 
 import pytest
 import torch
-from conftest import REPO, bundle_with_random_model, load_script
+from conftest import load_script, run_validation_study
 
 bench = load_script("experiments", "label_entropy_ranking")
 
@@ -66,25 +65,9 @@ def test_too_few_samples_are_refused(tmp_path, tiny_dataset):
 
 
 def test_main_writes_the_table(tmp_path, tiny_dataset, single_thread):
-    bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
-    out = tmp_path / "out"
-    with pytest.warns(UserWarning, match="no calibration"):
-        code = bench.main(
-            [
-                "--dataset-dir",
-                str(tiny_dataset),
-                "--bundle-root",
-                str(bundle),
-                "--subjects",
-                "T01",
-                "--samples",
-                "2",
-                "--out-dir",
-                str(out),
-            ]
-        )
-    assert code == 0
-    report = json.loads((out / "label_entropy_ranking.json").read_text())
+    report = run_validation_study(
+        bench, tmp_path, tiny_dataset, "label_entropy_ranking", "--subjects", "T01", "--samples", "2"
+    )
     assert report["subjects"] == ["T01"]
     names = set(report["summary"])
     assert {"wrong_fraction", "boundary_distance", "nearest, K = 2: entropy", "partial volume, K = 2: entropy"} <= names

@@ -3,13 +3,12 @@ grids, and a run on the tiny dataset."""
 
 from __future__ import annotations
 
-import json
 import math
 from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import REPO, bundle_with_random_model, load_script
+from conftest import load_script, run_validation_study
 
 bench = load_script("experiments", "laplace_posterior")
 
@@ -69,25 +68,9 @@ def test_too_few_samples_are_refused(tmp_path, tiny_dataset):
 
 
 def test_main_writes_the_table(tmp_path, tiny_dataset, single_thread):
-    bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
-    out = tmp_path / "out"
-    with pytest.warns(UserWarning, match="no calibration"):
-        code = bench.main(
-            [
-                "--dataset-dir",
-                str(tiny_dataset),
-                "--bundle-root",
-                str(bundle),
-                "--subjects",
-                "T01",
-                "--samples",
-                "2",
-                "--out-dir",
-                str(out),
-            ]
-        )
-    assert code == 0
-    report = json.loads((out / "laplace_posterior.json").read_text())
+    report = run_validation_study(
+        bench, tmp_path, tiny_dataset, "laplace_posterior", "--subjects", "T01", "--samples", "2"
+    )
     assert report["subjects"] == ["T01"] and report["train_subjects_for_the_probe"] == ["T02", "T03"]
     row = report["summary"]["laplace k=10000"]
     assert set(row) == {"spearman", "spearman + bias", "label_auroc"}

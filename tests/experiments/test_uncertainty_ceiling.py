@@ -3,13 +3,12 @@ dataset."""
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, bundle_with_random_model, load_script
+from conftest import load_script, run_validation_study
 
 bench = load_script("experiments", "uncertainty_ceiling")
 
@@ -71,25 +70,9 @@ def test_scores_rank_the_wrong_voxels():
 
 
 def test_main_writes_the_table(tmp_path, tiny_dataset, single_thread):
-    bundle = bundle_with_random_model(tmp_path / "bundle", REPO / "bundle")
-    out = tmp_path / "out"
-    with pytest.warns(UserWarning, match="no calibration"):
-        code = bench.main(
-            [
-                "--dataset-dir",
-                str(tiny_dataset),
-                "--bundle-root",
-                str(bundle),
-                "--subjects",
-                "T01",
-                "--samples",
-                "2",
-                "--out-dir",
-                str(out),
-            ]
-        )
-    assert code == 0
-    report = json.loads((out / "uncertainty_ceiling.json").read_text())
+    report = run_validation_study(
+        bench, tmp_path, tiny_dataset, "uncertainty_ceiling", "--subjects", "T01", "--samples", "2"
+    )
     assert report["subjects"] == ["T01"] and report["train_subjects_for_the_probe"] == ["T02", "T03"]
     for kind in ("real", "probe"):
         m = report["summary"][kind]

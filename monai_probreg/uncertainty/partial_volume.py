@@ -44,8 +44,10 @@ class PartialVolumeLabels:
         labels = plain_tensor(labels)
         if labels.ndim not in (4, 5) or labels.shape[:2] != (1, 1):
             raise ValueError(f"expected labels (1, 1, *S), 2-d or 3-d; got shape {tuple(labels.shape)}")
-        if labels.is_floating_point():
-            raise ValueError(f"labels must be an integer map; got dtype {labels.dtype}")
+        if labels.is_floating_point():  # a label map loaded as floats, as warp_labels takes it
+            if not torch.equal(labels, labels.round()):
+                raise ValueError("labels must hold integer values; got non-integer floats")
+            labels = labels.round().long()
         if int(labels.min()) < 0 or int(labels.max()) >= LABEL_LIMIT:
             raise ValueError(f"labels must lie in [0, {LABEL_LIMIT}); got [{int(labels.min())}, {int(labels.max())}]")
         self.shape = tuple(int(n) for n in labels.shape[2:])

@@ -86,7 +86,7 @@ def test_samples_that_disagree_wholly_give_the_entropy_of_their_labels():
     [
         (torch.zeros(1, 2, 4, 4, dtype=torch.int16), r"expected labels \(1, 1, \*S\)"),
         (torch.zeros(1, 1, 4, dtype=torch.int16), r"expected labels \(1, 1, \*S\)"),
-        (torch.zeros(1, 1, 4, 4), "must be an integer map"),
+        (torch.full((1, 1, 4, 4), 0.5), "must hold integer values"),
         (torch.full((1, 1, 4, 4), -1, dtype=torch.int16), r"must lie in \[0, "),
         (torch.full((1, 1, 4, 4), LABEL_LIMIT, dtype=torch.int32), r"must lie in \[0, "),
     ],
@@ -94,6 +94,15 @@ def test_samples_that_disagree_wholly_give_the_entropy_of_their_labels():
 def test_bad_labels_are_refused(labels, match):
     with pytest.raises(ValueError, match=match):
         PartialVolumeLabels(labels)
+
+
+def test_a_label_map_loaded_as_floats_reads_as_its_integers():
+    labels = blocky_labels((5, 6, 7), seed=3)
+    shift = torch.full((1, 3, 5, 6, 7), 0.3)
+    as_int, as_float = PartialVolumeLabels(labels), PartialVolumeLabels(labels.float())
+    as_int.add(shift)
+    as_float.add(shift)
+    assert torch.equal(as_int.entropy(), as_float.entropy())
 
 
 def test_a_displacement_of_another_grid_and_an_entropy_before_any_sample_are_refused():

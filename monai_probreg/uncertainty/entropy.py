@@ -5,7 +5,8 @@
 - ``displacement_uncertainty``: from K posterior samples of the displacement, the per-voxel variance of each
   component and the entropy of a Gaussian with that diagonal covariance, sum_c 1/2 log(2 pi e var_c).
 - ``sampled_displacement_moments``: the same mean and variance streamed over K samples drawn from the posterior
-  (``chunk`` at a time, float64 sums), so K full-resolution fields are never held at once.
+  (``chunk`` at a time; float32 sums of each sample's deviation from the first, whose squares stay small where sums
+  of the displacements themselves would cancel), so K full-resolution fields are never held at once.
 - ``label_entropy``: from K label maps propagated by K posterior samples, the per-voxel entropy (nats) of the
   empirical label distribution: 0 where every sample agrees, log K at most.
 Written here: no library offers these for registration posteriors.
@@ -83,20 +84,6 @@ def label_entropy(label_samples: Tensor) -> Tensor:
     return entropy / num
 
 
-def _sums(samples: Tensor) -> tuple[Tensor, Tensor]:
-    """The sum and the sum of squares of ``samples`` (n, ...) over its first axis, in float64, added sample after
-    sample: one sample's float64 copy at a time rather than all of them and their squares at once. torch's reduction
-    over that axis can add in another order, so the sums agree to float64 rounding (the float32 std maps computed
-    from them were the same bits on a 16-sample velocity grid)."""
-    total = samples[0].to(torch.float64, copy=True)
-    squares = total**2
-    for sample in samples[1:]:
-        sample = sample.double()
-        total += sample
-        squares += sample**2
-    return total, squares
-
-
 def sampled_displacement_moments(
     mean: Tensor,
     log_var: Tensor,
@@ -117,13 +104,17 @@ def sampled_displacement_moments(
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1; got {chunk}")
     batch = mean.shape[0]
-    total = squares = None
+    shift = total = squares = deviation = None
     for start in range(0, num_samples, chunk):
         z = sample_velocity(mean, log_var, min(chunk, num_samples - start), generator=generator)
-        disp = to_displacement(z.flatten(0, 1)).unflatten(0, (z.shape[0], batch))  # (n, B, D, *S)
-        part, part_sq = _sums(disp)
+        disp = to_displacement(z.flatten(0, 1)).unflatten(0, (z.shape[0], batch)).float()  # (n, B, D, *S)
+        if shift is None:  # sums of the deviations from the first sample: small numbers, exact enough in float32
+            shift = disp[0].clone()
+            total, squares, deviation = torch.zeros_like(shift), torch.zeros_like(shift), torch.empty_like(shift)
+        for sample in disp:
+            torch.sub(sample, shift, out=deviation)
+            total += deviation
+            squares.addcmul_(deviation, deviation)
         del disp
-        total = part if total is None else total + part
-        squares = part_sq if squares is None else squares + part_sq
     variance = ((squares - total**2 / num_samples) / (num_samples - 1)).clamp(min=0)
-    return (total / num_samples).float(), variance.float()
+    return shift + total / num_samples, variance

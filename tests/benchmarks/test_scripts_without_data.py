@@ -22,6 +22,7 @@ from bench_helpers import REPO
         "benchmarks/failure_detection",
         "benchmarks/robustness",
         "benchmarks/refinement_speed",
+        "benchmarks/maps_speed",
         "benchmarks/smoothness",
         "experiments/affine_levers",
         "experiments/uncertainty_ceiling",

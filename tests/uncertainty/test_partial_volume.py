@@ -30,11 +30,28 @@ def blocky_labels(shape, seed: int = 0) -> torch.Tensor:
     return F.interpolate(coarse, size=shape, mode=mode).to(torch.int16)
 
 
+def two_labels(shape, seed: int = 0) -> torch.Tensor:
+    """Label 4 on one side of an oblique plane, 1 on the other: every cell holds one label or two."""
+    del seed
+    grid = torch.stack(torch.meshgrid(*[torch.arange(n, dtype=torch.float) for n in shape], indexing="ij"))
+    normal = torch.tensor([1.0, 0.7, 0.4][: len(shape)]).view(-1, *[1] * len(shape))
+    side = (grid * normal).sum(0) > 0.5 * float((torch.tensor(shape) * normal.flatten()).sum())
+    return torch.where(side, 4, 1).to(torch.int16)[None, None]
+
+
+def noisy_labels(shape, seed: int = 0) -> torch.Tensor:
+    """A label drawn per voxel: most cells hold three labels or more."""
+    generator = torch.Generator().manual_seed(seed)
+    return torch.randint(0, 6, (1, 1, *shape), generator=generator, dtype=torch.int16)
+
+
+@pytest.mark.parametrize("scale", [0.3, 1.5])  # sub-voxel: most cells read wholly; larger: more junctions
+@pytest.mark.parametrize("make", [blocky_labels, two_labels, noisy_labels])
 @pytest.mark.parametrize("shape", [(9, 11), (7, 8, 9)])
-def test_entropy_matches_the_linear_warp_of_one_hot_maps(shape):
-    labels = blocky_labels(shape)
+def test_entropy_matches_the_linear_warp_of_one_hot_maps(shape, make, scale):
+    labels = make(shape)
     generator = torch.Generator().manual_seed(1)
-    displacements = [torch.randn((1, len(shape), *shape), generator=generator) * 1.5 for _ in range(5)]
+    displacements = [torch.randn((1, len(shape), *shape), generator=generator) * scale for _ in range(5)]
     reader = PartialVolumeLabels(labels)
     for d in displacements:
         reader.add(d)

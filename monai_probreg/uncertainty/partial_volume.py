@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from monai_probreg.blocks.warp import SpatialTransformer
+from monai_probreg.blocks.warp import sampling_grid, split_grid_sample
 from monai_probreg.utils.tensors import plain_tensor
 
 __all__ = ["LABEL_LIMIT", "PartialVolumeLabels"]
@@ -44,7 +44,21 @@ LABEL_LIMIT = (1 << 15) - 1  # labels are kept as int16, the whole reads as labe
 
 
 def _run_entropy(labels: Tensor, weights: Tensor, num: int) -> Tensor:
-    """Entropy (nats) of p_l = 1/num sum_j weights[:, j] [labels[:, j] = l] in each row of (M, J)."""
+    """Entropy (nats) of p_l = 1/num sum_j weights[:, j] [labels[:, j] = l] in each row of (M, J): in closed form
+    where a row holds at most two labels (a boundary between two structures, most rows), else by sorting the row."""
+    low, high = torch.aminmax(labels, dim=1)
+    is_high = labels == high[:, None]
+    two = (is_high | (labels == low[:, None])).all(1)
+    p = (weights * is_high).sum(1) / num
+    entropy = -torch.xlogy(p, p) - torch.xlogy(1 - p, 1 - p)
+    entropy = torch.where(low == high, 0.0, entropy).clamp_min(0)  # one label: p = 1
+    rows = (~two).nonzero()[:, 0]
+    entropy[rows] = _sorted_entropy(labels[rows], weights[rows], num)
+    return entropy
+
+
+def _sorted_entropy(labels: Tensor, weights: Tensor, num: int) -> Tensor:
+    """:func:`_run_entropy` of rows sorted by label: the weights of each run of one label added up."""
     ordered, order = labels.sort(dim=1)
     start = torch.ones_like(ordered, dtype=torch.bool)  # the first pair of each run of one label
     start[:, 1:] = ordered[:, 1:] != ordered[:, :-1]
@@ -87,14 +101,14 @@ class PartialVolumeLabels:
         self._low, self._high, self._upper = self._cell_tables(padded)
         # bit c of a mask (rows) as a float per corner c (columns)
         self._bits = ((torch.arange(256)[:, None] >> torch.arange(2**dims)) & 1).float().to(labels.device)
-        # label + 1 where the cell whose lowest corner is a voxel holds one label, else 0 (corners outside the grid
-        # read 0): one nearest read of it half a voxel below a sampled point p reads the cell of floor(p) (at a tie,
-        # p on a voxel, a cell with p as a corner: the same label), so it says whether p's cell holds one label, and
-        # which
-        inner = tuple(slice(1, n + 1) for n in self.shape)
-        low, high = (table.view(padded.shape)[inner] for table in (self._low, self._high))
+        # label + 1 where the cell whose lowest corner is a voxel holds one label, else 0, for the cells from -1 to S
+        # along each axis (corners outside the grid read 0): one nearest read of it half a voxel below a sampled
+        # point p reads the cell of floor(p) (at a tie, p on a voxel, a cell with p as a corner: the same label), so it
+        # says whether p's cell holds one label, and which; beyond the table the outermost cell is read (the border),
+        # which holds one label only where every cell further out holds label 0 too
+        outer = tuple(slice(0, n + 2) for n in self.shape)
+        low, high = (table.view(padded.shape)[outer] for table in (self._low, self._high))
         self._whole = torch.where((low == high) & (low >= 0), low + 1, 0).float()[None, None]
-        self._nearest = SpatialTransformer(mode="nearest", padding_mode="zeros")
         self._shifted: Tensor | None = None  # each sample's displacement minus half a voxel
         self._range: tuple[Tensor, Tensor] | None = None  # the lowest and highest of the whole reads (+ 1) so far
         self._pure: list[Tensor] = []  # per sample (*S) int16: the label + 1 read wholly, 0 where the cell held more
@@ -139,7 +153,10 @@ class PartialVolumeLabels:
         if self._shifted is None:  # one buffer for every sample: a fresh field of this size costs its page faults
             self._shifted = torch.empty_like(displacement)
         torch.sub(displacement, 0.5, out=self._shifted)
-        pure = self._nearest(self._whole, self._shifted)[0, 0].to(torch.int16)
+        # the table's voxel 1 is the grid's voxel 0 (the cell from -1)
+        grid = sampling_grid(self._shifted, [1] * dims, [n + 2 for n in self.shape])
+        pure = split_grid_sample(self._whole, grid, "nearest", "border")[0, 0].to(torch.int16)
+        del grid
         coordinates = (pure == 0).nonzero()  # (n, D): the cells of several labels near the voxel read nearest
         voxels = coordinates[:, 0]
         for k in range(1, dims):
@@ -148,17 +165,14 @@ class PartialVolumeLabels:
         point = [(flat[k][voxels] + coordinates[:, k]).clamp(-1, self.shape[k]) for k in range(dims)]
         base = [p.floor() for p in point]
         index = sum((b.long() + 1) * s for b, s in zip(base, self._strides))
+        # (a cell of one label here, read at a tie on the cell below, gives two pairs of the same label: exact too)
         low, high = self._low[index], self._high[index]
-        one = (low == high) & (low >= 0)  # the cell itself holds one label: read wholly
-        pure.view(-1)[voxels] = torch.where(one, low + 1, 0).to(torch.int16)
-        several = (~one).nonzero()[:, 0]
-        voxels, low, high, index = voxels[several], low[several], high[several], index[several]
         weights = torch.ones(1, voxels.numel(), device=voxels.device)  # (2^D, n) linear interpolation's, per corner
         for k in range(dims):
-            fraction = point[k][several] - base[k][several]
+            fraction = point[k] - base[k]
             weights = (weights[:, None] * torch.stack([1 - fraction, fraction])[None]).reshape(2 ** (k + 1), -1)
         higher = (weights * self._bits[self._upper[index].long()].T).sum(0)
-        many = low < 0
+        many = (low < 0).nonzero()[:, 0]
         corners = [
             self._padded[index[many] + sum(u * s for u, s in zip(upper, self._strides))] for upper in self._corners
         ]

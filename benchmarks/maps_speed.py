@@ -32,8 +32,9 @@ from pathlib import Path
 
 from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, write_report
 
+from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
+
 KINDS = ("std", "std + label entropy")
-DEFAULT_SAMPLES = 16  # the budget: the maps of 16 samples
 
 
 def time_maps(dataset: Path, samples: int, threads: int) -> dict:
@@ -106,7 +107,7 @@ def run_worker(source: Path | None, args: argparse.Namespace) -> dict:
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset-dir", type=Path, default=DEFAULT_DATASET)
-    ap.add_argument("--samples", type=int, default=DEFAULT_SAMPLES)
+    ap.add_argument("--samples", type=int, default=POSTERIOR_SAMPLES)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--baseline-source", type=Path, default=None, help="a checkout whose monai_probreg to time too")

@@ -157,7 +157,7 @@ class PartialVolumeLabels:
         grid = sampling_grid(self._shifted, [1] * dims, [n + 2 for n in self.shape])
         pure = split_grid_sample(self._whole, grid, "nearest", "border")[0, 0].to(torch.int16)
         del grid
-        coordinates = (pure == 0).nonzero()  # (n, D): the cells of several labels near the voxel read nearest
+        coordinates = (pure == 0).nonzero()  # (n, D): the voxels whose cell holds several labels (or read at a tie)
         voxels = coordinates[:, 0]
         for k in range(1, dims):
             voxels = voxels * self.shape[k] + coordinates[:, k]

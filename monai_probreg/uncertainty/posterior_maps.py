@@ -61,12 +61,13 @@ def posterior_maps(
     residual_weight: float = 0.0,
 ) -> PosteriorMaps:
     """Maps of one pair. ``velocity_mean``, ``velocity_log_var``: (1, D, *V) raw posterior; ``network`` provides
-    ``velocity_to_displacement``; ``num_samples``: 0 (velocity entropy only) or >= 2; ``std_scale`` and
-    ``bias_fraction``: the calibration (1 and 0 = raw); ``moving_label``: (1, 1, *S) integer labels on the moving
-    grid, or None; ``spacing``: voxel size per axis of the fixed grid to give ``displacement_std`` in mm (the trace of
-    the covariance is rotation-invariant, so per-axis voxel variances times spacing^2 give it exactly), or None for
-    voxels; ``residual`` (1, 1, *V) and ``residual_weight``: the calibration's residual term
-    (:func:`~monai_probreg.uncertainty.residual.residual_variance` of the pair; None and 0: none)."""
+    ``integrate`` (a velocity's displacement on the velocity grid, as ``ProbRegNet``); ``num_samples``: 0 (velocity
+    entropy only) or >= 2; ``std_scale`` and ``bias_fraction``: the calibration (1 and 0 = raw); ``moving_label``:
+    (1, 1, *S) integer labels on the moving grid, or None; ``spacing``: voxel size per axis of the fixed grid to
+    give ``displacement_std`` in mm (the trace of the covariance is rotation-invariant, so per-axis voxel variances
+    times spacing^2 give it exactly), or None for voxels; ``residual`` (1, 1, *V) and ``residual_weight``: the
+    calibration's residual term (:func:`~monai_probreg.uncertainty.residual.residual_variance` of the pair; None and
+    0: none)."""
     if velocity_mean.shape[0] != 1 or velocity_mean.shape != velocity_log_var.shape:
         raise ValueError(
             f"expected one pair's posterior, mean and log_var (1, D, *V); got "

@@ -173,3 +173,22 @@ def test_label_entropy_rejects_float_labels():
 
     with pytest.raises(ValueError, match="integer"):
         label_entropy(torch.zeros(3, 4))
+
+
+def test_sampled_moments_keep_a_small_spread_far_from_zero():
+    """The streamed float32 sums are of deviations from the first sample: a spread of 0.01 voxel on displacements of
+    10^4 voxels keeps its variance (sums of the values themselves in float32 would lose it to cancellation)."""
+    from monai_probreg.blocks.sampling import sample_velocity
+    from monai_probreg.uncertainty.entropy import sampled_displacement_moments
+
+    mean, log_var = torch.zeros(1, 2, 6, 7), torch.full((1, 2, 6, 7), math.log(0.01**2))
+    offset = 1.0e4
+    moments = sampled_displacement_moments(
+        mean, log_var, lambda z: z + offset, 9, generator=torch.Generator().manual_seed(0), chunk=4
+    )
+    generator = torch.Generator().manual_seed(0)
+    draws = torch.cat([sample_velocity(mean, log_var, n, generator=generator) for n in (4, 4, 1)])
+    displacements = (draws + offset).double()  # the same float32 displacements, their moments in float64
+    torch.testing.assert_close(moments[1].double(), displacements.var(0, unbiased=True), rtol=1e-3, atol=0)
+    torch.testing.assert_close(moments[0].double(), displacements.mean(0), rtol=0, atol=1e-3)
+    assert float(moments[1].mean()) == pytest.approx(0.01**2, rel=0.5)

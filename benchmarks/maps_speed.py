@@ -5,7 +5,8 @@ residual term) and :func:`~monai_probreg.uncertainty.posterior_maps.posterior_ma
 displacement std, and the label entropy when the moving labels are given. On each LPBA40 validation pair
 (``refinement_speed.PAIRS``, the aligned 160 x 192 x 160 grid; the network's registration refined as the bundle
 refines it, untimed) both are timed: "std" (``displacement_std`` alone) and "std + label entropy", after one untimed
-warm-up, as the writer calls them with the weights' calibration.
+warm-up, as the writer calls them with the weights' calibration, freed memory kept for reuse as the bundle's
+inference keeps it (``reuse_cpu_memory``; ``--no-memory-reuse``: glibc's defaults).
 
 ``--baseline-source DIR`` times the same calls by the ``monai_probreg`` package under DIR (a ``git worktree`` of an
 earlier commit) with this tree's bundle (weights, calibration): every round runs this tree and the baseline each in
@@ -37,7 +38,7 @@ from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 KINDS = ("std", "std + label entropy")
 
 
-def time_maps(dataset: Path, samples: int, threads: int) -> dict:
+def time_maps(dataset: Path, samples: int, threads: int, memory_reuse: bool = True) -> dict:
     """In this process: {pair: {kind: seconds}} of one timed call each after a warm-up, and where the package
     was imported from."""
     import torch
@@ -49,8 +50,10 @@ def time_maps(dataset: Path, samples: int, threads: int) -> dict:
     from monai_probreg.registration.model import load_model
     from monai_probreg.uncertainty.posterior_maps import posterior_maps
     from monai_probreg.uncertainty.residual import residual_variance
+    from monai_probreg.utils.memory import reuse_freed_memory
 
     torch.set_num_threads(threads)
+    reuse_freed_memory(memory_reuse)  # on: as inference.yaml runs (reuse_cpu_memory: true) and the command
     model = load_model(REPO / "bundle", quality=False)
     calibration = model.calibration
     times: dict[str, dict[str, float]] = {}
@@ -97,6 +100,7 @@ def run_worker(source: Path | None, args: argparse.Namespace) -> dict:
         out = Path(tmp) / "times.json"
         cmd = [sys.executable, __file__, "--worker", str(out), "--dataset-dir", str(args.dataset_dir)]
         cmd += ["--samples", str(args.samples), "--threads", str(args.threads)]
+        cmd += ["--no-memory-reuse"] if args.no_memory_reuse else []
         subprocess.run(cmd, check=True, env=env)
         result = json.loads(out.read_text())
     if source is not None and not Path(result["package"]).resolve().is_relative_to(source.resolve()):
@@ -110,6 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--samples", type=int, default=POSTERIOR_SAMPLES)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-memory-reuse", action="store_true", help="glibc's defaults (reuse_cpu_memory: false)")
     ap.add_argument("--baseline-source", type=Path, default=None, help="a checkout whose monai_probreg to time too")
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # internal: one process's timings
@@ -118,7 +123,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"skipped: dataset not found at {args.dataset_dir}")
         return 0
     if args.worker is not None:
-        args.worker.write_text(json.dumps(time_maps(args.dataset_dir, args.samples, args.threads)))
+        args.worker.write_text(
+            json.dumps(time_maps(args.dataset_dir, args.samples, args.threads, not args.no_memory_reuse))
+        )
         return 0
     if args.baseline_source is not None and not (args.baseline_source / "monai_probreg").is_dir():
         raise SystemExit(f"--baseline-source {args.baseline_source}: no monai_probreg package there")
@@ -153,6 +160,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "samples": args.samples,
         "rounds": args.rounds,
         "threads": args.threads,
+        "memory_reuse": not args.no_memory_reuse,
         "pairs": pairs,
         "medians_s": medians,
         "runs": runs,

@@ -87,7 +87,9 @@ def posterior_maps(
 
     def to_displacement(z: Tensor) -> Tensor:
         # network.velocity_to_displacement's field: the resize by one small matrix per axis (blocks.box_resize) gives
-        # F.interpolate's values, float rounding apart, and is the faster of the two on a CPU (docs/uncertainty.md)
+        # F.interpolate's values, float rounding apart, and is the faster of the two on a CPU (docs/uncertainty.md);
+        # the network itself keeps F.interpolate (blocks.integration.resize_displacement): its TorchScript export
+        # and the answer's warp stay as they were, bit for bit
         disp = resize_displacement_box(network.integrate(z), size, ([0] * len(size), size))  # (n, D, *S)
         if labels is not None:  # each sample's reading of the labels, kept for the entropy
             for d in disp:

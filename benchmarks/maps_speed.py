@@ -9,7 +9,8 @@ warm-up, as the writer calls them with the weights' calibration, freed memory ke
 inference keeps it (``reuse_cpu_memory``; ``--no-memory-reuse``: glibc's defaults).
 
 ``--baseline-source DIR`` times the same calls by the ``monai_probreg`` package under DIR (a ``git worktree`` of an
-earlier commit) with this tree's bundle (weights, calibration): every round runs this tree and the baseline each in
+earlier commit) with that checkout's own bundle (weights, calibration: a calibration is fitted for its package's
+form of the residual, and a package refuses one of another form): every round runs this tree and the baseline each in
 a fresh process, one after the other, so a slow moment of the machine hits both; each pair's median over the rounds
 is reported, and the ratio.
 
@@ -31,7 +32,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from common import DEFAULT_DATASET, DEFAULT_OUT, REPO, write_report
+from common import DEFAULT_DATASET, DEFAULT_OUT, write_report
 
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
@@ -54,7 +55,8 @@ def time_maps(dataset: Path, samples: int, threads: int, memory_reuse: bool = Tr
 
     torch.set_num_threads(threads)
     reuse_freed_memory(memory_reuse)  # on: as inference.yaml runs (reuse_cpu_memory: true) and the command
-    model = load_model(REPO / "bundle", quality=False)
+    # the bundle of the checkout the package comes from (this tree's, or the baseline's: its sidecars are its own)
+    model = load_model(Path(monai_probreg.__file__).resolve().parents[1] / "bundle", quality=False)
     calibration = model.calibration
     times: dict[str, dict[str, float]] = {}
     for pair in PAIRS:

@@ -20,6 +20,7 @@ from monai_probreg.registration.quality_estimate import ScanQuality, quality_sum
 from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.masks import mask_record
 from monai_probreg.spatial.volume_io import Volume
+from monai_probreg.uncertainty.residual import residual_form
 from monai_probreg.utils.provenance import library_versions
 
 __all__ = ["scan_summary"]
@@ -57,6 +58,8 @@ def scan_summary(
             # the posterior the maps are drawn from: the network's spread around the answer's mean, widened where
             # the registered pair stays unlike by this weight (uncertainty.residual; 0: the network's alone)
             "posterior_residual_weight": model.calibration.residual_weight,
+            # ... per unit of this residual: its boxes in voxels (uncertainty.residual.residual_form; None: no term)
+            "posterior_residual_form": residual_form() if model.calibration.residual_weight > 0 else None,
             "posterior_interval_dof": model.interval_dof,  # Student-t dof of the intervals; None: Gaussian
             # the calibrated 95% interval of one displacement component is +- this many times that component's
             # std (displacement_std.nii.gz is the root-sum-square of the 3 components' stds)

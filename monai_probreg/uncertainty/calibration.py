@@ -65,6 +65,7 @@ import torch
 from torch import Tensor
 
 from monai_probreg.metrics.calibration import interval_z
+from monai_probreg.uncertainty.residual import PLAIN_RESIDUAL_FORM, residual_form
 from monai_probreg.utils.provenance import file_sha256
 from monai_probreg.utils.sidecars import read_sidecar, sidecar_path, write_sidecar
 
@@ -144,6 +145,9 @@ class CalibrationRecord:
     interval_dof: float | None = None
     # the residual term's weight (Calibration.residual_weight); 0: none (also an older sidecar without the field)
     residual_weight: float = 0.0
+    # the boxes of the pair's residual the weight is per unit of (uncertainty.residual.residual_form()); None: an
+    # older sidecar, fitted with PLAIN_RESIDUAL_FORM
+    residual: dict | None = None
 
     def calibration(self) -> Calibration:
         """The numbers inference uses."""
@@ -353,7 +357,8 @@ def save_calibration(
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
     ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
     network's mean); ``interval_dof``: the intervals' Student-t dof (None: Gaussian); ``path``: where to write it
-    (default: next to the weights, :func:`calibration_path`); ``residual_weight``: the residual term's weight (0: none)."""
+    (default: next to the weights, :func:`calibration_path`); ``residual_weight``: the residual term's weight (0: none),
+    per unit of the residual this package computes (recorded as ``residual``)."""
     check_calibration(std_scale, bias_fraction, interval_dof, residual_weight)
     record = CalibrationRecord(
         float(std_scale),
@@ -366,13 +371,15 @@ def save_calibration(
         refinement=dict(refinement or {}),
         interval_dof=None if interval_dof is None else float(interval_dof),
         residual_weight=float(residual_weight),
+        residual=residual_form(),
     )
     write_sidecar(weights_file, CALIBRATION_SIDECAR, asdict(record), path)
     return record
 
 
 def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
-    """Read the sidecar of ``weights_file``; refuses one fitted for other weights (SHA-256 mismatch)."""
+    """Read the sidecar of ``weights_file``; refuses one fitted for other weights (SHA-256 mismatch) or, with a
+    residual term, for another form of the pair's residual (:func:`~monai_probreg.uncertainty.residual.residual_form`)."""
     path = calibration_path(weights_file)
     data = read_sidecar(weights_file, CALIBRATION_SIDECAR, "calibration record", " or use std_scale 1 (raw)")
     try:
@@ -387,6 +394,12 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
         raise ValueError(
             f"{path}: refinement must be a mapping of refinement settings or absent; got "
             f"{type(record.refinement).__name__}"
+        )
+    fitted_residual = PLAIN_RESIDUAL_FORM if record.residual is None else record.residual
+    if record.residual_weight > 0 and fitted_residual != residual_form():
+        raise ValueError(
+            f"{path}: fitted for the pair's residual {fitted_residual}, this package computes {residual_form()}; "
+            "refit it: python -m monai_probreg.fitting --only calibration"
         )
     return record
 

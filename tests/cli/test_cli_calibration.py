@@ -14,6 +14,7 @@ from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
 from monai_probreg.cli.main import main
 from monai_probreg.spatial.volume_io import read_image
 from monai_probreg.uncertainty.calibration import calibration_path, save_calibration
+from monai_probreg.uncertainty.residual import residual_form
 
 BUNDLE = Path(__file__).resolve().parents[2] / "bundle"
 SCALE = 4.0
@@ -146,10 +147,12 @@ def test_the_residual_term_reaches_the_written_maps(scene):
         save_calibration(weights, 1.0, ["synthetic"], 2, residual_weight=RESIDUAL_WEIGHT)
         rc, summary, widened = _register(scene, "residual", "--refine", "0", moving=moving)
         assert rc == 0 and summary["model"]["posterior_residual_weight"] == RESIDUAL_WEIGHT
+        assert summary["model"]["posterior_residual_form"] == residual_form()
     finally:
         calibration_path(weights).write_text(record)
     rc, summary, raw = _register(scene, "raw_for_residual", "--raw-uncertainty", "--refine", "0", moving=moving)
     assert rc == 0 and summary["model"]["posterior_residual_weight"] == 0.0
+    assert summary["model"]["posterior_residual_form"] is None
     inside = raw > 0
     assert np.median(widened[inside] / raw[inside]) > 1.2
 

@@ -225,6 +225,8 @@ def test_the_defaults_are_the_settings_of_the_shipped_sidecars():
     assert args.subject_probe == SUBJECT_PROBE_TEMPLATES and calibration["fitted_on"] == val_ids + probe
     assert calibration["num_samples"] == args.samples
     assert quality["fitted_on"] == training[: args.train_subjects]
-    shipped = stages.bundle_parser(REPO / "bundle", ["evaluate.yaml"]).get_parsed_content("refinement").as_dict()
-    assert calibration["refinement"] == quality["refinement"]
-    assert calibration["refinement"] == {k: shipped[k] for k in calibration["refinement"]}  # settings added later aside
+    shipped = stages.bundle_parser(REPO / "bundle", ["evaluate.yaml"]).get_parsed_content("refinement")
+    # each fitted around evaluate.yaml's refinement (a record made before a setting existed ran its default:
+    # RefinementSettings.differences); the two sidecars may be fitted at different times, so one may record more
+    assert shipped.differences(calibration["refinement"]) == {}
+    assert shipped.differences(quality["refinement"]) == {}

@@ -20,6 +20,7 @@ from monai_probreg.uncertainty.calibration import (
     save_calibration,
     std_scale_for,
 )
+from monai_probreg.uncertainty.residual import PLAIN_RESIDUAL_FORM, residual_form
 
 
 def _toy(true_scale: float, n: int = 100_000):
@@ -259,6 +260,27 @@ def test_sidecar_keeps_the_residual_weight_and_old_sidecars_read_as_zero(weights
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: residual_weight"):
         load_calibration(weights)
+
+
+def test_the_sidecar_records_the_residual_form_and_refuses_another(weights):
+    save_calibration(weights, 1.5, residual_weight=300.0)
+    record = json.loads(calibration_path(weights).read_text())
+    assert record["residual"] == residual_form()
+    for fitted in (None, PLAIN_RESIDUAL_FORM, {**residual_form(), "window": residual_form()["window"] + 2}):
+        if fitted is None:  # a sidecar of bundles 0.24.0-0.28.0: fitted with the plain squared difference
+            del record["residual"]
+        else:
+            record["residual"] = fitted
+        calibration_path(weights).write_text(json.dumps(record))
+        expected = PLAIN_RESIDUAL_FORM if fitted is None else fitted
+        if expected == residual_form():
+            assert load_calibration(weights).residual_weight == 300.0
+            continue
+        with pytest.raises(ValueError, match=r"model.calibration.json: fitted for the pair's residual .* refit it"):
+            load_calibration(weights)
+    record["residual_weight"] = 0.0  # no residual term: the form does not matter
+    calibration_path(weights).write_text(json.dumps(record))
+    assert load_calibration(weights).residual_weight == 0.0
 
 
 @pytest.mark.parametrize("weight", [-1.0, float("nan"), float("inf"), True])

@@ -41,9 +41,9 @@ __all__ = [
 RESIDUAL_WINDOW = 9  # side of the box the squared difference is averaged over, voxels of the images' grid (odd)
 RESIDUAL_SMOOTHING = 3  # side of the box both images are averaged over first (odd; 1: no smoothing)
 RESIDUAL_GAIN_WINDOW = 25  # side of the box whose mean intensities give the local gain (odd; 1: no gain)
-# the residual of bundles 0.24.0-0.28.0 (the squared difference itself): what a calibration sidecar without a
-# "residual" record was fitted with
-PLAIN_RESIDUAL_FORM = {"window": RESIDUAL_WINDOW, "smoothing": 1, "gain_window": 1}
+# the residual of bundles 0.24.0-0.28.0 (the squared difference itself over a 9-voxel box, as they fixed it): what a
+# calibration sidecar without a "residual" record was fitted with, whatever the defaults above become
+PLAIN_RESIDUAL_FORM = {"window": 9, "smoothing": 1, "gain_window": 1}
 _GAIN_FLOOR = 1e-3  # added to both local means: the gain of an empty neighbourhood (the background) is 1
 
 

@@ -54,7 +54,8 @@ def residual_form() -> dict[str, int]:
 
 
 def _box_average(x: Tensor, window: int) -> Tensor:
-    """The mean over a ``window``-voxel box centred on each voxel, the voxels outside counted as zeros."""
+    """The mean over a ``window``-voxel box centred on each voxel, the voxels outside counted as zeros (``box_sum``,
+    the CPU's faster box, rather than ``losses.lncc.box_mean``'s pooling, which the loss keeps for its backward)."""
     return box_sum(x, window) / window ** (x.ndim - 2) if window > 1 else x
 
 

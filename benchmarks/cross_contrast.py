@@ -13,8 +13,11 @@ labels, the bundle's settings):
 - "--contrast same": the shipped refinement as ``register`` runs it by default;
 - "--contrast other": the refinement with the config's ``other_contrast`` fields, as ``register --contrast other``
   runs it (no pull towards the network's mean);
+- "--contrast other --match-contrast": the same, the moving image first mapped onto the fixed one's contrast (the
+  config's ``contrast_match_bins``, :mod:`monai_probreg.spatial.contrast`);
 - ``--refined-variants NAME=FIELD:VALUE,...``: more rows, the shipped settings with fields replaced (e.g.
-  ``image_loss:mind,image_weight:100``: MIND-SSC descriptors, :mod:`monai_probreg.losses.mind`);
+  ``image_loss:mind,image_weight:100``: MIND-SSC descriptors, :mod:`monai_probreg.losses.mind`;
+  ``contrast_match_bins:N``: the moving image mapped onto the fixed one's contrast over N bins, default 0: not);
 - "ANTs SyN": ``ants.registration(fixed, moving, type_of_transform="SyN")``, antspyx defaults (Mattes MI for the
   affine and the SyN stages), whole (read, register, resample, write).
 
@@ -30,6 +33,7 @@ Prints one table and writes ``OUT_DIR/cross_contrast.json``; without the label m
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -47,6 +51,7 @@ from monai_probreg.data.label_synthesis import ASEG_LABELS, T1_LIKE, T2_LIKE
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.registration.inputs import prepare_fixed
 from monai_probreg.registration.model import load_model
+from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.scan import register_scan
 from monai_probreg.spatial.volume_io import read_label
 from monai_probreg.utils.files import write_text
@@ -63,7 +68,13 @@ ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
 def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
     model = load_model()
     if not args.variants_only:
-        rows_options = {"--contrast same": {}, "--contrast other": dict(model.other_contrast), **rows_options}
+        matched = {**model.other_contrast, "contrast_match_bins": model.contrast_match_bins}
+        rows_options = {
+            "--contrast same": {},
+            "--contrast other": dict(model.other_contrast),
+            "--contrast other --match-contrast": matched,
+            **rows_options,
+        }
     paths = [args.label_maps / f"{m}.nii.gz" for m in args.maps]
     contrasts = {"T2->T1": T2_LIKE} | ({"T1->T1": T1_LIKE} if args.same_contrast else {})
     cases: list[dict] = []
@@ -93,7 +104,7 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
                             out = sub / f"{i}{j}_{row.replace(' ', '_')}"
                             start = time.perf_counter()
                             summary = register_scan(
-                                model, fixed, moving, out, moving_label, command_options(model, fields, seed)
+                                model, fixed, moving, out, moving_label, _options(model, fields, seed)
                             )
                             case["rows"][row] = {
                                 "dice": dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS),
@@ -114,6 +125,14 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
                         )
                         cases.append(case)
     return {"cases": cases, "summary": summarise(cases), "rows": rows_options}
+
+
+def _options(model, fields: dict, seed: int) -> RegistrationOptions:
+    """The command's options for a row: its RefinementSettings fields replaced, and ``contrast_match_bins`` (not a
+    refinement field: the moving image mapped onto the fixed one's contrast, 0 = not) when the row gives it."""
+    fields = dict(fields)
+    bins = int(fields.pop("contrast_match_bins", 0))
+    return dataclasses.replace(command_options(model, fields, seed), contrast_match_bins=bins)
 
 
 def summarise(cases: list[dict]) -> dict:

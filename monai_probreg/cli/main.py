@@ -194,6 +194,14 @@ def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
         "pairs of one contrast (the config's other_contrast settings; docs/cli.md); needs the refinement (not "
         "--refine 0)",
     )
+    reg.add_argument(
+        "--match-contrast",
+        action="store_true",
+        help="with --contrast other, for skull-stripped brains: map the moving scan's intensities onto the fixed "
+        "image's contrast (each to the mean fixed intensity of the voxels that have it, after the affine stage; the "
+        "config's contrast_match_bins) before the network, the refinement and the quality estimate read it. On "
+        "whole heads, whose skin, fat and bone share the brain's intensities, it lowered Dice (docs/cli.md)",
+    )
     reg.add_argument("--no-qc", action="store_true", help="do not draw qc.png")
     reg.add_argument(
         "--no-inverse",
@@ -444,6 +452,8 @@ def _options(args: argparse.Namespace):
         raise InputError(f"--smoothness must be a number > 0 (1: the shipped prior); got {args.smoothness}")
     if args.smoothness is not None and args.refine == 0:
         raise InputError("--smoothness scales the refinement's prior: expected refinement on, got --refine 0")
+    if args.match_contrast and args.contrast != "other":
+        raise InputError("--match-contrast maps a second contrast onto the first: expected --contrast other too")
     if args.contrast == "other" and args.refine == 0:
         raise InputError("--contrast other sets the refinement's image term: expected refinement on, got --refine 0")
     initial = _initial_transform(args)
@@ -548,14 +558,29 @@ def _setup(args: argparse.Namespace):
     return model, fixed
 
 
-def _with_refinement(options, model, iterations: int | None, smoothness: float | None = None, contrast: str = "same"):
+def _with_refinement(
+    options,
+    model,
+    iterations: int | None,
+    smoothness: float | None = None,
+    contrast: str = "same",
+    match_contrast: bool = False,
+):
     """The config's refinement settings (``model.refinement``), with the config's ``other_contrast`` fields for
-    ``--contrast other``, ``--refine N`` steps and ``--smoothness S`` (the prior's ``prior_lambda`` times S) when
-    given; without any the options keep ``refinement=None``, which ``register_scan`` reads as the config's."""
+    ``--contrast other`` (and with ``--match-contrast`` the moving image mapped onto the fixed one's contrast over the
+    config's ``contrast_match_bins``), ``--refine N`` steps and ``--smoothness S`` (the prior's ``prior_lambda`` times
+    S) when given; without any the options keep ``refinement=None``, which ``register_scan`` reads as the config's."""
     import dataclasses
 
     from monai_probreg.utils.errors import InputError
 
+    if match_contrast:  # with --contrast other (checked with the other arguments, before the model loads)
+        if not model.contrast_match_bins:
+            raise InputError(
+                f"--match-contrast: expected the config's 'contrast_match_bins' (>= 2), got none in "
+                f"{str(model.config_file)!r}"
+            )
+        options = dataclasses.replace(options, contrast_match_bins=model.contrast_match_bins)
     if iterations is None and smoothness is None and contrast == "same":
         return options
     refinement = model.refinement
@@ -619,7 +644,7 @@ def _register_one(args: argparse.Namespace, files: Sequence[str], ready: str, re
     check_output_dir(args.out, args.overwrite)  # fail before loading anything
     start = time.perf_counter()
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine, args.smoothness, args.contrast)
+    options = _with_refinement(options, model, args.refine, args.smoothness, args.contrast, args.match_contrast)
     _say(args, f"{ready} ready in {time.perf_counter() - start:.1f} s")
     summary = register(model, fixed, options, lambda stage, s: _say(args, f"  {stage:<9}{s:7.1f} s"))
     return _print_result(args, summary)
@@ -675,7 +700,7 @@ def _register_batch(args: argparse.Namespace) -> int:
     for item in items:  # fail fast on what is cheap to check and would hit every scan
         check_output_dir(out / item.name, args.overwrite)
     model, fixed = _setup(args)
-    options = _with_refinement(options, model, args.refine, args.smoothness, args.contrast)
+    options = _with_refinement(options, model, args.refine, args.smoothness, args.contrast, args.match_contrast)
     per_scan = args.initial_transform is not None and Path(args.initial_transform).is_dir()
     rows = register_batch(
         model,

@@ -9,7 +9,8 @@ brought onto the model grid as the network's input.
   outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`), percentile intensity
   scaling to [0, 1] exactly as in training (:mod:`monai_probreg.spatial.intensity`), then onto the model grid
   (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS, padded to the bundle's divisor); the cost-function masks
-  come along for the refinement.
+  come along for the refinement; with ``--match-contrast`` (:func:`matched_input`) its intensities are then mapped
+  onto the fixed image's contrast (:mod:`monai_probreg.spatial.contrast`).
 """
 
 from __future__ import annotations
@@ -23,11 +24,13 @@ from monai_probreg.registration.inputs import FixedSpace, MovingScan
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.spatial.affine import AffineResult, align
 from monai_probreg.spatial.brain_mask import hide_outside
+from monai_probreg.spatial.contrast import match_contrast
 from monai_probreg.spatial.intensity import normalise_intensity
 from monai_probreg.spatial.masks import MASK_LEVEL
 from monai_probreg.spatial.volume_io import Volume
+from monai_probreg.utils.errors import InputError
 
-__all__ = ["ModelInput", "affine_stage", "model_input"]
+__all__ = ["ModelInput", "affine_stage", "matched_input", "model_input"]
 
 
 def affine_stage(fixed: FixedSpace, moving: MovingScan, options: RegistrationOptions) -> AffineResult:
@@ -66,6 +69,25 @@ def model_input(fixed: FixedSpace, moving: MovingScan, affine: np.ndarray) -> Mo
     image = fixed.grid.to_model(normalise_intensity(hide_outside(moving_on_fixed, fixed.brain_mask, background)))
     del moving_on_fixed
     return ModelInput(image, _model_grid_masks(fixed, moving.mask, affine))
+
+
+def matched_input(
+    image: np.ndarray,
+    fixed_image: np.ndarray,
+    masks: tuple[np.ndarray | None, np.ndarray | None] | None,
+    num_bins: int,
+) -> np.ndarray:
+    """``image`` (the moving scan on the model grid, :func:`model_input`'s) in ``fixed_image``'s contrast, counted inside
+    the cost-function ``masks`` (:func:`~monai_probreg.spatial.contrast.match_contrast`, ``num_bins`` bins);
+    InputError with one line when the two images share too little for a map."""
+    inside = None
+    for part in masks or ():
+        if part is not None:
+            inside = part >= MASK_LEVEL if inside is None else inside & (part >= MASK_LEVEL)
+    try:
+        return match_contrast(image, fixed_image, num_bins, inside)
+    except ValueError as err:
+        raise InputError(f"--match-contrast: {err}") from None
 
 
 def _model_grid_masks(

@@ -52,6 +52,9 @@ class LoadedModel:
     # the refinement's fields replaced for a pair of two contrasts (the config's ``other_contrast``; register
     # --contrast other): {} where the config has none
     other_contrast: dict = field(default_factory=dict)
+    # --match-contrast: the moving image mapped onto the fixed image's contrast over this many bins (the config's
+    # ``contrast_match_bins``; 0: not mapped, also where the config has none)
+    contrast_match_bins: int = 0
 
     @property
     def std_scale(self) -> float:
@@ -110,6 +113,7 @@ def load_model(
     except Exception as err:  # noqa: BLE001 - any config error becomes one line
         raise InputError(f"--config {str(config)!r}: bad 'refinement' settings ({first_line(err)})") from None
     other_contrast = _other_contrast(parser, refinement, config)
+    contrast_match_bins = _contrast_match_bins(parser, config)
     try:
         load_weights(network, weights, device)
     except InputError as err:  # untrusted (a pickle that could run code), truncated or corrupt: its own message
@@ -135,6 +139,7 @@ def load_model(
         quality=quality_model,
         calibration_refinement=None if record is None else record.refinement,
         other_contrast=other_contrast,
+        contrast_match_bins=contrast_match_bins,
     )
 
 
@@ -149,3 +154,14 @@ def _other_contrast(parser, refinement: RefinementSettings, config: Path) -> dic
     except Exception as err:  # noqa: BLE001 - any config error becomes one line
         raise InputError(f"--config {str(config)!r}: bad 'other_contrast' settings ({first_line(err)})") from None
     return fields
+
+
+def _contrast_match_bins(parser, config: Path) -> int:
+    """The config's ``contrast_match_bins``: 0 when the config has none; one line naming the config otherwise unless
+    it is 0 or an integer >= 2."""
+    value = parser.get_parsed_content("contrast_match_bins") if "contrast_match_bins" in parser else 0
+    if isinstance(value, bool) or not isinstance(value, int) or value == 1 or value < 0:
+        raise InputError(
+            f"--config {str(config)!r}: bad 'contrast_match_bins': expected 0 (none) or an integer >= 2, got {value!r}"
+        )
+    return value

@@ -65,7 +65,10 @@ class RegistrationOptions:
     ``inverse``: compute and write the inverse field and the fixed labels in moving space; ``maps``: write the
     Jacobian, entropy and std maps (their statistics stay in the summary either way); ``initial``: an earlier
     registration's affine that the affine stage starts from (``use="start"``, with ``affine`` settings) or that is
-    the affine (``use="as-affine"``, with ``affine=None``), or None."""
+    the affine (``use="as-affine"``, with ``affine=None``), or None; ``contrast_match_bins``: 0, the moving scan as it
+    is; N >= 2, its intensities mapped onto the fixed image's contrast over N bins before the network, the refinement
+    and the quality estimate read it (:func:`~monai_probreg.spatial.contrast.match_contrast`; ``--match-contrast``).
+    """
 
     samples: int = 0
     seed: int = 0
@@ -75,8 +78,15 @@ class RegistrationOptions:
     affine: AffineSettings | None = field(default_factory=AffineSettings)
     refinement: RefinementSettings | None = None
     initial: InitialTransform | None = None
+    contrast_match_bins: int = 0
 
     def __post_init__(self) -> None:
+        if not (self.contrast_match_bins == 0 or self.contrast_match_bins >= 2) or int(self.contrast_match_bins) != (
+            self.contrast_match_bins
+        ):
+            raise ValueError(
+                f"contrast_match_bins must be 0 (none) or an integer >= 2; got {self.contrast_match_bins!r}"
+            )
         if self.samples == 1 or self.samples < 0:
             raise InputError(
                 f"--samples must be 0 (no sampling) or >= 2 (a standard deviation needs two); got {self.samples}"

@@ -4,7 +4,7 @@ Stages, timed under these names in ``summary.json["timings_s"]``, each in the mo
 
 - ``read``: read and validate the moving scan (and its labels, its mask) with their geometry (:mod:`.inputs`);
 - ``affine``, ``resample``: the affine pre-alignment, then the moving scan on the model grid as the network reads it
-  (:mod:`.affine_stage`);
+  (:mod:`.affine_stage`; with ``--match-contrast`` in the fixed image's contrast, :mod:`~monai_probreg.spatial.contrast`);
 - ``model``, ``refine``, ``maps``, ``samples``: the network's registration, its test-time refinement, the
   Jacobian, entropy and inverse (the inverse after the quality estimate: ``maps`` is timed in two parts), the
   posterior samples (:mod:`.network`);
@@ -42,7 +42,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from monai_probreg.registration.affine_stage import affine_stage, model_input
+from monai_probreg.registration.affine_stage import affine_stage, matched_input, model_input
 from monai_probreg.registration.compose import Composed, compose_outputs
 from monai_probreg.registration.inputs import FixedSpace, read_moving
 from monai_probreg.registration.model import LoadedModel
@@ -158,6 +158,8 @@ def register_scan(
         affine = affine_stage(fixed, moving, options)
     with stage("resample"):
         moving_input, masks = model_input(fixed, moving, affine.matrix)
+        if options.contrast_match_bins:  # --match-contrast: what the network reads in the fixed image's contrast
+            moving_input = matched_input(moving_input, fixed.model_input, masks, options.contrast_match_bins)
     output = register_network(model, moving_input, fixed.model_input, stage)
     network_features = None
     if model.quality is not None and options.refinement.enabled:  # the quality stage's first part

@@ -70,6 +70,9 @@ def scan_summary(
             if model.calibration_refinement is None
             else options.refinement.differences(model.calibration_refinement),
             "refinement": options.refinement.as_dict(),
+            # --match-contrast: the moving scan mapped onto the fixed image's contrast over this many bins before the
+            # network read it (monai_probreg.spatial.contrast); 0: as it is
+            "contrast_match_bins": options.contrast_match_bins,
             "brain_mask": None
             if fixed.brain_mask is None
             else {

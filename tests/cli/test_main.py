@@ -437,13 +437,51 @@ def test_contrast_other_refines_with_the_configs_other_contrast_settings(scene, 
     out = tmp_path / "other"
     result = _register(scene, out, "--contrast", "other", "--smoothness", "2", "--refine", "3", "--no-qc", *FAST_AFFINE)
     assert result.rc == 0, result.err
-    refinement = json.loads((out / "summary.json").read_text())["model"]["refinement"]
+    model = json.loads((out / "summary.json").read_text())["model"]
+    refinement = model["refinement"]
     config = ConfigParser.load_config_file(str(Path(scene.bundle) / "configs" / "inference.yaml"))
+    assert model["contrast_match_bins"] == 0  # the moving scan as it is, without --match-contrast
     assert refinement["posterior_weight"] == config["contrast_posterior_weight"] == 0.0
     assert config["refine_posterior_weight"] > 0  # what --contrast same keeps
     assert refinement["image_loss"] == config["refine_image_loss"]
     assert refinement["prior_lambda"] == pytest.approx(config["refine_prior_lambda"] * 2)
     assert refinement["num_iterations"] == 3
+
+
+def test_match_contrast_maps_the_moving_scan_over_the_configs_bins(scene, tmp_path):
+    """--contrast other --match-contrast: summary.json records the config's contrast_match_bins (what register_scan
+    then maps the moving scan with: tests/registration/test_scan.py), the refinement as --contrast other's."""
+    out = tmp_path / "matched"
+    result = _register(scene, out, "--contrast", "other", "--match-contrast", "--refine", "2", "--no-qc", *FAST_AFFINE)
+    assert result.rc == 0, result.err
+    model = json.loads((out / "summary.json").read_text())["model"]
+    config = ConfigParser.load_config_file(str(Path(scene.bundle) / "configs" / "inference.yaml"))
+    assert model["contrast_match_bins"] == config["contrast_match_bins"] >= 2
+    assert model["refinement"]["posterior_weight"] == config["contrast_posterior_weight"]
+
+
+def test_match_contrast_needs_contrast_other(scene, tmp_path):
+    line = _fails(scene, tmp_path, "--match-contrast")
+    assert line.endswith("--match-contrast maps a second contrast onto the first: expected --contrast other too")
+
+
+def test_match_contrast_without_the_configs_bins_says_so(tmp_path):
+    from monai_probreg.cli.main import _with_refinement
+    from monai_probreg.engines.refinement import RefinementSettings
+    from monai_probreg.registration.options import RegistrationOptions
+    from monai_probreg.utils.errors import InputError
+
+    model = SimpleNamespace(
+        refinement=RefinementSettings(num_iterations=3),
+        other_contrast={"posterior_weight": 0.0},
+        contrast_match_bins=0,
+        config_file=tmp_path / "mine.yaml",
+    )
+    with pytest.raises(InputError, match=r"--match-contrast: expected the config's 'contrast_match_bins'.*mine.yaml"):
+        _with_refinement(RegistrationOptions(), model, None, None, "other", True)
+    model.contrast_match_bins = 32
+    assert _with_refinement(RegistrationOptions(), model, None, None, "other", True).contrast_match_bins == 32
+    assert _with_refinement(RegistrationOptions(), model, None, None, "other").contrast_match_bins == 0
 
 
 def test_contrast_other_without_the_configs_settings_says_so(tmp_path):
@@ -691,3 +729,14 @@ def test_bad_model_file_for_the_config(scene, tmp_path):
     torch.save({"network": {}, "optimizer": {}}, tmp_path / "checkpoint.pt")  # a training checkpoint, not weights
     line = _fails(scene, tmp_path, "--model-file", str(tmp_path / "checkpoint.pt"))
     assert "checkpoint.pt" in line and "does not fit" in line
+
+
+@pytest.mark.parametrize("value", [1, -2, 2.5, "64", True])
+def test_a_bad_contrast_match_bins_names_the_config(tmp_path, value):
+    from monai_probreg.registration.model import _contrast_match_bins
+    from monai_probreg.utils.errors import InputError
+
+    with pytest.raises(InputError, match=r"mine.yaml.*bad 'contrast_match_bins': expected 0 \(none\) or an integer"):
+        _contrast_match_bins(ConfigParser({"contrast_match_bins": value}), tmp_path / "mine.yaml")
+    assert _contrast_match_bins(ConfigParser({}), tmp_path / "mine.yaml") == 0  # no such key: not mapped
+    assert _contrast_match_bins(ConfigParser({"contrast_match_bins": 0}), tmp_path / "mine.yaml") == 0

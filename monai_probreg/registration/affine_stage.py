@@ -77,8 +77,8 @@ def matched_input(
     masks: tuple[np.ndarray | None, np.ndarray | None] | None,
     num_bins: int,
 ) -> np.ndarray:
-    """``image`` (the moving scan on the model grid, :func:`model_input`'s) in ``fixed_image``'s contrast, counted inside
-    the cost-function ``masks`` (:func:`~monai_probreg.spatial.contrast.match_contrast`, ``num_bins`` bins);
+    """``image`` (the moving scan on the model grid, :func:`model_input`'s) in ``fixed_image``'s contrast, counted
+    inside the cost-function ``masks`` (:func:`~monai_probreg.spatial.contrast.match_contrast`, ``num_bins`` bins);
     InputError with one line when the two images share too little for a map."""
     inside = None
     for part in masks or ():

@@ -81,9 +81,8 @@ class RegistrationOptions:
     contrast_match_bins: int = 0
 
     def __post_init__(self) -> None:
-        if not (self.contrast_match_bins == 0 or self.contrast_match_bins >= 2) or int(self.contrast_match_bins) != (
-            self.contrast_match_bins
-        ):
+        bins = self.contrast_match_bins
+        if int(bins) != bins or not (bins == 0 or bins >= 2):
             raise ValueError(
                 f"contrast_match_bins must be 0 (none) or an integer >= 2; got {self.contrast_match_bins!r}"
             )

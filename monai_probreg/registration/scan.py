@@ -4,7 +4,8 @@ Stages, timed under these names in ``summary.json["timings_s"]``, each in the mo
 
 - ``read``: read and validate the moving scan (and its labels, its mask) with their geometry (:mod:`.inputs`);
 - ``affine``, ``resample``: the affine pre-alignment, then the moving scan on the model grid as the network reads it
-  (:mod:`.affine_stage`; with ``--match-contrast`` in the fixed image's contrast, :mod:`~monai_probreg.spatial.contrast`);
+  (:mod:`.affine_stage`; with ``--match-contrast`` in the fixed image's contrast,
+  :mod:`~monai_probreg.spatial.contrast`);
 - ``model``, ``refine``, ``maps``, ``samples``: the network's registration, its test-time refinement, the
   Jacobian, entropy and inverse (the inverse after the quality estimate: ``maps`` is timed in two parts), the
   posterior samples (:mod:`.network`);

@@ -1,15 +1,16 @@
 """A second contrast made the first one's: the moving image's intensities mapped onto the fixed image's contrast.
 
-``register --contrast other --match-contrast`` (a skull-stripped T2-weighted or FLAIR brain onto a T1-weighted
-atlas) feeds the network, its refinement and the quality estimate the moving image with every intensity replaced by
-the mean fixed intensity of the voxels that have it, after the affine stage: the conditional mean ``E[fixed | moving]`` read off the pair's
-joint histogram, the least-squares map from one image's intensities to the other's (Guimond, Roche, Ayache and
-Meunier, "Three-dimensional multimodal brain warping using the demons algorithm and adaptive intensity
-corrections", IEEE TMI 2001). The network was trained on pairs of one contrast; after the map, a pair of two is
-one, and its local correlation sees what it was fitted to. The files written are the original scan resampled.
+``register --contrast other --match-contrast`` (a skull-stripped T2-weighted or FLAIR brain onto a T1-weighted atlas)
+feeds the network, its refinement and the quality estimate the moving image with every intensity replaced by the mean
+fixed intensity of the voxels that have it, after the affine stage: the conditional mean ``E[fixed | moving]`` read
+off the pair's joint histogram, the least-squares map from one image's intensities to the other's (Guimond, Roche,
+Ayache and Meunier, "Three-dimensional multimodal brain warping using the demons algorithm and adaptive intensity
+corrections", IEEE TMI 2001). The network was trained on pairs of one contrast; after the map, a pair of two is one,
+and its local correlation sees what it was fitted to. The files written are the original scan resampled.
 
-Written by hand: histogram matching (scikit-image's ``match_histograms``, MONAI's ``HistogramNormalize``) is
-monotone and cannot turn white matter dark into white matter bright; no library of ours offers the conditional mean.
+Written by hand: histogram matching (ITK's ``HistogramMatchingImageFilter``, ANTs' ``--use-histogram-matching``,
+scikit-image's ``match_histograms``) and MONAI's histogram equalisation (``HistogramNormalize``) are monotone and
+cannot turn white matter dark into white matter bright; no library of ours offers the conditional mean.
 
 The affine stage leaves the pair a few millimetres apart, so the map averages over tissue boundaries; the bins of
 fluid, grey and white matter each hold many thousands of voxels and their means stand. Where tissues of different

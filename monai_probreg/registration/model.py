@@ -18,6 +18,7 @@ from torch import nn
 
 import monai_probreg
 from monai_probreg.engines.refinement import RefinementSettings
+from monai_probreg.spatial.contrast import check_contrast_match_bins
 from monai_probreg.uncertainty.calibration import RAW, Calibration, calibration_record_for
 from monai_probreg.uncertainty.quality import QualityModel, load_quality_model, quality_model_for
 from monai_probreg.utils.errors import InputError, first_line
@@ -160,8 +161,9 @@ def _contrast_match_bins(parser, config: Path) -> int:
     """The config's ``contrast_match_bins``: 0 when the config has none; one line naming the config otherwise unless
     it is 0 or an integer >= 2."""
     value = parser.get_parsed_content("contrast_match_bins") if "contrast_match_bins" in parser else 0
-    if isinstance(value, bool) or not isinstance(value, int) or value == 1 or value < 0:
+    try:
+        return check_contrast_match_bins(value)
+    except ValueError:
         raise InputError(
             f"--config {str(config)!r}: bad 'contrast_match_bins': expected 0 (none) or an integer >= 2, got {value!r}"
-        )
-    return value
+        ) from None

@@ -12,6 +12,7 @@ import numpy as np
 
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.spatial.affine import AffineSettings
+from monai_probreg.spatial.contrast import check_contrast_match_bins
 from monai_probreg.spatial.transform_files import read_initial_transform
 from monai_probreg.utils.errors import InputError
 
@@ -81,11 +82,7 @@ class RegistrationOptions:
     contrast_match_bins: int = 0
 
     def __post_init__(self) -> None:
-        bins = self.contrast_match_bins
-        if int(bins) != bins or not (bins == 0 or bins >= 2):
-            raise ValueError(
-                f"contrast_match_bins must be 0 (none) or an integer >= 2; got {self.contrast_match_bins!r}"
-            )
+        check_contrast_match_bins(self.contrast_match_bins)
         if self.samples == 1 or self.samples < 0:
             raise InputError(
                 f"--samples must be 0 (no sampling) or >= 2 (a standard deviation needs two); got {self.samples}"

@@ -24,9 +24,17 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["CONTRAST_MATCH_MIN_COUNT", "match_contrast"]
+__all__ = ["CONTRAST_MATCH_MIN_COUNT", "check_contrast_match_bins", "match_contrast"]
 
 CONTRAST_MATCH_MIN_COUNT = 20  # voxels a bin needs for its own mean (else interpolated from its neighbours)
+
+
+def check_contrast_match_bins(value: object) -> int:
+    """``value`` as a number of bins for the map: 0 (no map) or an integer >= 2 (a bool, a float or a string is not);
+    ValueError otherwise. The one rule for the command's options and the config's ``contrast_match_bins``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value == 1 or value < 0:
+        raise ValueError(f"contrast_match_bins must be 0 (none) or an integer >= 2; got {value!r}")
+    return int(value)
 
 
 def match_contrast(

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from monai_probreg.registration.affine_stage import matched_input
-from monai_probreg.spatial.contrast import CONTRAST_MATCH_MIN_COUNT, match_contrast
+from monai_probreg.spatial.contrast import CONTRAST_MATCH_MIN_COUNT, check_contrast_match_bins, match_contrast
 from monai_probreg.utils.errors import InputError
 
 
@@ -133,3 +133,14 @@ def test_the_commands_masks_are_where_the_map_is_read():
         got, match_contrast(moving, fixed, 16, np.ones(moving.shape, bool) & (np.arange(16) >= 6)[:, None, None])
     )
     np.testing.assert_array_equal(matched_input(moving, fixed, (None, None), 16), match_contrast(moving, fixed, 16))
+
+
+@pytest.mark.parametrize("value", [-1, 1, 2.5, 64.0, "64", True, None])
+def test_a_bin_count_is_zero_or_an_integer_of_at_least_two(value):
+    with pytest.raises(ValueError, match=r"contrast_match_bins must be 0 \(none\) or an integer >= 2; got"):
+        check_contrast_match_bins(value)
+
+
+@pytest.mark.parametrize("value", [0, 2, 64, np.int64(32)])
+def test_a_good_bin_count_comes_back_as_an_int(value):
+    assert check_contrast_match_bins(value) == int(value) and type(check_contrast_match_bins(value)) is int

@@ -22,7 +22,7 @@ labels, the bundle's settings):
   affine and the SyN stages), whole (read, register, resample, write).
 
 Scores: mean Dice over FreeSurfer's aseg structures, folded voxels, the command's warnings (the quality estimate's,
-in ``summary.json``).
+in ``summary.json``; "–" where none is made: ``--contrast other``, and ANTs).
 
     python benchmarks/cross_contrast.py --label-maps SynthSeg/data/training_label_maps --threads 2
 
@@ -68,10 +68,11 @@ ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
 def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
     model = load_model()
     if not args.variants_only:
-        matched = {**model.other_contrast, "contrast_match_bins": model.contrast_match_bins}
+        other = {**model.other_contrast, "contrast": "other"}
+        matched = {**other, "contrast_match_bins": model.contrast_match_bins}
         rows_options = {
             "--contrast same": {},
-            "--contrast other": dict(model.other_contrast),
+            "--contrast other": other,
             "--contrast other --match-contrast": matched,
             **rows_options,
         }
@@ -109,9 +110,10 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
                             case["rows"][row] = {
                                 "dice": dice(read_label(out / "warped_label.nii.gz").array, target, ASEG_LABELS),
                                 "num_folding": int(summary["jacobian"]["num_nonpositive"]),
-                                "warning": summary.get("warning") or "",
                                 "seconds": round(time.perf_counter() - start, 2),
                             }
+                            if summary["quality_not_estimated"] is None:  # else no "warning": no estimate to warn
+                                case["rows"][row]["warning"] = summary.get("warning") or ""
                         if args.ants:
                             out = sub / f"{i}{j}_ants"
                             out.mkdir()
@@ -128,16 +130,18 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
 
 
 def _options(model, fields: dict, seed: int) -> RegistrationOptions:
-    """The command's options for a row: its RefinementSettings fields replaced, and ``contrast_match_bins`` (not a
-    refinement field: the moving image mapped onto the fixed one's contrast, 0 = not) when the row gives it."""
+    """The command's options for a row: its RefinementSettings fields replaced, and two fields that are not the
+    refinement's when the row gives them: ``contrast_match_bins`` (the moving image mapped onto the fixed one's
+    contrast, 0 = not) and ``contrast`` ("other": no quality estimate, as ``--contrast other`` runs; default "same")."""
     fields = dict(fields)
     bins = int(fields.pop("contrast_match_bins", 0))
-    return dataclasses.replace(command_options(model, fields, seed), contrast_match_bins=bins)
+    contrast = str(fields.pop("contrast", "same"))
+    return dataclasses.replace(command_options(model, fields, seed), contrast_match_bins=bins, contrast=contrast)
 
 
 def summarise(cases: list[dict]) -> dict:
-    """Per (kind, contrast) and row: mean Dice, folded voxels, warned pairs (None for a method without a quality
-    estimate: ANTs), pairs."""
+    """Per (kind, contrast) and row: mean Dice, folded voxels, warned pairs (None for a row without a quality
+    estimate: ANTs, --contrast other), pairs."""
     out: dict[str, dict] = {}
     for case in cases:
         group = out.setdefault(f"{case['kind']} {case['contrast']}", {})
@@ -145,7 +149,7 @@ def summarise(cases: list[dict]) -> dict:
             entry = group.setdefault(row, {"dice": [], "num_folding": 0, "warned": 0 if "warning" in record else None})
             entry["dice"].append(record["dice"])
             entry["num_folding"] += int(record.get("num_folding", 0))
-            if entry["warned"] is not None:  # ANTs has no quality estimate: None
+            if entry["warned"] is not None:  # ANTs and --contrast other have no quality estimate: None
                 entry["warned"] += int(bool(record.get("warning")))
     for group in out.values():
         for entry in group.values():

@@ -186,13 +186,13 @@ def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
     )
     reg.add_argument(
         "--contrast",
-        choices=("same", "other"),
+        choices=("same", "other"),  # registration.options.CONTRASTS (not imported here: --help stays light)
         default="same",
         help="same (default): both scans of one contrast (or contrasts a local correlation relates, e.g. two "
         "T1-weighted scanners); other: a T2-weighted or FLAIR scan onto a T1-weighted atlas or template, the "
         "refinement then follows the images without the pull towards the network's estimate, which was trained on "
-        "pairs of one contrast (the config's other_contrast settings; docs/cli.md); needs the refinement (not "
-        "--refine 0)",
+        "pairs of one contrast (the config's other_contrast settings; docs/cli.md), and no quality estimate is made "
+        "(its models were fitted on pairs of one contrast); needs the refinement (not --refine 0)",
     )
     reg.add_argument(
         "--match-contrast",
@@ -585,6 +585,7 @@ def _with_refinement(
         return options
     refinement = model.refinement
     if contrast == "other":
+        options = dataclasses.replace(options, contrast="other")
         if not model.other_contrast:
             raise InputError(
                 f"--contrast other: expected the config's 'other_contrast' settings, got none in "

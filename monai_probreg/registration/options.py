@@ -16,7 +16,11 @@ from monai_probreg.spatial.contrast import check_contrast_match_bins
 from monai_probreg.spatial.transform_files import read_initial_transform
 from monai_probreg.utils.errors import InputError
 
-__all__ = ["INITIAL_TRANSFORM_USES", "InitialTransform", "RegistrationOptions"]
+__all__ = ["CONTRASTS", "INITIAL_TRANSFORM_USES", "InitialTransform", "RegistrationOptions"]
+
+# --contrast: "same", both scans of one contrast; "other", two contrasts (the refinement's image term set for them, and
+# no quality estimate: its models were fitted on pairs of one contrast, where another contrast is a failure)
+CONTRASTS = ("same", "other")
 
 INITIAL_TRANSFORM_USES = ("start", "as-affine")  # the affine stage starts from it / it is the affine (no stage)
 
@@ -68,7 +72,9 @@ class RegistrationOptions:
     registration's affine that the affine stage starts from (``use="start"``, with ``affine`` settings) or that is
     the affine (``use="as-affine"``, with ``affine=None``), or None; ``contrast_match_bins``: 0, the moving scan as it
     is; N >= 2, its intensities mapped onto the fixed image's contrast over N bins before the network, the refinement
-    and the quality estimate read it (:func:`~monai_probreg.spatial.contrast.match_contrast`; ``--match-contrast``).
+    and the quality estimate read it (:func:`~monai_probreg.spatial.contrast.match_contrast`; ``--match-contrast``);
+    ``contrast``: one of :data:`CONTRASTS` (``--contrast``; the refinement's settings for it are the caller's): under
+    "other" no quality estimate is made (:func:`~monai_probreg.registration.quality_estimate.why_no_quality`).
     """
 
     samples: int = 0
@@ -80,9 +86,12 @@ class RegistrationOptions:
     refinement: RefinementSettings | None = None
     initial: InitialTransform | None = None
     contrast_match_bins: int = 0
+    contrast: str = "same"
 
     def __post_init__(self) -> None:
         check_contrast_match_bins(self.contrast_match_bins)
+        if self.contrast not in CONTRASTS:
+            raise ValueError(f"contrast must be one of {CONTRASTS}; got {self.contrast!r}")
         if self.samples == 1 or self.samples < 0:
             raise InputError(
                 f"--samples must be 0 (no sampling) or >= 2 (a standard deviation needs two); got {self.samples}"

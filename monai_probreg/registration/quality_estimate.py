@@ -2,7 +2,10 @@
 (:mod:`monai_probreg.uncertainty.quality`), read from the network's own registration before refinement (what its
 models were fitted on: docs/uncertainty.md, "Whose features"; read as soon as the network has run,
 :func:`network_quality_features`), with the refined answer's features beside it (:func:`estimate_quality`); and its
-record in ``summary.json``. Weights without a quality model have no stage (``"quality": null``)."""
+record in ``summary.json``. Weights without a quality model have no stage (``"quality": null``), and neither has a
+pair of two contrasts (``--contrast other``; :func:`why_no_quality` says why, in ``summary.json``): the models were
+fitted on pairs of one contrast, with scans of an inverted contrast among their failures, so they call every pair of
+two contrasts failed, whatever its alignment (docs/accuracy.md, "Another contrast")."""
 
 from __future__ import annotations
 
@@ -17,11 +20,36 @@ from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.registration.inputs import FixedSpace
 from monai_probreg.registration.model import LoadedModel
 from monai_probreg.registration.network import ModelMaps, posterior_entropy
+from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.uncertainty.quality import QualityEstimate, quality_path, quality_record
 from monai_probreg.uncertainty.quality_features import QualityFeatures, quality_features
 from monai_probreg.utils.tensors import float_numpy
 
-__all__ = ["ScanQuality", "estimate_quality", "network_quality_features", "quality_summary"]
+__all__ = [
+    "NO_QUALITY_MODEL",
+    "NO_QUALITY_OTHER_CONTRAST",
+    "ScanQuality",
+    "estimate_quality",
+    "network_quality_features",
+    "quality_summary",
+    "why_no_quality",
+]
+
+NO_QUALITY_MODEL = "the weights have no quality model (<weights stem>.quality.json)"
+NO_QUALITY_OTHER_CONTRAST = (
+    "--contrast other: the quality models were fitted on pairs of one contrast, with another contrast among their "
+    "failures; they would call this pair failed whatever its alignment (check qc.png)"
+)
+
+
+def why_no_quality(model: LoadedModel, options: RegistrationOptions) -> str | None:
+    """Why no quality estimate is made for a registration with ``options`` (module docstring), or None when it is:
+    the one rule for whether the ``quality`` stage runs."""
+    if model.quality is None:
+        return NO_QUALITY_MODEL
+    if options.contrast != "same":
+        return NO_QUALITY_OTHER_CONTRAST
+    return None
 
 
 class ScanQuality(NamedTuple):

@@ -59,7 +59,11 @@ from monai_probreg.registration.output_folder import (
     staged_output_dir,
 )
 from monai_probreg.registration.qc import save_qc
-from monai_probreg.registration.quality_estimate import estimate_quality, network_quality_features
+from monai_probreg.registration.quality_estimate import (
+    estimate_quality,
+    network_quality_features,
+    why_no_quality,
+)
 from monai_probreg.registration.summary import scan_summary
 from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.volume_io import Volume
@@ -163,13 +167,14 @@ def register_scan(
             moving_input = matched_input(moving_input, fixed.model_input, masks, options.contrast_match_bins)
     output = register_network(model, moving_input, fixed.model_input, stage)
     network_features = None
-    if model.quality is not None and options.refinement.enabled:  # the quality stage's first part
+    estimates_quality = why_no_quality(model, options) is None  # else no stage, "quality": null
+    if estimates_quality and options.refinement.enabled:  # the quality stage's first part
         with stage("quality"):
             network_features = network_quality_features(model, moving_input, fixed, output)
     model_maps = run_network(model, output, moving_input, fixed.model_input, options, fixed.grid.spacing, stage, masks)
     del output  # the network's own registration: read by the refinement and the quality estimate only
     quality = None
-    if model.quality is not None:  # weights without a quality model: no stage, "quality": null
+    if estimates_quality:
         with stage("quality"):
             quality = estimate_quality(model, moving_input, fixed, model_maps, network_features)
     with stage("maps"):  # the maps stage's last part, now that the quality estimate's memory is free

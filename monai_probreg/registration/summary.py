@@ -16,7 +16,7 @@ from monai_probreg.registration.inputs import FixedSpace, MovingScan
 from monai_probreg.registration.model import LoadedModel
 from monai_probreg.registration.network import ModelMaps
 from monai_probreg.registration.options import RegistrationOptions
-from monai_probreg.registration.quality_estimate import ScanQuality, quality_summary
+from monai_probreg.registration.quality_estimate import ScanQuality, quality_summary, why_no_quality
 from monai_probreg.spatial.affine import AffineResult
 from monai_probreg.spatial.masks import mask_record
 from monai_probreg.spatial.volume_io import Volume
@@ -73,6 +73,7 @@ def scan_summary(
             # --match-contrast: the moving scan mapped onto the fixed image's contrast over this many bins before the
             # network read it (monai_probreg.spatial.contrast); 0: as it is
             "contrast_match_bins": options.contrast_match_bins,
+            "contrast": options.contrast,  # --contrast: "same" or "other" (the refinement's settings for it above)
             "brain_mask": None
             if fixed.brain_mask is None
             else {
@@ -104,6 +105,7 @@ def scan_summary(
             options.refinement.enabled and options.refinement.similarity_guard and not model_maps.deformed
         ),
         "quality": quality_summary(model, quality, options.refinement),
+        "quality_not_estimated": why_no_quality(model, options),  # why "quality" is null (None: it is not)
         "warning": None if quality is None else quality.estimate.warning,
         "uncertainty": {
             "samples": options.samples,

@@ -37,3 +37,20 @@ def test_a_method_without_a_quality_estimate_has_no_warned_count():
     summary = cross_contrast.summarise(cases)
     assert summary["head T2->T1"]["ANTs SyN"]["warned"] is None
     assert "| head T2->T1 | ANTs SyN | 0.6000 | 0 | – |" in cross_contrast.markdown({"summary": summary})
+
+
+def test_a_rows_contrast_and_map_reach_the_options_and_the_rest_the_refinement():
+    """The --contrast other rows run as the command does: contrast "other" (no quality estimate) and the map's bins
+    on RegistrationOptions, the other fields on the refinement; a row without them keeps "same" and no map."""
+    from types import SimpleNamespace
+
+    from monai_probreg.engines.refinement import RefinementSettings
+
+    model = SimpleNamespace(refinement=RefinementSettings(num_iterations=3))
+    fields = {"posterior_weight": 0.0, "contrast": "other", "contrast_match_bins": 16}
+    options = cross_contrast._options(model, fields, seed=1)
+    assert (options.contrast, options.contrast_match_bins, options.seed) == ("other", 16, 1)
+    assert options.refinement.posterior_weight == 0.0 and options.refinement.num_iterations == 3
+    assert fields == {"posterior_weight": 0.0, "contrast": "other", "contrast_match_bins": 16}  # not consumed
+    plain = cross_contrast._options(model, {}, seed=0)
+    assert (plain.contrast, plain.contrast_match_bins) == ("same", 0)

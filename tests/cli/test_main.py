@@ -484,6 +484,34 @@ def test_match_contrast_without_the_configs_bins_says_so(tmp_path):
     assert _with_refinement(RegistrationOptions(), model, None, None, "other").contrast_match_bins == 0
 
 
+def test_contrast_other_is_handed_to_the_registration(tmp_path):
+    """--contrast other reaches RegistrationOptions.contrast (no quality estimate there), besides the refinement's
+    other_contrast fields; --contrast same leaves the default."""
+    from monai_probreg.cli.main import _with_refinement
+    from monai_probreg.engines.refinement import RefinementSettings
+    from monai_probreg.registration.options import RegistrationOptions
+
+    model = SimpleNamespace(
+        refinement=RefinementSettings(num_iterations=3),
+        other_contrast={"posterior_weight": 0.0},
+        contrast_match_bins=0,
+        config_file=tmp_path / "mine.yaml",
+    )
+    from monai_probreg.cli.main import build_parser
+    from monai_probreg.registration.options import CONTRASTS
+
+    choices = next(
+        a.choices
+        for g in build_parser()._subparsers._group_actions
+        for a in g.choices["register"]._actions
+        if a.dest == "contrast"
+    )
+    assert tuple(choices) == CONTRASTS  # the command's choices are the options' (one list, written twice)
+    other = _with_refinement(RegistrationOptions(), model, None, None, "other")
+    assert other.contrast == "other" and other.refinement.posterior_weight == 0.0
+    assert _with_refinement(RegistrationOptions(), model, 3, None, "same").contrast == "same"
+
+
 def test_contrast_other_without_the_configs_settings_says_so(tmp_path):
     from monai_probreg.cli.main import _with_refinement
     from monai_probreg.engines.refinement import RefinementSettings

@@ -215,3 +215,32 @@ def test_the_raw_posterior_keeps_an_estimate_that_records_its_calibration(scene)
     assert recorded["warning"]  # this hand-made model always warns
     entropy = summaries["in_use"]["quality"]["features"]["entropy"]
     assert recorded["quality"]["features"]["entropy"] == pytest.approx(entropy - 3 * math.log(2), abs=1e-4)
+
+
+def test_a_pair_of_two_contrasts_gets_no_estimate_and_says_why(scene):
+    """--contrast other: the models (fitted on pairs of one contrast, another contrast among their failures) are not
+    applied, even one that always warns: no stage, "quality": null, no warning; summary.json and the printed line
+    say why. With --contrast same the same model warns (the test above)."""
+    from monai_probreg.registration.quality_estimate import NO_QUALITY_OTHER_CONTRAST
+
+    out = scene.root / "other_contrast"
+    result = _register(scene, out, 20.0, "--contrast", "other")
+    assert result.rc == 0, result.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["quality"] is None and summary["warning"] is None
+    assert summary["quality_not_estimated"] == NO_QUALITY_OTHER_CONTRAST
+    assert summary["model"]["contrast"] == "other"
+    assert "quality" not in summary["timings_s"]
+    assert "warning:" not in result.err
+    assert "no quality estimate (--contrast other)" in result.out
+
+
+def test_weights_without_a_quality_model_say_so(scene):
+    from monai_probreg.registration.quality_estimate import NO_QUALITY_MODEL
+
+    out = scene.root / "no_model"
+    result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), *scene.common)
+    assert result.rc == 0, result.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["quality"] is None and summary["quality_not_estimated"] == NO_QUALITY_MODEL
+    assert summary["model"]["contrast"] == "same"

@@ -26,6 +26,12 @@ def test_contrast_match_bins_must_be_none_or_at_least_two(bins):
         RegistrationOptions(contrast_match_bins=bins)
 
 
+@pytest.mark.parametrize("contrast", ["T2", "", None, "Other"])
+def test_contrast_must_be_same_or_other(contrast):
+    with pytest.raises(ValueError, match=rf"contrast must be one of \('same', 'other'\); got {contrast!r}"):
+        RegistrationOptions(contrast=contrast)
+
+
 @pytest.mark.parametrize("bins", [0, 16])
 def test_the_network_reads_the_moving_scan_in_the_fixed_contrast_when_asked(tmp_path, monkeypatch, bins):
     """contrast_match_bins N: what the network (and after it the refinement and the quality estimate) reads is the

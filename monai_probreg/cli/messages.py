@@ -23,7 +23,7 @@ def summary_line(summary: dict) -> str:
             f"predicted Dice {summary['quality']['predicted_dice']:.2f}, "
             f"failure probability {summary['quality']['failure_probability']:.2f}"
         )
-    elif summary.get("quality_not_estimated"):  # why, up to its first colon (summary.json has the whole reason)
+    elif summary.get("quality_not_estimated"):  # its label, up to the first colon (summary.json has the whole reason)
         parts.append(f"no quality estimate ({summary['quality_not_estimated'].split(':')[0]})")
     return "; ".join(parts)
 

@@ -35,7 +35,8 @@ __all__ = [
     "why_no_quality",
 ]
 
-NO_QUALITY_MODEL = "the weights have no quality model (<weights stem>.quality.json)"
+# each reason reads "<short label>: <the whole reason>"; the command prints the label (cli.messages.summary_line)
+NO_QUALITY_MODEL = "no quality model"  # ": no <weights stem>.quality.json beside <weights>" follows
 NO_QUALITY_OTHER_CONTRAST = (
     "--contrast other: the quality models were fitted on pairs of one contrast, with another contrast among their "
     "failures; they would call this pair failed whatever its alignment (check qc.png)"
@@ -46,7 +47,7 @@ def why_no_quality(model: LoadedModel, options: RegistrationOptions) -> str | No
     """Why no quality estimate is made for a registration with ``options`` (module docstring), or None when it is:
     the one rule for whether the ``quality`` stage runs."""
     if model.quality is None:
-        return NO_QUALITY_MODEL
+        return f"{NO_QUALITY_MODEL}: no {quality_path(model.model_file).name} beside {model.model_file}"
     if options.contrast != "same":
         return NO_QUALITY_OTHER_CONTRAST
     return None

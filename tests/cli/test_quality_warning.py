@@ -242,5 +242,7 @@ def test_weights_without_a_quality_model_say_so(scene):
     result = run_cli("register", "--moving", str(scene.moving), "--out", str(out), *scene.common)
     assert result.rc == 0, result.err
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["quality"] is None and summary["quality_not_estimated"] == NO_QUALITY_MODEL
-    assert summary["model"]["contrast"] == "same"
+    assert summary["quality"] is None
+    assert summary["quality_not_estimated"] == f"{NO_QUALITY_MODEL}: no model.quality.json beside {scene.weights}"
+    assert summary["model"]["contrast"] == "same" and summary["warning"] is None
+    assert "no quality estimate (no quality model)" in result.out

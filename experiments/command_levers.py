@@ -12,7 +12,11 @@ No dataset needed: every input is made here (seeded) at the sizes of a real regi
 - ``exit``: a fresh process importing the command's modules, leaving normally (Python tears the modules down) and
   with ``os._exit`` (:func:`monai_probreg.cli.main.run`);
 - ``torch._dynamo``: a fresh process importing torch, without and with ``torch._dynamo`` (what the first
-  ``torch.optim.LBFGS`` of a process imports).
+  ``torch.optim.LBFGS`` of a process imports);
+- ``nearest labels``: a Fortran-ordered label map of the moving grid (as nibabel reads NIfTI) sampled at the atlas
+  grid's points slab by slab (:func:`~monai_probreg.spatial.physical.row_slabs`), as the compose stage samples the
+  labels: with a C-ordered copy of the map per slab (what :func:`~monai_probreg.spatial.point_sampling.sample_nearest`
+  made before it read both orders in place) and without; the same values.
 
 Each in-process row is the best of ``--repeats`` after one warm-up; each process row the median of ``--repeats``.
 Prints a table and writes ``OUT_DIR/command_levers.json``.
@@ -38,7 +42,9 @@ from isal import igzip
 
 from monai_probreg.metrics.jacobian import jacobian_determinant
 from monai_probreg.spatial.nifti_write import GZIP_LEVEL
-from monai_probreg.spatial.physical import apply_affine, grid_points
+from monai_probreg.spatial.physical import apply_affine, grid_points, mapped_index, row_slabs
+from monai_probreg.spatial.point_sampling import sample_nearest
+from monai_probreg.spatial.volume_io import Volume
 from monai_probreg.utils.files import write_text
 from monai_probreg.utils.provenance import library_versions
 
@@ -123,12 +129,38 @@ def dynamo_row(repeats: int) -> dict:
     }
 
 
+def nearest_labels_row(repeats: int) -> dict:
+    rng = np.random.default_rng(SEED)
+    labels = np.asfortranarray(rng.integers(0, 60, MOVING_SHAPE, dtype=np.uint8))
+    moving_grid, atlas_grid = np.diag([0.94, 1.5, 0.94, 1.0]), np.eye(4)
+    moving_grid[:3, 3] = [-120.0, -93.0, -120.0]
+    atlas_grid[:3, 3] = [-80.0, -96.0, -80.0]
+    slabs = [
+        (rows, mapped_index((rows.stop - rows.start, *ATLAS_SHAPE[1:]), atlas_grid, moving_grid, first_row=rows.start))
+        for rows in row_slabs(ATLAS_SHAPE)
+    ]
+
+    def sample(copy_per_slab: bool) -> np.ndarray:
+        out = np.empty(ATLAS_SHAPE, np.uint8)
+        for rows, index in slabs:
+            array = np.ascontiguousarray(labels) if copy_per_slab else labels
+            out[rows] = sample_nearest(Volume(array, moving_grid), None, index=index)
+        return out
+
+    return {
+        "before": best_of(lambda: sample(True), repeats),
+        "after": best_of(lambda: sample(False), repeats),
+        "same_values": bool(np.array_equal(sample(True), sample(False))),
+    }
+
+
 ROWS = {
     "gzip (98 MB field): zlib 1 -> ISA-L 1": gzip_row,
     "point transform (4.9 M points): numpy -> torch.addmm": point_transform_row,
     "jacobian (160x192x160): linalg.det -> cofactors": jacobian_row,
     "process exit after the command's imports: teardown -> os._exit": exit_row,
     "import torch -> + torch._dynamo (first LBFGS)": dynamo_row,
+    "nearest labels (Fortran-ordered 256x124x256, by slab): a copy per slab -> in place": nearest_labels_row,
 }
 
 

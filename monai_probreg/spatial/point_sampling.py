@@ -111,20 +111,29 @@ def sample_linear(
     return LinearSampler(volume, fill, outside, chunk)(points, index)
 
 
+def _flat_view(array: np.ndarray) -> tuple[torch.Tensor, tuple[int, ...]]:
+    """``array`` (I, J, K) as one flat tensor and the step in it of each axis (in elements): a view of a C- or
+    Fortran-ordered array (nibabel reads NIfTI in Fortran order), so that sampling a grid slab by slab copies the
+    volume never, not once per slab; a copy for any other layout."""
+    if not (array.flags.c_contiguous or array.flags.f_contiguous):
+        array = np.ascontiguousarray(array)
+    steps = tuple(int(s) // array.itemsize for s in array.strides)
+    return torch.from_numpy(array.ravel(order="K")), steps
+
+
 def sample_nearest(
     volume: Volume, points: np.ndarray | None, fill: int = 0, index: np.ndarray | None = None, chunk: int = _CHUNK
 ) -> np.ndarray:
     """Nearest-neighbour samples (ITK rounding, half up) at ``points`` (..., 3); ``fill`` outside; input dtype.
     ``index``, ``chunk``: as :func:`sample_linear`'s (no copy of the volume is made, so slabs need no sampler)."""
-    _, size_j, size_k = volume.shape
-    flat = torch.from_numpy(np.ascontiguousarray(volume.array).reshape(-1))
+    flat, steps = _flat_view(volume.array)
     query_shape = _query_shape(points, index)
     out = torch.empty(int(np.prod(query_shape[:-1])), dtype=flat.dtype)
     for start, index_part in _index_chunks(points, volume, index, chunk):
         inside = _inside(index_part, volume.shape)
         nearest = torch.floor(index_part + 0.5).to(torch.int64)  # ITK: half up
         nearest[~inside] = 0  # any voxel: overwritten by ``fill`` below
-        values = flat[(nearest[:, 0] * size_j + nearest[:, 1]) * size_k + nearest[:, 2]]
+        values = flat[nearest[:, 0] * steps[0] + nearest[:, 1] * steps[1] + nearest[:, 2] * steps[2]]
         values[~inside] = fill
         out[start : start + len(values)] = values
     return out.numpy().reshape(query_shape[:-1])

@@ -319,3 +319,28 @@ def test_a_linear_sampler_gives_sample_linears_values_per_call():
     assert np.array_equal(sampler(None, index=index[1:]), sample_linear(volume, None, fill=-1.0, index=index[1:]))
     with pytest.raises(ValueError, match="outside"):
         LinearSampler(volume, outside="wrap")
+
+
+@pytest.mark.parametrize("layout", ["C", "F", "flipped"])
+def test_nearest_samples_do_not_depend_on_the_arrays_memory_layout(layout):
+    """sample_nearest reads a C- or Fortran-ordered label map (nibabel's order) in place, any other layout from one
+    copy, and picks the same voxels for every layout, against a brute-force reading of each index."""
+    from monai_probreg.spatial.point_sampling import _flat_view
+
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 200, (7, 5, 6)).astype(np.uint8)
+    if layout == "flipped":  # the same values through a view with a negative stride: neither C- nor Fortran-ordered
+        array = np.flip(np.flip(labels, 0).copy(), 0)
+        assert not (array.flags.c_contiguous or array.flags.f_contiguous)
+    else:
+        array = labels if layout == "C" else np.asfortranarray(labels)
+    index = rng.uniform(-1.0, 7.5, (4, 3, 2, 3))
+    ours = sample_nearest(Volume(array, _grid()), None, fill=255, index=index)
+    nearest = np.floor(index + 0.5).astype(int)
+    inside = ((index >= -0.5) & (index < np.array(labels.shape) - 0.5)).all(-1)
+    expected = np.full(index.shape[:-1], 255, np.uint8)
+    expected[inside] = labels[tuple(nearest[inside].T)]
+    assert inside.any() and (~inside).any()
+    np.testing.assert_array_equal(ours, expected)
+    flat, _ = _flat_view(array)
+    assert np.shares_memory(flat.numpy(), array) == (layout != "flipped")  # read in place unless it cannot be

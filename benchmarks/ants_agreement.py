@@ -34,6 +34,8 @@ import nibabel as nib
 import numpy as np
 from common import ANTS_INSTALL_HINT, ants_available, run_command, write_report
 
+from monai_probreg.spatial.volume_io import read_field  # as ITK reads it, so as ANTs does
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
 ROWS = {  # row name -> the command's contrast options
@@ -47,7 +49,8 @@ LEAN = ("--no-inverse", "--no-maps", "--no-qc")  # only warp.nii.gz (and the sum
 def field_disagreement(ours: np.ndarray, theirs: np.ndarray, inside: np.ndarray) -> dict[str, float]:
     """Median and 95th percentile of ``|ours - theirs|`` (mm) over ``inside``: two displacement fields (*S, 3) of one
     grid (the last axis the vector), ``inside`` (*S) bool. ValueError for shapes that differ or an empty ``inside``."""
-    ours, theirs, inside = np.asarray(ours), np.asarray(theirs), np.asarray(inside, bool)
+    ours, theirs = np.asarray(ours, np.float64), np.asarray(theirs, np.float64)
+    inside = np.asarray(inside, bool)
     if ours.shape != theirs.shape or ours.ndim < 2 or ours.shape[:-1] != inside.shape:
         raise ValueError(
             f"expected two (*S, 3) fields and an (*S) mask of one grid; got {ours.shape}, {theirs.shape}, {inside.shape}"
@@ -56,12 +59,6 @@ def field_disagreement(ours: np.ndarray, theirs: np.ndarray, inside: np.ndarray)
         raise ValueError("the mask selects no voxel")
     distance = np.linalg.norm((ours - theirs)[inside], axis=-1)
     return {"median_mm": float(np.median(distance)), "p95_mm": float(np.percentile(distance, 95))}
-
-
-def read_field(path: Path) -> np.ndarray:
-    """An ITK displacement field written as NIfTI (*S, 1, 3) or (*S, 3) -> (*S, 3) float64."""
-    data = np.asanyarray(nib.load(str(path)).dataobj, dtype=np.float64)
-    return data.reshape(*data.shape[:3], data.shape[-1])
 
 
 def ants_field(fixed: Path, moving: Path, folder: Path, threads: int) -> tuple[np.ndarray, float]:
@@ -75,7 +72,7 @@ def ants_field(fixed: Path, moving: Path, folder: Path, threads: int) -> tuple[n
     result = ants.registration(fixed_image, moving_image, type_of_transform="SyN", outprefix=f"{folder}/tx_")
     seconds = time.perf_counter() - start
     composed = ants.apply_transforms(fixed_image, moving_image, result["fwdtransforms"], compose=f"{folder}/warp_")
-    return read_field(Path(composed)), seconds
+    return read_field(composed).array, seconds
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -97,7 +94,7 @@ def run(args: argparse.Namespace) -> dict:
         fixed = np.asanyarray(nib.load(str(fixed_path)).dataobj)
         inside = fixed > fixed.min()
         for record in rows.values():
-            record.update(field_disagreement(read_field(record.pop("warp")), theirs, inside))
+            record.update(field_disagreement(read_field(record.pop("warp")).array, theirs, inside))
     return {
         "moving": str(args.moving),
         "fixed": str(fixed_path),

@@ -1,9 +1,8 @@
-"""benchmarks/ants_agreement.py: the disagreement of two fields by hand, reading a field as ITK writes it, its table,
-and a clean skip without the moving scan (the real run is the benchmark itself)."""
+"""benchmarks/ants_agreement.py: the disagreement of two fields by hand, its table, and a clean skip without the moving
+scan (the real run is the benchmark itself; the fields are read by monai_probreg.spatial.volume_io.read_field)."""
 
 from __future__ import annotations
 
-import nibabel as nib
 import numpy as np
 import pytest
 from bench_helpers import load_benchmark
@@ -43,16 +42,6 @@ def test_fields_of_two_grids_or_an_empty_mask_are_refused(ours, theirs, inside, 
     mask = np.zeros((4, 5, 6), bool) if inside is None else np.ones(inside, bool)
     with pytest.raises(ValueError, match=match):
         ants_agreement.field_disagreement(np.zeros(ours), np.zeros(theirs), mask)
-
-
-def test_a_field_written_as_itk_writes_it_is_read_as_one_vector_per_voxel(tmp_path):
-    field = np.random.default_rng(0).normal(size=(3, 4, 5, 1, 3)).astype(np.float32)  # NIfTI's (*S, 1, 3) vectors
-    image = nib.Nifti1Image(field, np.eye(4))
-    image.header.set_intent("vector")
-    nib.save(image, tmp_path / "warp.nii.gz")
-    read = ants_agreement.read_field(tmp_path / "warp.nii.gz")
-    assert read.shape == (3, 4, 5, 3) and read.dtype == np.float64
-    np.testing.assert_array_equal(read, field[:, :, :, 0].astype(np.float64))
 
 
 def test_the_table_names_each_rows_options():

@@ -61,12 +61,11 @@ def field_disagreement(ours: np.ndarray, theirs: np.ndarray, inside: np.ndarray)
     return {"median_mm": float(np.median(distance)), "p95_mm": float(np.percentile(distance, 95))}
 
 
-def ants_field(fixed: Path, moving: Path, folder: Path, threads: int) -> tuple[np.ndarray, float]:
+def ants_field(fixed: Path, moving: Path, folder: Path) -> tuple[np.ndarray, float]:
     """ANTs SyN's fixed -> moving transforms composed into one displacement field on the fixed grid; (field, seconds
     of the registration call)."""
     import ants
 
-    os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(threads)
     fixed_image, moving_image = ants.image_read(str(fixed)), ants.image_read(str(moving))
     start = time.perf_counter()
     result = ants.registration(fixed_image, moving_image, type_of_transform="SyN", outprefix=f"{folder}/tx_")
@@ -89,7 +88,7 @@ def run(args: argparse.Namespace) -> dict:
             rows[row] = {"wall_s": round(wall, 2), "warp": out / "warp.nii.gz"}
             print(f"ours {row}: {wall:.1f} s", flush=True)
         fixed_path = Path(args.fixed) if args.fixed is not None else _template()
-        theirs, seconds = ants_field(fixed_path, Path(args.moving), root, args.threads)
+        theirs, seconds = ants_field(fixed_path, Path(args.moving), root)
         print(f"ANTs SyN: {seconds:.1f} s", flush=True)
         fixed = np.asanyarray(nib.load(str(fixed_path)).dataobj)
         inside = fixed > fixed.min()
@@ -136,7 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if missing:
         print(f"skipped: no {', '.join(missing)}")
         return 0
-    available, why = ants_available()
+    os.environ["ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"] = str(args.threads)  # ANTs' too; read when ITK first loads
+    available, why = ants_available()  # which loads it
     if not available:
         print(f"skipped: {why} ({ANTS_INSTALL_HINT})")
         return 0

@@ -6,7 +6,8 @@ training run saw them): for each seed, each map deformed by a random smooth diff
 (``generalization.synthetic_head``), the moving one rendered T2-like
 (:data:`~monai_probreg.data.label_synthesis.T2_LIKE`: fluid bright, white matter dark) and the fixed one T1-like, each
 onto the other; as whole heads (skull and scalp kept, each at a random intensity per head) and as skull-stripped brains
-(SynthSeg's labels from 500 on removed). ``--same-contrast`` adds the T1-like moving images of the same pairs (what
+(SynthSeg's labels from 500 on removed); ``--kinds head-onto-brain``: whole moving heads onto skull-stripped fixed
+brains (a clinical scan onto a stripped template such as MNI152). ``--same-contrast`` adds the T1-like moving images of the same pairs (what
 the cross-contrast path must not change). Rows, each through the code path a user runs (``register --fixed`` with
 labels, the bundle's settings):
 
@@ -61,7 +62,12 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
 MAPS = ("training_seg_11", "training_seg_12")  # never in a training run (train_synth.yaml uses 01-10)
 SEEDS = (0,)
-KINDS = ("head", "brain")
+KINDS = (
+    "head",
+    "brain",
+    "head-onto-brain",
+)  # both whole heads; both skull-stripped; a whole head onto a stripped brain
+DEFAULT_KINDS = ("head", "brain")
 ANTS_CALL = 'ants.registration(fixed, moving, type_of_transform="SyN")'
 
 
@@ -85,7 +91,7 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
             for kind in args.kinds:
                 folder = root / f"{kind}_{seed}"
                 folder.mkdir()
-                fixed_heads = [synthetic_head(p, seed, folder, T1_LIKE, kind == "brain") for p in paths]
+                fixed_heads = [synthetic_head(p, seed, folder, T1_LIKE, kind != "head") for p in paths]
                 for contrast, table in contrasts.items():
                     sub = folder / contrast.replace("->", "_")
                     sub.mkdir()
@@ -174,7 +180,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--label-maps", type=Path, default=None, help="folder with SynthSeg's training_seg_*.nii.gz")
     ap.add_argument("--maps", nargs=2, default=list(MAPS), help="the two label maps' stems (default: %(default)s)")
     ap.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    ap.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS), help="whole heads, skull-stripped brains")
+    ap.add_argument(
+        "--kinds",
+        nargs="+",
+        choices=KINDS,
+        default=list(DEFAULT_KINDS),
+        help="whole heads, skull-stripped brains, or whole moving heads onto stripped fixed brains (default: %(default)s)",
+    )
     ap.add_argument("--same-contrast", action="store_true", help="also the T1-like moving images of the same pairs")
     ap.add_argument(
         "--refined-variants",

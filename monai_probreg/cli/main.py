@@ -147,6 +147,14 @@ def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
         "5%% of the full-resolution level is about 245000 points for the same alignment)",
     )
     reg.add_argument(
+        "--affine-local",
+        choices=("never", "other-contrast", "always"),  # spatial.affine_settings.LOCAL_STAGE (--help stays light)
+        default="other-contrast",  # AffineSettings.local_stage
+        help="refine the pre-alignment by the squared local correlation (ANTs' CC) after mutual information: "
+        "for a pair of two contrasts (--contrast other; default), always, or never (mutual information can prefer "
+        "a shrunken head when a head of one contrast meets a skull-stripped brain of another)",
+    )
+    reg.add_argument(
         "--nondeterministic-affine",
         action="store_true",
         help="with --affine-backend itk: multi-threaded mutual information, faster on many cores, but "
@@ -469,6 +477,7 @@ def _options(args: argparse.Namespace):
             "rigid_only": args.rigid_only,
             "seed": args.seed,
             "deterministic": not args.nondeterministic_affine,
+            "local_stage": args.affine_local,
         }
         levels = tuple(args.affine_levels) if args.affine_levels is not None else base.shrink_factors
         if args.affine_levels is not None:

@@ -4,7 +4,8 @@ brought onto the model grid as the network's input.
 - ``affine``: rigid + affine registration of the raw moving scan to the fixed image
   (:func:`monai_probreg.spatial.affine.align`: torch by default, or ITK), started from an earlier registration's
   affine or replaced by it (:class:`~monai_probreg.registration.options.InitialTransform`), or the identity without
-  the stage;
+  the stage; for a pair of two contrasts (or as ``AffineSettings.local_stage`` says, :func:`local_stage_runs`) then
+  refined by the squared local correlation (:mod:`monai_probreg.spatial.affine_local`);
 - ``resample``: the moving scan onto the fixed grid through the affine (one linear interpolation, the scan's minimum
   outside it and outside the fixed image's brain mask, :mod:`monai_probreg.spatial.brain_mask`), percentile intensity
   scaling to [0, 1] exactly as in training (:mod:`monai_probreg.spatial.intensity`), then onto the model grid
@@ -15,6 +16,7 @@ brought onto the model grid as the network's input.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -22,7 +24,8 @@ import numpy as np
 from monai_probreg.registration.compose import affine_resample
 from monai_probreg.registration.inputs import FixedSpace, MovingScan
 from monai_probreg.registration.options import RegistrationOptions
-from monai_probreg.spatial.affine import AffineResult, align
+from monai_probreg.spatial.affine import AffineResult, AffineSettings, align
+from monai_probreg.spatial.affine_local import refine_by_local_correlation
 from monai_probreg.spatial.brain_mask import hide_outside
 from monai_probreg.spatial.contrast import match_contrast
 from monai_probreg.spatial.intensity import normalise_intensity
@@ -30,26 +33,58 @@ from monai_probreg.spatial.masks import MASK_LEVEL
 from monai_probreg.spatial.volume_io import Volume
 from monai_probreg.utils.errors import InputError
 
-__all__ = ["ModelInput", "affine_stage", "matched_input", "model_input"]
+__all__ = ["ModelInput", "affine_stage", "local_stage_runs", "matched_input", "model_input"]
+
+
+def local_stage_runs(settings: AffineSettings, contrast: str) -> bool:
+    """Whether the affine stage ends with the local-correlation step for a pair of ``contrast`` (one of
+    :data:`~monai_probreg.registration.options.CONTRASTS`): ``settings.local_stage`` "always", or "other-contrast"
+    (the default) and ``contrast == "other"``."""
+    return settings.local_stage == "always" or (settings.local_stage == "other-contrast" and contrast == "other")
 
 
 def affine_stage(fixed: FixedSpace, moving: MovingScan, options: RegistrationOptions) -> AffineResult:
     """The affine, fixed LPS -> moving LPS: ``options.initial`` itself when it is used ``as-affine``, the identity
-    without affine settings, else :func:`~monai_probreg.spatial.affine.align`'s (inside the cost-function masks)."""
+    without affine settings, else :func:`~monai_probreg.spatial.affine.align`'s (inside the cost-function masks),
+    refined by the local squared correlation when :func:`local_stage_runs` (its report appended to the stages)."""
     initial = options.initial
     if initial is not None and initial.use == "as-affine":
         return AffineResult(initial.matrix, initial.center, initial.matrix, [])
     if options.affine is None:
         return AffineResult(np.eye(4), np.zeros(3), np.eye(4), [])
-    return align(
+    settings = options.affine
+    local = local_stage_runs(settings, options.contrast)
+    # with the local step and no initial transform: mutual information from each of its starts (the initializers)
+    starts = settings.local_starts if local and initial is None else (settings.initializer,)
+    results = []
+    for start in starts:
+        run = dataclasses.replace(settings, initializer=start)
+        results.append(
+            align(
+                fixed.image,
+                moving.image,
+                run,
+                fixed.itk_image if run.backend == "itk" else None,
+                fixed.samples_for(run),
+                None if initial is None else initial.matrix,
+                fixed.mask,
+                moving.mask,
+            )
+        )
+    if not local:
+        return results[0]
+    refined = refine_by_local_correlation(
         fixed.image,
         moving.image,
-        options.affine,
-        fixed.itk_image if options.affine.backend == "itk" else None,
-        fixed.samples_for(options.affine),
-        None if initial is None else initial.matrix,
-        fixed.mask,
-        moving.mask,
+        [result.matrix for result in results],
+        settings,
+        None if fixed.mask is None else fixed.mask.array,
+        None if moving.mask is None else moving.mask.array,
+    )
+    chosen = results[refined.start]
+    # the ITK transform, if the backend made one, is the old matrix's: built again from the new one on first use
+    return dataclasses.replace(
+        chosen, matrix=refined.matrix, stages=[*chosen.stages, refined.report], itk_transform=None
     )
 
 

@@ -10,9 +10,22 @@ import numpy as np
 
 from monai_probreg.spatial.physical import affine_to_itk
 
-__all__ = ["BACKENDS", "AffineResult", "AffineSettings", "StageReport", "rotation_angle_deg"]
+__all__ = [
+    "BACKENDS",
+    "INITIALIZERS",
+    "LOCAL_STAGE",
+    "AffineResult",
+    "AffineSettings",
+    "StageReport",
+    "rotation_angle_deg",
+]
 
 BACKENDS = ("torch", "itk")
+# the start: centres of mass, or grid centres (ITK's CenteredTransformInitializer)
+INITIALIZERS = ("moments", "geometry")
+# when the local-correlation step runs after the mutual-information stages (monai_probreg.spatial.affine_local):
+# never, for a pair of two contrasts only (--contrast other; the default), or always
+LOCAL_STAGE = ("never", "other-contrast", "always")
 
 
 @dataclass(frozen=True)
@@ -28,6 +41,14 @@ class AffineSettings:
     ``max_samples`` caps the sample points of a level (torch backend): 5% of the full-resolution level is eight
     times the half-resolution level's points, for the same alignment. The cap trades affine-only Dice for time:
     ``experiments/affine_levers.py`` measures both for each cap and for dropping the full-resolution level.
+
+    ``local_stage`` (one of :data:`LOCAL_STAGE`): when the result is refined by the squared local correlation
+    (:mod:`monai_probreg.spatial.affine_local`, after either backend): by default for a pair of two contrasts
+    (``--contrast other``), where mutual information between a head and a skull-stripped brain can prefer a
+    shrunken head; ``local_starts``: the initializers the mutual-information stages run from before it (the
+    result it scores best is refined; an ``initial`` transform is the only start); ``local_levels_mm``,
+    ``local_kernels`` and ``local_iterations``: its levels (voxel size in mm, coarse to fine), window (level voxels)
+    and iterations per level.
 
     Iterations are maxima (both backends stop a level earlier when converged). ITK backend only: ``max_step_mm``,
     ``convergence`` and ``deterministic`` (the line search's step bound, the stopping threshold, and the metric in
@@ -48,6 +69,11 @@ class AffineSettings:
     max_step_mm: float = 1.0
     convergence: float = 1e-6
     deterministic: bool = True  # the metric in one work unit: the same result every run (module docstring)
+    local_stage: str = "other-contrast"
+    local_starts: tuple[str, ...] = ("moments", "geometry")
+    local_levels_mm: tuple[float, ...] = (4.0, 2.0)
+    local_kernels: tuple[int, ...] = (3, 5)  # windows of 12 and 10 mm
+    local_iterations: tuple[int, ...] = (20, 20)
 
     @classmethod
     def itk_defaults(cls, **changes) -> AffineSettings:
@@ -82,8 +108,25 @@ class AffineSettings:
             raise ValueError(f"max_samples must be >= 1 or None (no cap); got {self.max_samples}")
         if not 0 < self.sampling_percentage <= 1:
             raise ValueError(f"sampling_percentage must be in (0, 1]; got {self.sampling_percentage}")
-        if self.initializer not in ("moments", "geometry"):
-            raise ValueError(f"initializer must be 'moments' or 'geometry'; got {self.initializer!r}")
+        if self.local_stage not in LOCAL_STAGE:
+            raise ValueError(f"local_stage must be one of {LOCAL_STAGE}; got {self.local_stage!r}")
+        if not self.local_starts or not set(self.local_starts) <= set(INITIALIZERS):
+            raise ValueError(f"local_starts must be one or more of {INITIALIZERS}; got {self.local_starts}")
+        local = (self.local_levels_mm, self.local_kernels, self.local_iterations)
+        if len({len(part) for part in local}) != 1 or not self.local_levels_mm:
+            raise ValueError(
+                "local_levels_mm, local_kernels and local_iterations need one value per level each, at least one "
+                "level; got "
+                f"{self.local_levels_mm}, {self.local_kernels}, {self.local_iterations}"
+            )
+        if not all(float(mm) > 0 for mm in self.local_levels_mm):
+            raise ValueError(f"local_levels_mm must be > 0; got {self.local_levels_mm}")
+        if not all(int(k) == k and k >= 3 and k % 2 == 1 for k in self.local_kernels):
+            raise ValueError(f"local_kernels must be odd integers >= 3; got {self.local_kernels}")
+        if min(self.local_iterations, default=0) < 0:
+            raise ValueError(f"local_iterations must be >= 0; got {self.local_iterations}")
+        if self.initializer not in INITIALIZERS:
+            raise ValueError(f"initializer must be one of {INITIALIZERS}; got {self.initializer!r}")
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -127,7 +127,7 @@ def mutual_information(
     return value.to(moving.dtype) + linear - linear.detach()
 
 
-def _scaled(volume: Volume, mask: np.ndarray | None = None) -> torch.Tensor:
+def scaled_intensities(volume: Volume, mask: np.ndarray | None = None) -> torch.Tensor:
     """``volume`` scaled to [0, 1] between its LOWER/UPPER_PERCENTILE percentiles, clipped; with ``mask`` (bool,
     the volume's grid), the percentiles of the voxels inside it: a bright part the mask leaves out (an artefact)
     would otherwise squeeze what the metric compares into a few histogram bins."""
@@ -169,7 +169,7 @@ def _centre(scaled: torch.Tensor, index_to_lps: np.ndarray, moments: bool) -> np
     return index_to_lps[:3, :3] @ index + index_to_lps[:3, 3]
 
 
-def _pooled(
+def pooled_level(
     image: torch.Tensor, index_to_lps: np.ndarray, factors: tuple[int, ...], sigma_mm: float
 ) -> tuple[torch.Tensor, np.ndarray]:
     """``image`` averaged over blocks of ``factors`` voxels, then smoothed by ``sigma_mm``; with the pooled grid's
@@ -203,7 +203,7 @@ def fixed_samples(fixed: Volume, settings: AffineSettings, mask: np.ndarray | No
     ``sampling_percentage`` of those (the density of the unmasked metric, where ITK samples the whole grid and drops
     the points outside). None: the whole grid, as before masks existed (the same points)."""
     generator = torch.Generator().manual_seed(int(settings.seed))
-    image = _scaled(fixed, mask)
+    image = scaled_intensities(fixed, mask)
     inside = None if mask is None else torch.from_numpy(np.asarray(mask, dtype=np.float32))
     # the moments of what the metric sees: a bright part the mask leaves out would move the start towards it
     moments = image if inside is None else image * inside
@@ -211,11 +211,11 @@ def fixed_samples(fixed: Volume, settings: AffineSettings, mask: np.ndarray | No
     samples = FixedSamples(centre, [], [], [])
     bins = settings.histogram_bins
     for shrink, sigma in zip(settings.shrink_factors, settings.smoothing_sigmas_mm):
-        level, grid = _pooled(image, fixed.index_to_lps, (int(shrink),) * 3, float(sigma))
+        level, grid = pooled_level(image, fixed.index_to_lps, (int(shrink),) * 3, float(sigma))
         values = level.reshape(-1)
         candidates = None
         if inside is not None:
-            fraction = _pooled(inside, fixed.index_to_lps, (int(shrink),) * 3, 0.0)[0].reshape(-1)
+            fraction = pooled_level(inside, fixed.index_to_lps, (int(shrink),) * 3, 0.0)[0].reshape(-1)
             candidates = torch.nonzero(fraction >= MASK_BLOCK_FRACTION).view(-1)
             if candidates.numel() == 0:
                 candidates = torch.nonzero(fraction > 0).view(-1)
@@ -250,13 +250,13 @@ class _Level:
         moving_mask: torch.Tensor | None = None,
     ) -> None:
         factors = tuple(max(1, int(level_mm // s)) for s in moving.spacing)
-        moving_level, moving_grid = _pooled(moving_image, moving.index_to_lps, factors, sigma_mm)
+        moving_level, moving_grid = pooled_level(moving_image, moving.index_to_lps, factors, sigma_mm)
         self.points, self.fixed_bins = points, fixed_bins
         self.moving = moving_level[None, None]
         # the moving mask on the same blocks (the fraction of each inside; not smoothed): sampled with the image
         self.moving_mask = None
         if moving_mask is not None:
-            self.moving_mask = _pooled(moving_mask, moving.index_to_lps, factors, 0.0)[0][None, None]
+            self.moving_mask = pooled_level(moving_mask, moving.index_to_lps, factors, 0.0)[0][None, None]
         lps_to_index = torch.from_numpy(np.linalg.inv(moving_grid))
         # LPS -> grid_sample's normalised coordinates, in its (x, y, z) order (blocks.grid_coords)
         self.lps_to_normalised = index_to_grid_matrix([int(n) for n in moving_level.shape]) @ lps_to_index
@@ -331,7 +331,7 @@ def register_affine_torch(
     (:mod:`monai_probreg.spatial.masks`): the sample points drawn inside the first, weighted by the second."""
     samples = samples if samples is not None else fixed_samples(fixed, settings, fixed_mask)
     fixed_centre = samples.centre
-    moving_image = _scaled(moving, moving_mask)
+    moving_image = scaled_intensities(moving, moving_mask)
     moving_inside = None if moving_mask is None else torch.from_numpy(np.asarray(moving_mask, dtype=np.float32))
     radius = float(np.mean(np.asarray(fixed.shape) * fixed.spacing)) / 2  # mm: 1 unit of rotation = 1 mm there
     levels = [

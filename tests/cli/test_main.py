@@ -768,3 +768,20 @@ def test_a_bad_contrast_match_bins_names_the_config(tmp_path, value):
         _contrast_match_bins(ConfigParser({"contrast_match_bins": value}), tmp_path / "mine.yaml")
     assert _contrast_match_bins(ConfigParser({}), tmp_path / "mine.yaml") == 0  # no such key: not mapped
     assert _contrast_match_bins(ConfigParser({"contrast_match_bins": 0}), tmp_path / "mine.yaml") == 0
+
+
+@pytest.mark.parametrize("given", [[], ["--affine-local", "never"], ["--affine-local", "always"]])
+def test_affine_local_reaches_the_affine_settings(given):
+    """--affine-local's choices and default are AffineSettings' (one list, written twice: --help stays light), and
+    the choice reaches the affine stage's settings (the default: for --contrast other)."""
+    from monai_probreg.cli.main import _options, build_parser
+    from monai_probreg.spatial.affine_settings import LOCAL_STAGE, AffineSettings
+
+    parser = build_parser()
+    action = next(
+        a for g in parser._subparsers._group_actions for a in g.choices["register"]._actions if a.dest == "affine_local"
+    )
+    assert tuple(action.choices) == LOCAL_STAGE and action.default == AffineSettings().local_stage
+    args = parser.parse_args(["register", "--moving", "m.nii.gz", "--out", "out", *given])
+    expected = given[1] if given else "other-contrast"
+    assert _options(args).affine.local_stage == expected

@@ -13,11 +13,11 @@ from conftest import FIXED_LPS, asymmetric_phantom, moved_scan, rigid_matrix
 from monai_probreg.spatial.affine import AffineSettings, align
 from monai_probreg.spatial.affine_torch import (
     _cubic_bspline,
-    _scaled,
     fixed_samples,
     mutual_information,
     register_affine_torch,
     rotation_matrix,
+    scaled_intensities,
 )
 from monai_probreg.spatial.physical import grid_points
 from monai_probreg.spatial.volume_io import Volume
@@ -148,7 +148,7 @@ def test_fixed_samples_are_voxel_centres_of_the_fixed_level_with_their_bins():
     samples = fixed_samples(volume, settings)
     index = np.linalg.solve(grid[:3, :3], (samples.points[0].numpy() - grid[:3, 3]).T).T
     np.testing.assert_allclose(index, np.round(index), atol=1e-9)  # voxel centres
-    scaled = _scaled(volume).numpy()
+    scaled = scaled_intensities(volume).numpy()
     values = scaled[tuple(np.round(index).astype(int).T)]
     np.testing.assert_array_equal(samples.bins[0].numpy(), np.clip(np.round(values * (BINS - 1)), 0, BINS - 1))
     moving = Volume(np.roll(volume.array, 1, axis=0), grid)

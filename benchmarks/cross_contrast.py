@@ -42,6 +42,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -62,6 +63,8 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
 MAPS = ("training_seg_11", "training_seg_12")  # never in a training run (train_synth.yaml uses 01-10)
 SEEDS = (0,)
+# a row's fields that are the registration's options, not RefinementSettings' (_options)
+OPTION_FIELDS = ("contrast", "contrast_match_bins", "affine_local")
 KINDS = (
     "head",
     "brain",
@@ -136,13 +139,19 @@ def run(args: argparse.Namespace, rows_options: dict[str, dict]) -> dict:
 
 
 def _options(model, fields: dict, seed: int) -> RegistrationOptions:
-    """The command's options for a row: its RefinementSettings fields replaced, and two fields that are not the
-    refinement's when the row gives them: ``contrast_match_bins`` (the moving image mapped onto the fixed one's
-    contrast, 0 = not) and ``contrast`` ("other": no quality estimate, as ``--contrast other`` runs; default "same")."""
+    """The command's options for a row: its RefinementSettings fields replaced, and the fields of
+    :data:`OPTION_FIELDS` that are not the refinement's when the row gives them: ``contrast_match_bins`` (the moving
+    image mapped onto the fixed one's contrast, 0 = not), ``contrast`` ("other": no quality estimate and the affine
+    stage's local step, as ``--contrast other`` runs; default "same") and ``affine_local`` (``--affine-local``:
+    ``AffineSettings.local_stage``; default the settings')."""
     fields = dict(fields)
     bins = int(fields.pop("contrast_match_bins", 0))
     contrast = str(fields.pop("contrast", "same"))
-    return dataclasses.replace(command_options(model, fields, seed), contrast_match_bins=bins, contrast=contrast)
+    local = fields.pop("affine_local", None)
+    options = dataclasses.replace(command_options(model, fields, seed), contrast_match_bins=bins, contrast=contrast)
+    if local is None:
+        return options
+    return dataclasses.replace(options, affine=dataclasses.replace(options.affine, local_stage=str(local)))
 
 
 def summarise(cases: list[dict]) -> dict:
@@ -193,7 +202,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         nargs="+",
         default=[],
         metavar="NAME=FIELD:VALUE,...",
-        help="more rows, the shipped refinement with RefinementSettings fields replaced",
+        help="more rows, the shipped refinement with RefinementSettings fields replaced, and the options' "
+        "contrast:same|other, contrast_match_bins:N, affine_local:never|other-contrast|always",
     )
     ap.add_argument(
         "--variants-only", action="store_true", help="only the --refined-variants rows (and ANTs): no --contrast rows"
@@ -209,7 +219,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows_options: dict[str, dict] = {}
     for name, fields in (parse_variant(v) for v in args.refined_variants):
         try:
-            RefinementSettings(**fields)
+            RefinementSettings(**{k: v for k, v in fields.items() if k not in OPTION_FIELDS})
+            _options(SimpleNamespace(refinement=RefinementSettings()), fields, 0)  # the other fields' values
         except (TypeError, ValueError) as err:
             raise SystemExit(f"--refined-variants {name!r}: {err}") from None
         rows_options[name] = fields

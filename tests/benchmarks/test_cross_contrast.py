@@ -54,3 +54,31 @@ def test_a_rows_contrast_and_map_reach_the_options_and_the_rest_the_refinement()
     assert fields == {"posterior_weight": 0.0, "contrast": "other", "contrast_match_bins": 16}  # not consumed
     plain = cross_contrast._options(model, {}, seed=0)
     assert (plain.contrast, plain.contrast_match_bins) == ("same", 0)
+    assert plain.affine.local_stage == "other-contrast"  # the settings' default: the step runs with "other"
+
+
+def test_a_rows_affine_local_reaches_the_affine_settings():
+    from types import SimpleNamespace
+
+    from monai_probreg.engines.refinement import RefinementSettings
+
+    model = SimpleNamespace(refinement=RefinementSettings(num_iterations=3))
+    options = cross_contrast._options(model, {"contrast": "other", "affine_local": "never"}, seed=0)
+    assert options.affine.local_stage == "never" and options.contrast == "other"
+
+
+@pytest.mark.parametrize(
+    "variant, message",
+    [
+        ("bad=affine_local:sometimes", "local_stage must be one of"),
+        ("bad=contrast:T2", "contrast must be one of"),
+        ("bad=no_such_field:1", "no_such_field"),
+    ],
+)
+def test_a_bad_variant_stops_before_any_registration(tmp_path, variant, message):
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for name in cross_contrast.MAPS:
+        (maps / f"{name}.nii.gz").write_bytes(b"")  # present: the check comes before anything reads them
+    with pytest.raises(SystemExit, match=message):
+        cross_contrast.main(["--label-maps", str(maps), "--refined-variants", variant, "--out-dir", str(tmp_path)])

@@ -130,3 +130,17 @@ def test_check_integer_returns_an_integer_at_or_above_the_minimum(value):
 def test_check_integer_names_the_setting_the_minimum_and_the_value(value):
     with pytest.raises(ValueError, match=rf"^steps must be an integer >= 0; got {value!r}$".replace("(", r"\(")):
         check_integer("steps", value, 0)
+
+
+def test_library_versions_name_the_packages_own_version(monkeypatch):
+    """monai-probreg's entry is the running code's __version__, not its install metadata (stale in an editable
+    install after a release)."""
+    from importlib import metadata
+
+    import monai_probreg
+    from monai_probreg.utils import provenance
+
+    real = metadata.version
+    monkeypatch.setattr(provenance.metadata, "version", lambda name: "0.0.1" if name == "monai-probreg" else real(name))
+    versions = provenance.library_versions()
+    assert versions["monai-probreg"] == monai_probreg.__version__ and versions["torch"] == real("torch")

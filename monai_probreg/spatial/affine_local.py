@@ -23,7 +23,8 @@ The method:
   position (trilinear, 0 outside);
 - **loss**: minus the squared local correlation in windows of ``local_kernels`` level voxels
   (:class:`~monai_probreg.losses.lncc.BoxLNCCLoss`), averaged over the fixed image's support (its voxels above its
-  minimum, or the fixed mask) widened by half a window, and without the points mapped outside the moving mask;
+  minimum, or the fixed mask) widened by half a window, each point weighted by the moving mask at its mapped
+  position when there is one;
 - **optimiser**: L-BFGS with a strong-Wolfe line search, at most ``local_iterations`` per level.
 
 Written here: ITK's ``ANTSNeighborhoodCorrelationImageToImageMetricv4`` would do the same through the v4
@@ -103,14 +104,18 @@ class _Level:
         full = self.lps_to_normalised @ matrix
         grid = (self.points @ full[:3, :3].T + full[:3, 3]).to(torch.float32).view(1, *self.shape, 3)
         warped = split_grid_sample(self.moving, grid, mode="bilinear", padding_mode="zeros")
-        inside = self.inside
-        if self.moving_mask is not None:
-            with torch.no_grad():
-                mask = split_grid_sample(self.moving_mask, grid, mode="bilinear", padding_mode="zeros")[0, 0]
-            inside = inside & (mask >= MASK_LEVEL)
-        if not bool(inside.any()):  # everything mapped outside the moving mask: nothing to compare
+        similarity = self.similarity(warped, self.fixed)[0, 0]
+        if self.moving_mask is None:
+            return similarity[self.inside].mean()
+        # each point weighted by the moving mask at its mapped position (linear, no gradient through it): continuous
+        # for the line search where dropping the points outside would jump (as the MI stages' histogram weights)
+        with torch.no_grad():
+            weights = split_grid_sample(self.moving_mask, grid, mode="bilinear", padding_mode="zeros")[0, 0]
+            weights = weights * self.inside
+            total = weights.sum()
+        if float(total) == 0.0:  # everything mapped outside the moving mask: nothing to compare
             return warped.sum() * 0.0
-        return self.similarity(warped, self.fixed)[0, 0][inside].mean()
+        return (similarity * weights).sum() / total
 
 
 class LocalResult(NamedTuple):

@@ -73,10 +73,21 @@ def test_a_moving_mask_away_from_the_object_leaves_the_start(pair):
     fixed, moving, truth, _ = pair
     start = truth.copy()
     start[:3, 3] += 3.0
-    edge = np.zeros(moving.shape, bool)
-    edge[:2] = True  # two slices at the grid's edge, outside the object
-    result = refine_by_local_correlation(fixed, moving, [start], SETTINGS, moving_mask=edge)
+    corner = np.zeros(moving.shape, bool)
+    corner[:3, :3, :3] = True  # a corner of the grid, far from the object
+    result = refine_by_local_correlation(fixed, moving, [start], SETTINGS, moving_mask=corner)
     np.testing.assert_allclose(result.matrix, start, atol=1e-12)
+
+
+def test_a_moving_mask_over_the_whole_scan_changes_almost_nothing(pair):
+    """Only the points mapped beyond the moving grid leave (the mask is 0 there, the image only dark)."""
+    fixed, moving, truth, points = pair
+    start = truth.copy()
+    start[:3, 3] += 3.0
+    everywhere = np.ones(moving.shape, bool)
+    masked = refine_by_local_correlation(fixed, moving, [start], SETTINGS, moving_mask=everywhere)
+    plain = refine_by_local_correlation(fixed, moving, [start], SETTINGS)
+    assert _max_distance_mm(masked.matrix, plain.matrix, points) < 0.05
 
 
 def test_expects_a_candidate(pair):

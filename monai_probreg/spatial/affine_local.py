@@ -45,13 +45,7 @@ from monai_probreg.blocks.grid_coords import index_to_grid_matrix
 from monai_probreg.blocks.warp import split_grid_sample
 from monai_probreg.losses.lncc import BoxLNCCLoss
 from monai_probreg.spatial.affine_settings import AffineSettings, StageReport
-from monai_probreg.spatial.affine_torch import (
-    CHANGE_TOLERANCE,
-    GRADIENT_TOLERANCE,
-    LBFGS_HISTORY,
-    pooled_level,
-    scaled_intensities,
-)
+from monai_probreg.spatial.affine_torch import optimise_levels, pooled_level, scaled_intensities
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = ["LocalResult", "refine_by_local_correlation"]
@@ -148,20 +142,14 @@ def refine_by_local_correlation(
     moving_image = scaled_intensities(moving, moving_mask)
     moving_inside = None if moving_mask is None else torch.from_numpy(np.asarray(moving_mask, dtype=np.float32))
     levels = [
-        (float(mm), int(k), int(n))
-        for mm, k, n in zip(settings.local_levels_mm, settings.local_kernels, settings.local_iterations)
+        _Level(fixed, fixed_image, support, moving, moving_image, moving_inside, float(mm), int(kernel))
+        for mm, kernel in zip(settings.local_levels_mm, settings.local_kernels)
     ]
-
-    def level_at(level_mm: float, kernel: int) -> _Level:
-        return _Level(fixed, fixed_image, support, moving, moving_image, moving_inside, level_mm, kernel)
-
     chosen = 0
     if len(candidates) > 1:  # the start: the candidate the first level scores best (the others are dropped)
-        first = level_at(*levels[0][:2])
         with torch.no_grad():
-            losses = [float(first.loss(torch.from_numpy(np.asarray(c, np.float64)))) for c in candidates]
+            losses = [float(levels[0].loss(torch.from_numpy(np.asarray(c, np.float64)))) for c in candidates]
         chosen = int(np.argmin(losses))
-        del first
     start = torch.from_numpy(np.asarray(candidates[chosen], dtype=np.float64).copy())
     index_centre = (np.asarray(fixed.shape, np.float64) - 1) / 2
     centre = torch.from_numpy(fixed.index_to_lps[:3, :3] @ index_centre + fixed.index_to_lps[:3, 3])
@@ -175,31 +163,7 @@ def refine_by_local_correlation(
         return start @ torch.cat([top, bottom], dim=0)
 
     parameters = torch.zeros(12, dtype=torch.float64, requires_grad=True)
-    value, done = float("nan"), []
-    for level_mm, kernel, count in levels:
-        if count == 0:
-            done.append(0)
-            continue
-        level = level_at(level_mm, kernel)
-        optimizer = torch.optim.LBFGS(
-            [parameters],
-            lr=1.0,
-            max_iter=int(count),
-            history_size=LBFGS_HISTORY,
-            line_search_fn="strong_wolfe",
-            tolerance_grad=GRADIENT_TOLERANCE,
-            tolerance_change=CHANGE_TOLERANCE,
-        )
-
-        def closure(optimizer: torch.optim.LBFGS = optimizer, level: _Level = level) -> torch.Tensor:
-            optimizer.zero_grad(set_to_none=True)
-            loss = level.loss(matrix_of(parameters))
-            loss.backward()
-            return loss
-
-        value = float(optimizer.step(closure).detach())
-        done.append(int(optimizer.state[parameters]["n_iter"]))
-        del level
+    value, done = optimise_levels(levels, settings.local_iterations, parameters, matrix_of)
     refined = matrix_of(parameters).detach().numpy()
     if not np.isfinite(refined).all():
         raise RuntimeError(f"the local-correlation affine stage diverged (non-finite matrix); settings {settings}")

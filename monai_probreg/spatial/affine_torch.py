@@ -40,7 +40,7 @@ The result maps a point of the **fixed** space to the **moving** space (LPS mm),
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -55,7 +55,16 @@ from monai_probreg.spatial.affine_settings import AffineResult, AffineSettings, 
 from monai_probreg.spatial.intensity import LOWER_PERCENTILE, UPPER_PERCENTILE
 from monai_probreg.spatial.volume_io import Volume
 
-__all__ = ["FixedSamples", "fixed_samples", "mutual_information", "register_affine_torch", "rotation_matrix"]
+__all__ = [
+    "FixedSamples",
+    "fixed_samples",
+    "mutual_information",
+    "optimise_levels",
+    "pooled_level",
+    "register_affine_torch",
+    "rotation_matrix",
+    "scaled_intensities",
+]
 
 LBFGS_HISTORY = 10  # L-BFGS's memory (curvature pairs)
 GRADIENT_TOLERANCE = 1e-9  # stop a level when the metric's gradient (per mm) or its change falls below these
@@ -279,15 +288,16 @@ class _Level:
         return -mutual_information(sampled.view(-1), self.fixed_bins, self.bins, weights.view(-1))
 
 
-def _optimise(
-    levels: list[_Level],
+def optimise_levels(
+    levels: Sequence[_Level],
     iterations: tuple[int, ...],
     parameters: torch.Tensor,
     to_matrix: Callable[[torch.Tensor], torch.Tensor],
 ) -> tuple[float, list[int]]:
     """L-BFGS with a strong-Wolfe line search on ``parameters`` (mm), level by level (at most ``iterations[l]``
-    iterations; the sample points are fixed within a level, so the metric is a deterministic function there).
-    Returns the last metric value and the iterations run per level."""
+    iterations; the sample points are fixed within a level, so the metric is a deterministic function there): any
+    ``levels`` with a ``loss(matrix)`` (also :mod:`monai_probreg.spatial.affine_local`'s). Returns the last metric
+    value and the iterations run per level."""
     value, done = float("nan"), []
     for level, count in zip(levels, iterations):
         if count == 0:
@@ -393,5 +403,5 @@ def _stage(
     parameters: torch.Tensor,
     to_matrix: Callable[[torch.Tensor], torch.Tensor],
 ) -> StageReport:
-    value, done = _optimise(levels, iterations, parameters, to_matrix)
+    value, done = optimise_levels(levels, iterations, parameters, to_matrix)
     return StageReport(name, done, value, f"torch backend: L-BFGS, at most {list(iterations)} iterations per level")

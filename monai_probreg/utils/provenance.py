@@ -31,12 +31,12 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 def library_versions() -> dict[str, str | None]:
     """Installed versions of Python, the libraries in the computation (None: not installed) and the CPU architecture."""
-    from monai_probreg import __version__
+    import monai_probreg  # the package's version (as registration.summary reads it); imported here: the root imports us
 
     versions: dict[str, str | None] = {"python": sys.version.split()[0], "machine": platform.machine()}
     for name in _LIBRARIES:
         if name == "monai-probreg":  # the code that ran: an editable install's metadata keeps its install-time version
-            versions[name] = __version__
+            versions[name] = monai_probreg.__version__
             continue
         try:
             versions[name] = metadata.version(name)

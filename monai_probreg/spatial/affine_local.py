@@ -4,8 +4,7 @@ local squared correlation (``AffineSettings.local_stage``; :func:`refine_by_loca
 Why: mutual information over the fixed grid can prefer a wrong answer when a head of one contrast meets a
 skull-stripped brain of another. A T2-weighted head (bright fluid and fat, dark bone) shrunk into a T1-weighted brain
 pairs the brain's empty background with the air around the head, and on renderings of SynthSeg's label maps that
-scored higher than the right alignment (affine-only Dice 0.05-0.2 where a T1-weighted head reached 0.35-0.45;
-docs/accuracy.md). The squared local correlation (the deformable refinement's own image term, MONAI's local
+scored higher than the right alignment (measured in docs/accuracy.md, "Another contrast"). The squared local correlation (the deformable refinement's own image term, MONAI's local
 normalised cross-correlation; ANTs' ``CC`` metric) reads each window on its own: an edge must sit on an edge of
 either sign, so inverted tissue contrast still matches, and what lies outside the fixed image's support does not
 count.

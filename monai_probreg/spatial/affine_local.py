@@ -45,6 +45,7 @@ from monai_probreg.blocks.warp import split_grid_sample
 from monai_probreg.losses.lncc import BoxLNCCLoss
 from monai_probreg.spatial.affine_settings import AffineSettings, StageReport
 from monai_probreg.spatial.affine_torch import optimise_levels, pooled_level, scaled_intensities
+from monai_probreg.spatial.physical import grid_points
 from monai_probreg.spatial.volume_io import Volume
 
 __all__ = ["LocalResult", "refine_by_local_correlation"]
@@ -74,11 +75,7 @@ class _Level:
         inside = pooled_level(support, fixed.index_to_lps, fixed_factors, 0.0)[0] >= MASK_LEVEL
         # widened by half a window: the windows astride the support's edge count (their edge is the evidence)
         self.inside = F.max_pool3d(inside[None, None].float(), kernel, stride=1, padding=kernel // 2)[0, 0] > 0
-        index = torch.stack(
-            torch.meshgrid(*[torch.arange(n, dtype=torch.float64) for n in self.shape], indexing="ij"), dim=-1
-        )
-        g = torch.from_numpy(grid)
-        self.points = index.view(-1, 3) @ g[:3, :3].T + g[:3, 3]
+        self.points = torch.from_numpy(grid_points(self.shape, grid).reshape(-1, 3))  # every level voxel, LPS
         moving_factors = tuple(max(1, round(level_mm / s)) for s in moving.spacing)
         moving_level, moving_grid = pooled_level(moving_image, moving.index_to_lps, moving_factors, level_mm / 2)
         self.moving = moving_level[None, None]

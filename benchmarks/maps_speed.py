@@ -1,7 +1,7 @@
 """How long the bundle's sampled uncertainty maps take for one pair, this tree side by side with another source.
 
-The bundle's writer (``engines/handlers.py``) makes, per pair, the registered pair's residual (the calibration's
-residual term) and :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` with K posterior samples: the
+The bundle's writer (``engines/handlers.py``) makes, per pair, the map the calibration's term reads (the error model's
+prediction since bundle 0.33.0, the registered pair's residual before: ``uncertainty.error_model.pair_term``) and :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` with K posterior samples: the
 displacement std, and the label entropy when the moving labels are given. On each LPBA40 validation pair
 (``refinement_speed.PAIRS``, the aligned 160 x 192 x 160 grid; the network's registration refined as the bundle
 refines it, untimed) both are timed: "std" (``displacement_std`` alone) and "std + label entropy", after one untimed
@@ -51,6 +51,11 @@ def time_maps(dataset: Path, samples: int, threads: int, memory_reuse: bool = Tr
     from monai_probreg.registration.model import load_model
     from monai_probreg.uncertainty.posterior_maps import posterior_maps
     from monai_probreg.uncertainty.residual import residual_variance
+
+    try:  # the term's one rule since bundle 0.33.0 (the error model's prediction, or the residual)
+        from monai_probreg.uncertainty.error_model import pair_term
+    except ImportError:  # an earlier checkout (--baseline-source): its term read the residual
+        pair_term = None
     from monai_probreg.utils.memory import reuse_freed_memory
 
     torch.set_num_threads(threads)
@@ -68,8 +73,17 @@ def time_maps(dataset: Path, samples: int, threads: int, memory_reuse: bool = Tr
         def maps(label):
             with torch.inference_mode():
                 residual = None
-                if calibration.residual_weight > 0:
+                if calibration.residual_weight > 0 and pair_term is None:
                     residual = residual_variance(refined.warped, fixed, refined.velocity_mean.shape[2:])
+                elif calibration.residual_weight > 0:
+                    pair = (
+                        refined.warped,
+                        fixed,
+                        refined.velocity_mean,
+                        refined.velocity_log_var,
+                        refined.displacement,
+                    )
+                    residual = pair_term(calibration.error_model, *pair)
                 return posterior_maps(
                     model.network,
                     refined.velocity_mean,

@@ -160,7 +160,7 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed, refin
     ``refinement``: around the refined mean (:func:`posterior_for`)."""
     moving, fixed = pair["moving"], pair["fixed"]
     size = tuple(moving.shape[2:])
-    posterior = posterior_for(network, moving, fixed, refinement)
+    posterior = posterior_for(network, moving, fixed, refinement, calibration.error_model)
     with torch.inference_mode():
         log_var = calibrate_log_var(
             posterior.log_var,
@@ -292,6 +292,12 @@ def main(argv=None) -> int:
         "network's spread without it, the calibration before the residual term)",
     )
     ap.add_argument(
+        "--no-error-model",
+        action="store_true",
+        help="the calibration's term reads the pair's residual, not the weights' error model (the form before bundle "
+        "0.33.0; the error model is fitted on other training scans than every case here, so it is used as shipped)",
+    )
+    ap.add_argument(
         "--refine",
         type=int,
         default=None,
@@ -335,6 +341,7 @@ def main(argv=None) -> int:
             model_file,
             refinement,
             ProbeSettings(args.deformations, args.samples, args.seed, args.subject_probe, args.probe, args.reference),
+            None if args.no_error_model else calibration_for(model_file).error_model,
         )
     except InputError as err:
         raise SystemExit(str(err)) from None

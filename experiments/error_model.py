@@ -25,10 +25,11 @@ is small. This study fits an error model of such features and scores it as the c
   ranking); and the label entropy's AUROC for wrongly propagated voxels on the validation subjects' real pairs
   (``benchmarks/uncertainty_calibration.py``'s ``label_case``).
 
-    PYTHONPATH=benchmarks python experiments/error_model.py --threads 2   # ~15 min
+    PYTHONPATH=benchmarks python experiments/error_model.py --threads 2   # ~12 min
 
-Prints a table and writes ``experiments/results/error_model.json``. The features are computed with scipy here (a
-study); a product would compute them with torch box sums within the maps' time budget.
+Prints a table and writes ``experiments/results/error_model.json``. The product's error model
+(:mod:`monai_probreg.uncertainty.error_model`, bundle 0.33.0) computes the first set's features with torch on the
+image grid and is fitted and scored by the refit command and ``benchmarks/uncertainty_calibration.py``.
 """
 
 from __future__ import annotations
@@ -58,12 +59,13 @@ from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, Pr
 from monai_probreg.fitting.population_probe import SEED_STRIDE, VOXELS_PER_CASE, PairPosterior, case_errors
 from monai_probreg.fitting.stages import bundle_setup
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
-from monai_probreg.metrics.calibration import spearman
+from monai_probreg.losses.lncc import box_sum
+from monai_probreg.metrics.calibration import interval_z, spearman
 from monai_probreg.registration.model import load_model
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.scan import register_scan
 from monai_probreg.spatial.affine import AffineSettings
-from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration
+from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration, fit_calibration
 from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.tensors import plain_tensor
 
@@ -85,6 +87,7 @@ FEATURES = (
 )
 FIT_SEED = SUBJECT_SEED + 500  # the fit's synthetic subjects: seeds far from the subject probe's
 EDGE_LEVEL = 0.02  # the fixed image's edge: where its intensity (network input, in [0, 1]) falls below this
+INSIDE_WINDOW = 15  # the torch features' stand-in for the edge distance: the foreground's fraction in this box
 LOG_FLOOR = 1e-12  # added inside every log (an empty residual, a straight field)
 SQUARED_ERROR_FLOOR = 1e-6  # mm^2, inside the fitted log of the squared error
 
@@ -121,15 +124,67 @@ def pair_features(warped, fixed, mean, log_var, displacement) -> np.ndarray:
     return np.stack([np.log(x + LOG_FLOOR) for x in logged] + plain)
 
 
-class ErrorModel:
-    """``exp(features . coef + intercept)``: the predicted squared error (mm^2) on the model grid."""
+def _area(x: torch.Tensor, grid: tuple[int, ...]) -> torch.Tensor:
+    """Averaged onto the velocity grid, as the residual is (area averaging)."""
+    return F.interpolate(x, size=grid, mode="area")
 
-    def __init__(self, coef: np.ndarray) -> None:
-        self.coef = np.asarray(coef, np.float64)
+
+def _laplacian_energy_torch(field: torch.Tensor, window: int) -> torch.Tensor:
+    """(1, C, *S) -> (1, 1, *S): the squared 2D-neighbour Laplacian summed over components (the border replicated),
+    averaged over a ``window``-voxel box (the voxels outside counted as zeros, as the residual's boxes)."""
+    dims = field.ndim - 2
+    padded = F.pad(field, [1, 1] * dims, mode="replicate")
+    laplacian = -2 * dims * field
+    for axis in range(dims):
+        for low, high in ((0, -2), (2, None)):
+            index = [slice(1, -1)] * dims
+            index[axis] = slice(low, high)
+            laplacian = laplacian + padded[(slice(None), slice(None), *index)]
+    energy = laplacian.square().sum(1, keepdim=True)
+    return box_sum(energy, window) / window**dims if window > 1 else energy
+
+
+def velocity_grid_features(warped, fixed, mean, log_var, displacement) -> torch.Tensor:
+    """(1, len(FEATURES), *V): :func:`pair_features`' features computed with torch and averaged onto the velocity grid
+    (what a product would compute within the maps' time): the edge distance becomes the fraction of the fixed image's
+    foreground in a :data:`INSIDE_WINDOW`-voxel box, the gradient magnitude that of the image averaged over a
+    3-voxel box (central differences)."""
+    grid = tuple(mean.shape[2:])
+    dims = fixed.ndim - 2
+    with torch.inference_mode():
+        residuals = [residual_variance(warped, fixed, grid, window=w) for w in (9, 3, 15)]
+        laplacians = [_area(_laplacian_energy_torch(displacement, w), grid) for w in (5, 9, 15)]
+        smooth = box_sum(fixed, 3) / 3**dims
+        gradient = torch.stack(torch.gradient(smooth[:, 0], dim=tuple(range(1, dims + 1))), 1).norm(dim=1, keepdim=True)
+        logged = [
+            *residuals,
+            _laplacian_energy_torch(mean, 1),
+            *laplacians,
+            log_var.exp().mean(1, keepdim=True),
+            _area(displacement.norm(dim=1, keepdim=True), grid),
+            _area(box_sum(gradient, 9) / 9**dims, grid),
+        ]
+        inside = _area(box_sum((fixed > EDGE_LEVEL).float(), INSIDE_WINDOW) / INSIDE_WINDOW**dims, grid)
+        return torch.cat([(x + LOG_FLOOR).log() for x in logged] + [inside, _area(fixed, grid)], 1)
+
+
+# name -> the features of one registered pair: (F, *S) numpy on the image grid, or (1, F, *V) torch on the velocity grid
+FEATURE_SETS = {"scipy, image grid": pair_features, "torch, velocity grid": velocity_grid_features}
+
+
+class ErrorModel:
+    """``exp(features . coef + intercept)``: the predicted squared error (mm^2), of ``feature_set``'s features
+    (:data:`FEATURE_SETS`), on the velocity grid."""
+
+    def __init__(self, coef: np.ndarray, feature_set: str) -> None:
+        self.coef, self.feature_set = np.asarray(coef, np.float64), feature_set
 
     def variance(self, warped, fixed, mean, log_var, displacement) -> torch.Tensor:
-        """(1, 1, *V) the prediction averaged onto the velocity grid."""
-        features = pair_features(warped, fixed, mean, log_var, displacement)
+        """(1, 1, *V) the prediction on the velocity grid (the image-grid features' averaged onto it)."""
+        features = FEATURE_SETS[self.feature_set](warped, fixed, mean, log_var, displacement)
+        if isinstance(features, torch.Tensor):
+            weights = torch.as_tensor(self.coef[:-1], dtype=features.dtype).view(1, -1, *[1] * (features.ndim - 2))
+            return ((features * weights).sum(1, keepdim=True) + float(self.coef[-1])).exp()
         predicted = np.exp(np.tensordot(self.coef[:-1], features, axes=1) + self.coef[-1])
         return F.adaptive_avg_pool3d(torch.from_numpy(predicted)[None, None].float(), tuple(mean.shape[2:]))
 
@@ -186,9 +241,12 @@ def posterior_std(calibration: Calibration, mean, log_var, residual, size) -> to
     return F.interpolate(variance, size=size, mode="trilinear")[0].sqrt()
 
 
-def fit_error_model(model, captured: Captured, index, templates: list[str], refinement) -> tuple[ErrorModel, dict]:
-    """Least squares of log |error|^2 on :func:`pair_features` over the synthetic subjects of ``templates``."""
-    rows, targets = [], []
+def fit_error_models(model, captured: Captured, index, templates: list[str], refinement) -> tuple[dict, dict, dict]:
+    """Least squares of log |error|^2 on each feature set's features over the synthetic subjects of ``templates``:
+    the models, their coefficients by feature name, and each set's median seconds per pair."""
+    rows: dict[str, list] = {name: [] for name in FEATURE_SETS}
+    seconds: dict[str, list] = {name: [] for name in FEATURE_SETS}
+    targets = []
     for n, template in enumerate(templates):
         case = subject_case(template, index.images[template], FIT_SEED + n, VOXELS_PER_CASE, model.divisor)
         options = RegistrationOptions(
@@ -211,29 +269,42 @@ def fit_error_model(model, captured: Captured, index, templates: list[str], refi
                 check=lambda r: kept.append(r) or {},
             )
         registered, last = kept[0], captured.last
-        features = pair_features(last["warped"], last["fixed"], last["mean"], last["log_var"], last["displacement"])
         grid = case.fixed.grid
-        rows.append(
-            np.stack(
-                [grid.to_fixed(f[..., None].astype(np.float32))[..., 0].reshape(-1)[case.voxels] for f in features], 1
+        size = tuple(last["fixed"].shape[2:])
+        for name, features_of in FEATURE_SETS.items():
+            start = time.perf_counter()
+            features = features_of(last["warped"], last["fixed"], last["mean"], last["log_var"], last["displacement"])
+            seconds[name].append(time.perf_counter() - start)
+            if isinstance(features, torch.Tensor):  # velocity grid: read at the voxels as the posterior is upsampled
+                features = F.interpolate(features, size=size, mode="trilinear")[0].numpy()
+            rows[name].append(
+                np.stack(
+                    [grid.to_fixed(f[..., None].astype(np.float32))[..., 0].reshape(-1)[case.voxels] for f in features],
+                    1,
+                )
             )
-        )
         warp = registered.warp.reshape(-1, 3)[case.voxels].astype(np.float64)
         truth = case.subject.true_warp.reshape(-1, 3)[case.voxels].astype(np.float64)
         error = np.linalg.solve(registered.affine[:3, :3], (warp - truth).T).T
         targets.append(np.log((error**2).sum(1) + SQUARED_ERROR_FLOOR))
         print(f"fit case {n + 1}/{len(templates)}: {template}", flush=True)
-    design = np.concatenate(rows)
-    coef, *_ = np.linalg.lstsq(np.c_[design, np.ones(len(design))], np.concatenate(targets), rcond=None)
-    return ErrorModel(coef), dict(zip([*FEATURES, "intercept"], coef.round(4).tolist()))
+    models, coefficients = {}, {}
+    for name in FEATURE_SETS:
+        design = np.concatenate(rows[name])
+        coef, *_ = np.linalg.lstsq(np.c_[design, np.ones(len(design))], np.concatenate(targets), rcond=None)
+        models[name] = ErrorModel(coef, name)
+        coefficients[name] = dict(zip([*FEATURES, "intercept"], coef.round(4).tolist()))
+    return models, coefficients, {name: float(np.median(t)) for name, t in seconds.items()}
 
 
-def subject_scores(model, captured: Captured, index, templates, refinement) -> tuple[list[float], list[float]]:
-    """The subject probe's cases (the calibration's seeds): the sampled std's and the posterior std's ranking."""
-    sampled, exact = [], []
+def subject_scores(model, captured: Captured, index, templates, refinement) -> tuple[list[float], list[float], list]:
+    """The subject probe's cases (the calibration's seeds): the sampled std's and the posterior std's ranking, and
+    each case's sampled (std, error, |deformable displacement|)."""
+    sampled, exact, triples = [], [], []
     for n, template in enumerate(templates):
         case = subject_case(template, index.images[template], SUBJECT_SEED + n, VOXELS_PER_CASE, model.divisor)
-        std, error, _ = subject_errors(model, case, model.calibration, POSTERIOR_SAMPLES, refinement)
+        std, error, norm = subject_errors(model, case, model.calibration, POSTERIOR_SAMPLES, refinement)
+        triples.append((std, error, norm))
         last = captured.last
         size = tuple(last["displacement"].shape[2:])
         posterior = posterior_std(model.calibration, last["mean"], last["log_var"], last["residual"], size).numpy()
@@ -241,7 +312,34 @@ def subject_scores(model, captured: Captured, index, templates, refinement) -> t
         posterior = np.stack([grid.to_fixed(p[..., None])[..., 0].reshape(-1)[case.voxels] for p in posterior])
         sampled.append(ranking(std, error))
         exact.append(ranking(posterior, error))
-    return sampled, exact
+    return sampled, exact, triples
+
+
+def cross_fitted_coverage(population: list, subject: list) -> dict[str, dict[str, float]]:
+    """Coverage at 68% and 95% of each probe's cases, each half scored with the calibration refitted on the other
+    half of both probes (``fit_calibration`` on the samples drawn at the shipped calibration, each probe matched on
+    its own, as the refit's first pass: no re-sampling). ``population``, ``subject``: each case's (std, error, norm)."""
+    halves = [(range(0, len(c) // 2), range(len(c) // 2, len(c))) for c in (population, subject)]
+    hits: dict[str, dict[float, list]] = {"population": {0.68: [], 0.95: []}, "subject": {0.68: [], 0.95: []}}
+    for fold in range(2):
+        parts = [[], [], [], []]
+        for group, (cases, split) in enumerate(zip((population, subject), halves)):
+            for i in split[1 - fold]:
+                std, error, norm = cases[i]
+                for part, array in zip(parts, (std, error, norm, np.full(std.shape, group))):
+                    part.append(array.reshape(-1))
+        fitted = fit_calibration(*[np.concatenate(p) for p in parts[:3]], groups=np.concatenate(parts[3]))
+        for name, cases, split in zip(hits, (population, subject), halves):
+            for i in split[fold]:
+                std, error, norm = cases[i]
+                widened = np.sqrt((fitted.std_scale * std) ** 2 + (fitted.bias_fraction * norm) ** 2)
+                for level in hits[name]:
+                    inside = np.abs(error) <= interval_z(level, fitted.interval_dof) * widened
+                    hits[name][level].append(inside.reshape(-1))
+    return {
+        name: {f"{round(level * 100)}%": float(np.concatenate(v).mean()) for level, v in levels.items()}
+        for name, levels in hits.items()
+    }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -267,13 +365,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     probe_templates = training[:SUBJECT_PROBE_TEMPLATES]
     fit_templates = training[SUBJECT_PROBE_TEMPLATES : SUBJECT_PROBE_TEMPLATES + args.fit_templates]
     captured = Captured()
-    error_model, coefficients = fit_error_model(model, captured, index, fit_templates, setup.refinement)
-    print("coefficients: " + ", ".join(f"{k} {v:+.3f}" for k, v in coefficients.items()), flush=True)
-    rows: dict[str, dict] = {"residual (shipped)": {}, "error model": {}}
-    for name, spread in zip(rows, (None, error_model)):
+    error_models, coefficients, feature_seconds = fit_error_models(
+        model, captured, index, fit_templates, setup.refinement
+    )
+    for name, coef in coefficients.items():
+        print(f"{name} ({feature_seconds[name]:.2f} s a pair): " + ", ".join(f"{k} {v:+.3f}" for k, v in coef.items()))
+    spreads = {"residual (shipped)": None, **{f"error model, {name} features": m for name, m in error_models.items()}}
+    rows: dict[str, dict] = {name: {} for name in spreads}
+    subject_triples: dict[str, list] = {}
+    for name, spread in spreads.items():
         captured.model = spread
-        sampled, exact = subject_scores(model, captured, index, probe_templates, setup.refinement)
+        sampled, exact, triples = subject_scores(model, captured, index, probe_templates, setup.refinement)
         rows[name].update(subject_sampled=sampled, subject_posterior=exact)
+        subject_triples[name] = triples
         print(f"{name}: subject probe {np.mean(sampled):.3f} sampled, {np.mean(exact):.3f} posterior", flush=True)
     # the population probe: the validation subjects' cases, each pair's registered images kept
     pairs = []
@@ -295,24 +399,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     cases = [c for s in probes.cases for c in probes.cases[s]]
     shipped = [c["residual"] for c in cases]
-    for name, spread in zip(rows, (None, error_model)):
-        sampled, exact = [], []
+    for name, spread in spreads.items():
+        sampled, exact, triples = [], [], []
         for case, residual, (warped, fixed) in zip(cases, shipped, pairs):
             if spread is not None:
                 with torch.inference_mode():
                     displacement = setup.network.velocity_to_displacement(case["mean"], case["size"])
                 residual = scaled(spread.variance(warped, fixed, case["mean"], case["log_var"], displacement), residual)
             case["residual"] = residual
-            std, error, _ = case_errors(setup.network, case, calibration, POSTERIOR_SAMPLES)
+            std, error, norm = case_errors(setup.network, case, calibration, POSTERIOR_SAMPLES)
+            triples.append((std, error, norm))
             posterior = posterior_std(calibration, case["mean"], case["log_var"], residual, case["size"])
             sampled.append(ranking(std, error))
             exact.append(ranking(posterior.flatten(1)[:, case["voxels"]].numpy(), error))
         rows[name].update(population_sampled=sampled, population_posterior=exact)
+        rows[name]["coverage_refitted"] = cross_fitted_coverage(triples, subject_triples[name])
+        print(f"{name}: coverage, refitted on the other half: {rows[name]['coverage_refitted']}", flush=True)
         print(f"{name}: population probe {np.mean(sampled):.3f} sampled, {np.mean(exact):.3f} posterior", flush=True)
     # the label entropy on the validation subjects' real pairs (subject -> atlas), as the calibration benchmark scores it
     preprocessing = setup.evaluate.get_parsed_content("preprocessing")
     refinement = setup.evaluate.get_parsed_content("refinement")
-    for name, spread in zip(rows, (None, error_model)):
+    for name, spread in spreads.items():
 
         def posterior_for(network, moving, fixed, refinement=None, spread=spread):
             output = register_pair(network, moving, fixed, refinement)
@@ -335,13 +442,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{name}: label AUROC {np.mean(aurocs):.3f}", flush=True)
     lines = [
         "| spread (shipped calibration, nothing refitted) | subject probe: 16 samples | subject probe: posterior std "
-        "| population probe: 16 samples | population probe: posterior std | label-entropy AUROC |",
-        "|---|---|---|---|---|---|",
+        "| population probe: 16 samples | population probe: posterior std | label-entropy AUROC "
+        "| coverage 68% / 95% refitted on the other half: population | subject probe |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     lines += [
         f"| {name} | {np.mean(r['subject_sampled']):.3f} | {np.mean(r['subject_posterior']):.3f} "
         f"| {np.mean(r['population_sampled']):.3f} | {np.mean(r['population_posterior']):.3f} "
-        f"| {np.mean(r['label_auroc']):.3f} |"
+        f"| {np.mean(r['label_auroc']):.3f} "
+        f"| {r['coverage_refitted']['population']['68%']:.3f} / {r['coverage_refitted']['population']['95%']:.3f} "
+        f"| {r['coverage_refitted']['subject']['68%']:.3f} / {r['coverage_refitted']['subject']['95%']:.3f} |"
         for name, r in rows.items()
     ]
     result = {
@@ -352,6 +462,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "probe_templates": probe_templates,
         "subjects": list(setup.val_ids),
         "coefficients": coefficients,
+        "feature_seconds_per_pair": feature_seconds,
         "threads": args.threads,
         "rows": rows,
         "wall_s": round(time.perf_counter() - start, 1),

@@ -32,8 +32,8 @@ from monai_probreg.engines.registration import timed_register_pair
 from monai_probreg.engines.score_files import summary_table, write_scores
 from monai_probreg.metrics.scores import PairScores, score_pair
 from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.uncertainty.error_model import check_error_model, pair_term
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
-from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.files import write_text
 
 __all__ = ["RegistrationInferer", "RegistrationWriter", "RegistrationScorer"]
@@ -99,7 +99,8 @@ class RegistrationWriter(_PerSubjectHandler):
     :data:`~monai_probreg.engines.outputs.OUTPUT_NAMES`; the label maps only when the batch has labels).
 
     With ``network`` given, the uncertainty maps are :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` of the
-    posterior calibrated by ``std_scale``, ``bias_fraction`` and ``residual_weight`` (1, 0 and 0 = raw), from ``num_samples`` seeded samples
+    posterior calibrated by ``std_scale``, ``bias_fraction``, ``residual_weight`` and ``error_model`` (1, 0, 0 and None = raw;
+    :class:`~monai_probreg.uncertainty.calibration.Calibration`'s fields), from ``num_samples`` seeded samples
     (needed, >= 2, for :data:`~monai_probreg.engines.outputs.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's.
     With ``quality``, each subject's quality estimate is written as ``<id>/quality.json`` (and a probable failure
     logged as a warning)."""
@@ -115,6 +116,7 @@ class RegistrationWriter(_PerSubjectHandler):
         bias_fraction: float = 0.0,
         quality: QualityCheck | None = None,
         residual_weight: float = 0.0,
+        error_model: Sequence[float] | None = None,
     ) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
@@ -128,6 +130,8 @@ class RegistrationWriter(_PerSubjectHandler):
         self.output_dir, self.names = Path(output_dir), tuple(names)
         self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
         self.bias_fraction, self.residual_weight = float(bias_fraction), float(residual_weight)
+        check_error_model(error_model)
+        self.error_model = None if error_model is None else tuple(float(c) for c in error_model)
         self.quality = quality
 
     def start(self, engine: Engine) -> None:
@@ -140,9 +144,16 @@ class RegistrationWriter(_PerSubjectHandler):
         if self.network is not None:
             sampled = set(self.names) & set(SAMPLED_NAMES)
             label = targets.get("moving_label") if "label_entropy" in self.names else None
-            residual = None  # the registered pair's residual, for the calibration's residual term
+            residual = None  # the map the calibration's term weighs (uncertainty.error_model.pair_term)
             if self.residual_weight > 0:
-                residual = residual_variance(pair.warped, targets["fixed"], pair.velocity_mean.shape[2:])
+                residual = pair_term(
+                    self.error_model,
+                    pair.warped,
+                    targets["fixed"],
+                    pair.velocity_mean,
+                    pair.velocity_log_var,
+                    pair.displacement,
+                )
             maps = posterior_maps(
                 self.network,
                 pair.velocity_mean,

@@ -97,6 +97,8 @@ class CalibrationProbes:
     raw: dict[str, list[tuple[np.ndarray, ...]]]
     subject_raw: dict[str, tuple[np.ndarray, ...]]
     residual_weights: tuple[float, ...] = RESIDUAL_WEIGHTS  # the residual term's weights fit() chooses among
+    # the error model the term reads (Calibration.error_model; the cases were registered with it); None: the residual
+    error_model: tuple[float, ...] | None = None
 
     def population_errors(self, sid: str, calibration: Calibration) -> list[tuple[np.ndarray, ...]]:
         """(std, error, norm) of each population case of ``sid``, sampled at ``calibration``."""
@@ -144,7 +146,9 @@ class CalibrationProbes:
         (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
         weight = self.residual_weight_for(sids) if len(self.residual_weights) > 1 else self.residual_weights[0]
         unit = self.unit_scale(sids, weight)
-        base = Calibration(unit, 0.0, None, weight)  # the residual term's spread, as large as the network's alone
+        base = Calibration(
+            unit, 0.0, None, weight, self.error_model
+        )  # the residual term's spread, as large as the network's alone
         population = {s: self.raw[s] if weight == 0 else self.population_errors(s, base) for s in sids}
         population_std = pool_errors([e for s in sids for e in population[s]])[0]
         velocity_std = unit * np.concatenate(
@@ -154,7 +158,7 @@ class CalibrationProbes:
         std, error, norm, groups = self.errors_at(sids, tids, None if weight == 0 else base, population)
         first = fit_calibration(std, error, norm, groups=groups)
         current = Calibration(
-            first.std_scale * unit, first.bias_fraction / math.sqrt(kappa), first.interval_dof, weight
+            first.std_scale * unit, first.bias_fraction / math.sqrt(kappa), first.interval_dof, weight, self.error_model
         )
         for iteration in tqdm(range(1, iterations + 1), desc="calibration refits", unit="refit", disable=None):
             std, error, norm, groups = self.errors_at(sids, tids, current)
@@ -170,6 +174,7 @@ class CalibrationProbes:
                 math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction / math.sqrt(kappa)),
                 refit.interval_dof,
                 weight,
+                self.error_model,
             )
         _LOG.info(
             f"  fit on {', '.join(sids + [t + ' (subject probe)' for t in tids])}: kappa {kappa:.3f}, "
@@ -198,7 +203,7 @@ class CalibrationProbes:
         before)."""
         scores = []
         for weight in self.residual_weights:
-            at = Calibration(self.unit_scale(sids, weight), 0.0, None, weight)
+            at = Calibration(self.unit_scale(sids, weight), 0.0, None, weight, self.error_model)
             errors = [e for s in sids for e in self.population_errors(s, at)]
             scores.append(
                 float(np.mean([spearman(std[k], np.abs(err[k])) for std, err, _ in errors for k in range(3)]))
@@ -225,13 +230,15 @@ def calibration_probes(
     model_file: str | Path,
     refinement: RefinementSettings,
     settings: ProbeSettings = ProbeSettings(),
+    error_model: Sequence[float] | None = None,
 ) -> CalibrationProbes:
     """Register both probes' cases (``settings``). ``network`` (evaluate.yaml's, eval mode) registers the population
     probe of the labelled ``subjects`` of ``index`` (``preprocessing``: evaluate.yaml's), subject n's r-th case drawn
     with seed ``seed + SEED_STRIDE n + r``, its deformation model made of the other subjects' velocities. The subject
     probe takes the first ``subject_probe`` other subjects' scans, registered by the command line's model of
     ``bundle_root`` with ``model_file`` (raw posterior). ``refinement``: the refinement of the mean both probes
-    calibrate."""
+    calibrate; ``error_model``: the error model the calibration's term reads (None: the pair's residual)."""
+    error_model = None if error_model is None else tuple(float(c) for c in error_model)
     deformations, samples, seed, subject_probe, probe, reference = settings
     pairs = labelled_pairs(index, list(subjects))
     population = None
@@ -253,7 +260,9 @@ def calibration_probes(
         rms = float(real[0][:, brain].pow(2).sum(0).mean().sqrt())
         fixed = pair["fixed"] if reference == "atlas" else pair["moving"]
         cases[sid] = [
-            displacement_case(network, fixed, rms, samples, seed + SEED_STRIDE * n + r, population, refinement)
+            displacement_case(
+                network, fixed, rms, samples, seed + SEED_STRIDE * n + r, population, refinement, error_model
+            )
             for r in range(deformations)
         ]
         truth_rms = [float(c["truth"].pow(2).sum(0).mean().sqrt()) for c in cases[sid]]
@@ -270,7 +279,9 @@ def calibration_probes(
         tid: subject_case(tid, index.images[tid], SUBJECT_SEED + n, VOXELS_PER_CASE, command_model.divisor)
         for n, tid in enumerate(templates)
     }
-    probes = CalibrationProbes(network, samples, refinement, cases, items, subject_cases, command_model, raw, {})
+    probes = CalibrationProbes(
+        network, samples, refinement, cases, items, subject_cases, command_model, raw, {}, error_model=error_model
+    )
     for n, tid in enumerate(tqdm(subject_cases, desc="subject probe", unit="template", disable=None)):
         probes.subject_raw[tid] = errors = probes.subject_errors(tid, RAW)
         _LOG.info(

@@ -33,7 +33,7 @@ from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.uncertainty.calibration import Calibration, calibrate_log_var
 from monai_probreg.uncertainty.entropy import sampled_displacement_moments
-from monai_probreg.uncertainty.residual import residual_variance
+from monai_probreg.uncertainty.error_model import pair_term
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.tensors import plain_tensor
 
@@ -128,35 +128,38 @@ def _subsample(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
 
 class PairPosterior(NamedTuple):
     """What a registration's maps are sampled from: the velocity ``mean`` and the network's ``log_var``
-    (1, 3, *V), and the pair's ``residual`` (1, 1, *V) after registration
-    (:func:`~monai_probreg.uncertainty.residual.residual_variance`)."""
+    (1, 3, *V), and the map the calibration's term weighs, ``residual`` (1, 1, *V), of the registered pair
+    (:func:`~monai_probreg.uncertainty.error_model.pair_term`: the error model's prediction, or the residual)."""
 
     mean: torch.Tensor
     log_var: torch.Tensor
     residual: torch.Tensor
 
 
-def posterior_for(network, moving, fixed, refinement=None) -> PairPosterior:
+def posterior_for(network, moving, fixed, refinement=None, error_model=None) -> PairPosterior:
     """The posterior a user's registration samples: the network's, with its mean refined for the pair when
-    ``refinement`` (evaluate.yaml's ``refinement``) is enabled; the variance stays the network's; the residual of the
-    registered pair."""
+    ``refinement`` (evaluate.yaml's ``refinement``) is enabled; the variance stays the network's; the term's map of
+    the registered pair (``error_model``: a calibration's, None: the residual)."""
     output = register_pair(network, moving, fixed, refinement)
+    pair = (output.warped, fixed, output.velocity_mean, output.velocity_log_var, output.displacement)
     with torch.inference_mode():
-        residual = residual_variance(output.warped, fixed, output.velocity_mean.shape[2:])
+        residual = pair_term(error_model, *pair)
     return PairPosterior(output.velocity_mean, output.velocity_log_var, residual)
 
 
-def displacement_case(network, fixed, rms, num_samples, seed, population=None, refinement=None) -> dict[str, Any]:
+def displacement_case(
+    network, fixed, rms, num_samples, seed, population=None, refinement=None, error_model=None
+) -> dict[str, Any]:
     """One synthetic case: the posterior (kept, to re-sample when calibrated), the truth on subsampled voxels.
     ``population`` (from :func:`population_velocities`) draws the field from it; None: smoothed noise of RMS ``rms``.
-    ``refinement``: the mean is the refined one (:func:`posterior_for`)."""
+    ``refinement``: the mean is the refined one; ``error_model``: the term's (:func:`posterior_for`)."""
     generator = torch.Generator().manual_seed(seed)
     if population is not None:
         forward, truth = population_deformation(fixed, population_velocity(population, generator))
     else:
         forward, truth = random_deformation(fixed, rms, generator)
     moving = warp_image(fixed, forward)
-    posterior = posterior_for(network, moving, fixed, refinement)
+    posterior = posterior_for(network, moving, fixed, refinement, error_model)
     voxels = _subsample(fixed[0, 0] > 0, generator)
     with torch.inference_mode():
         registration = network.velocity_to_displacement(posterior.mean, tuple(fixed.shape[2:]))

@@ -28,8 +28,10 @@ from torch import nn
 from monai_probreg.data.dataset import DatasetIndex
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.fitting.calibration_probes import FIT_ITERATIONS, ProbeSettings, calibration_probes
+from monai_probreg.fitting.error_cases import ERROR_MODEL_SEED, ERROR_MODEL_TEMPLATES, fitted_error_model
 from monai_probreg.fitting.quality_cases import RecordLog, load_scans
 from monai_probreg.fitting.quality_fit import CommandSetup, fit_on_records, split_records
+from monai_probreg.registration.model import load_model
 from monai_probreg.uncertainty.calibration import Calibration, calibration_path, save_calibration
 from monai_probreg.uncertainty.quality import QualityModel, entropy_calibration_record, quality_path, save_quality_model
 from monai_probreg.utils.errors import InputError, first_line
@@ -134,6 +136,12 @@ def bundle_setup(bundle_root: Path, dataset_dir: Path, model_file: Path | None =
     return BundleSetup(evaluate, model_file, network, refinement, command_refinement, val_ids, divisor)
 
 
+def _calibration(stored: dict[str, Any]) -> Calibration:
+    """A calibration as the log stores it (``Calibration._asdict()`` through JSON: the error model a list)."""
+    error_model = stored.get("error_model")
+    return Calibration(**{**stored, "error_model": None if error_model is None else tuple(error_model)})
+
+
 class FittedCalibration(NamedTuple):
     """The fitted calibration, the cases it was fitted on (the sidecar's ``fitted_on``) and their posterior samples."""
 
@@ -163,16 +171,27 @@ def fit_calibration_stage(
         "training_subjects": [i for i in index.ids if i not in subjects],
         **settings._asdict(),
         "fit_iterations": FIT_ITERATIONS,
+        "error_model_templates": ERROR_MODEL_TEMPLATES,
+        "error_model_seed": ERROR_MODEL_SEED,
     }
     log = RecordLog(work_dir / CALIBRATION_LOG, header, resume=resume)
     if _FITTED in log.records:
         stored = log.records[_FITTED]
         _LOG.info(f"resumed: the calibration fitted before, from {log.path}")
-        return FittedCalibration(Calibration(**stored["calibration"]), stored["fitted_on"], settings.samples)
+        return FittedCalibration(_calibration(stored["calibration"]), stored["fitted_on"], settings.samples)
     _LOG.info(
         f"calibration: registering the probes of the {'refined' if setup.refinement.enabled else 'network'} mean "
         f"({setup.refinement.num_iterations} refinement steps)"
     )
+    # the error model first, on training scans after the subject probe's: the probes' cases are then registered with
+    # the term it gives (fitting.error_cases); with too few training scans the term reads the pair's residual
+    training = [i for i in index.ids if i not in subjects]
+    templates = training[settings.subject_probe : settings.subject_probe + ERROR_MODEL_TEMPLATES]
+    error_model = None
+    if templates:
+        command_model = load_model(bundle_root, setup.model_file, calibrate=False, quality=False)
+        error_model = fitted_error_model(command_model, index, templates, setup.refinement)
+        _LOG.info(f"error model fitted on the synthetic subjects of {', '.join(templates)}")
     probes = calibration_probes(
         setup.network,
         setup.evaluate.get_parsed_content("preprocessing"),
@@ -182,6 +201,7 @@ def fit_calibration_stage(
         setup.model_file,
         setup.refinement,
         settings,
+        error_model,
     )
     fitted = FittedCalibration(
         probes.fit(list(probes.cases), list(probes.subject_cases)), probes.fitted_on(), settings.samples
@@ -242,6 +262,7 @@ def write_sidecars(
             interval_dof=fitted.interval_dof,
             path=path,
             residual_weight=fitted.residual_weight,
+            error_model=fitted.error_model,
         )
         written.append(path)
     if quality is not None:

@@ -30,8 +30,8 @@ from monai_probreg.networks.probreg_net import RegistrationOutput
 from monai_probreg.registration.model import LoadedModel
 from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.uncertainty.calibration import Calibration
+from monai_probreg.uncertainty.error_model import error_features, pair_term
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
-from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.tensors import float_numpy
 
 __all__ = ["ModelMaps", "add_inverse", "posterior_entropy", "register_network", "run_network"]
@@ -56,6 +56,8 @@ class ModelMaps:
     variance: np.ndarray | None = None  # (3, *S) mm^2 per model-grid axis, with the samples
     deformed: bool = field(init=False)  # any voxel moved (the summary's "deformation_given_up" reads it)
     velocity: torch.Tensor | None = None  # the answer's mean velocity, until add_inverse makes the inverse from it
+    # (F, *S) the pair's error-model features (RegistrationOptions.error_features), or None
+    error_features: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.deformed = bool(self.displacement.any())
@@ -109,9 +111,12 @@ def run_network(
             posterior=None if model.quality is None else (output.velocity_mean, output.velocity_log_var),
             velocity=output.velocity_mean if options.inverse else None,
         )
-        residual = None  # the pair's residual, for the calibration's residual term (uncertainty.residual)
+        pair = (output.warped, fixed_t, output.velocity_mean, output.velocity_log_var, output.displacement)
+        residual = None  # the map the calibration's term weighs (uncertainty.error_model.pair_term)
         if model.calibration.residual_weight > 0:
-            residual = residual_variance(output.warped, fixed_t, output.velocity_mean.shape[2:])
+            residual = pair_term(model.calibration.error_model, *pair)
+        if options.error_features:  # for a caller fitting the error model (fitting.error_cases)
+            maps.error_features = float_numpy(error_features(*pair)[0])
         if not samples:  # with samples, the sampled call below gives the entropy too: computed once either way
             maps.entropy = posterior_entropy(
                 model, output.velocity_mean, output.velocity_log_var, shape, model.calibration, residual

@@ -74,7 +74,9 @@ class RegistrationOptions:
     is; N >= 2, its intensities mapped onto the fixed image's contrast over N bins before the network, the refinement
     and the quality estimate read it (:func:`~monai_probreg.spatial.contrast.match_contrast`; ``--match-contrast``);
     ``contrast``: one of :data:`CONTRASTS` (``--contrast``; the refinement's settings for it are the caller's): under
-    "other" no quality estimate is made (:func:`~monai_probreg.registration.quality_estimate.why_no_quality`).
+    "other" no quality estimate is made (:func:`~monai_probreg.registration.quality_estimate.why_no_quality`);
+    ``error_features``: hand the pair's error-model features (:func:`~monai_probreg.uncertainty.error_model.
+    error_features`) to a caller's check (:class:`~.scan.Registered`), for fitting the error model.
     """
 
     samples: int = 0
@@ -87,6 +89,7 @@ class RegistrationOptions:
     initial: InitialTransform | None = None
     contrast_match_bins: int = 0
     contrast: str = "same"
+    error_features: bool = False
 
     def __post_init__(self) -> None:
         check_contrast_match_bins(self.contrast_match_bins)

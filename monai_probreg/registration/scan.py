@@ -81,19 +81,22 @@ class Registered(NamedTuple):
     points;
     ``displacement_variance`` (*S, 3): the calibrated posterior's variance of the deformable displacement, mm^2 on
     the fixed grid, one component per column of ``variance_axes`` (3, 3; unit LPS vectors: the model grid's axes),
-    or None without samples."""
+    or None without samples; ``error_features`` (F, *S): the pair's error-model features on the model grid
+    (``RegistrationOptions.error_features``), or None."""
 
     warp: np.ndarray
     affine: np.ndarray
     points: np.ndarray
     displacement_variance: np.ndarray | None
     variance_axes: np.ndarray
+    error_features: np.ndarray | None = None
 
 
 def _registered(fixed: FixedSpace, affine: AffineResult, composed: Composed, model_maps: ModelMaps) -> Registered:
     grid = fixed.grid
     variance = None if model_maps.variance is None else grid.to_fixed(np.moveaxis(model_maps.variance, 0, -1))
-    return Registered(composed.warp, affine.matrix, fixed.points, variance, grid.index_to_lps[:3, :3] / grid.spacing)
+    axes = grid.index_to_lps[:3, :3] / grid.spacing
+    return Registered(composed.warp, affine.matrix, fixed.points, variance, axes, model_maps.error_features)
 
 
 # the stages after which the freed memory goes back (monai_probreg.utils.memory: with memory reuse the heap keeps it

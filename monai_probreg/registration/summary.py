@@ -60,6 +60,13 @@ def scan_summary(
             "posterior_residual_weight": model.calibration.residual_weight,
             # ... per unit of this residual: its boxes in voxels (uncertainty.residual.residual_form; None: no term)
             "posterior_residual_form": residual_form() if model.calibration.residual_weight > 0 else None,
+            # what the term reads: "error model" (the predicted squared error from the pair's features,
+            # uncertainty.error_model), "residual" (the pair's residual itself) or None (no term)
+            "posterior_term": None
+            if model.calibration.residual_weight == 0
+            else "residual"
+            if model.calibration.error_model is None
+            else "error model",
             "posterior_interval_dof": model.interval_dof,  # Student-t dof of the intervals; None: Gaussian
             # the calibrated 95% interval of one displacement component is +- this many times that component's
             # std (displacement_std.nii.gz is the root-sum-square of the 3 components' stds)

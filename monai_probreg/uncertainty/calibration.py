@@ -65,6 +65,7 @@ import torch
 from torch import Tensor
 
 from monai_probreg.metrics.calibration import interval_z
+from monai_probreg.uncertainty.error_model import ERROR_FEATURES, check_error_model
 from monai_probreg.uncertainty.residual import PLAIN_RESIDUAL_FORM, residual_form
 from monai_probreg.utils.provenance import file_sha256
 from monai_probreg.utils.sidecars import read_sidecar, sidecar_path, write_sidecar
@@ -113,9 +114,12 @@ class Calibration(NamedTuple):
     std_scale: float
     bias_fraction: float
     interval_dof: float | None = None  # Student-t dof of the intervals; None: Gaussian
-    # velocity variance per unit of the pair's residual (monai_probreg.uncertainty.residual; velocity-grid voxels^2
-    # per squared intensity of the [0, 1] inputs), added before the scale; 0: the network's spread alone
+    # velocity variance per unit of the pair's term (uncertainty.error_model.pair_term: the error model's predicted
+    # squared error, or the pair's residual without one), added before the scale; 0: the network's spread alone
     residual_weight: float = 0.0
+    # the error model's coefficients (one per uncertainty.error_model.ERROR_FEATURES, the intercept last); None: the
+    # term reads the pair's residual (uncertainty.residual)
+    error_model: tuple[float, ...] | None = None
 
 
 RAW = Calibration(1.0, 0.0, None)  # the raw posterior: no scale, no bias term, Gaussian intervals
@@ -148,10 +152,15 @@ class CalibrationRecord:
     # the boxes of the pair's residual the weight is per unit of (uncertainty.residual.residual_form()); None: an
     # older sidecar, fitted with PLAIN_RESIDUAL_FORM
     residual: dict | None = None
+    # the error model the term reads (Calibration.error_model) and the features its coefficients are for
+    # (uncertainty.error_model.ERROR_FEATURES); None: the residual itself (also an older sidecar)
+    error_model: list[float] | None = None
+    error_features: list[str] | None = None
 
     def calibration(self) -> Calibration:
         """The numbers inference uses."""
-        return Calibration(self.std_scale, self.bias_fraction, self.interval_dof, self.residual_weight)
+        error_model = None if self.error_model is None else tuple(float(c) for c in self.error_model)
+        return Calibration(self.std_scale, self.bias_fraction, self.interval_dof, self.residual_weight, error_model)
 
 
 def check_calibration(
@@ -353,13 +362,16 @@ def save_calibration(
     interval_dof: float | None = None,
     path: str | os.PathLike | None = None,
     residual_weight: float = 0.0,
+    error_model: Sequence[float] | None = None,
 ) -> CalibrationRecord:
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
     ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
     network's mean); ``interval_dof``: the intervals' Student-t dof (None: Gaussian); ``path``: where to write it
     (default: next to the weights, :func:`calibration_path`); ``residual_weight``: the residual term's weight (0: none),
-    per unit of the residual this package computes (recorded as ``residual``)."""
+    per unit of the residual this package computes (recorded as ``residual``); ``error_model``: the coefficients of
+    the error model the term reads (recorded with the features they are for), or None (the residual)."""
     check_calibration(std_scale, bias_fraction, interval_dof, residual_weight)
+    check_error_model(error_model)
     record = CalibrationRecord(
         float(std_scale),
         Path(weights_file).name,
@@ -372,6 +384,8 @@ def save_calibration(
         interval_dof=None if interval_dof is None else float(interval_dof),
         residual_weight=float(residual_weight),
         residual=residual_form(),
+        error_model=None if error_model is None else [float(c) for c in error_model],
+        error_features=None if error_model is None else list(ERROR_FEATURES),
     )
     write_sidecar(weights_file, CALIBRATION_SIDECAR, asdict(record), path)
     return record
@@ -401,6 +415,16 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
             f"{path}: fitted for the pair's residual {fitted_residual}, this package computes {residual_form()}; "
             "refit it: python -m monai_probreg.fitting --only calibration"
         )
+    if record.error_model is not None:
+        if record.error_features != list(ERROR_FEATURES):
+            raise ValueError(
+                f"{path}: an error model of the features {record.error_features}, this package computes "
+                f"{list(ERROR_FEATURES)}; refit it: python -m monai_probreg.fitting --only calibration"
+            )
+        try:
+            check_error_model(record.error_model)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
     return record
 
 

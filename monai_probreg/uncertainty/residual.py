@@ -36,6 +36,7 @@ __all__ = [
     "RESIDUAL_WINDOW",
     "residual_form",
     "residual_variance",
+    "squared_difference",
 ]
 
 RESIDUAL_WINDOW = 9  # side of the box the squared difference is averaged over, voxels of the images' grid (odd)
@@ -72,20 +73,33 @@ def residual_variance(
     ``smoothing``-voxel box, ``g``: the ratio of the fixed to the warped image's mean over a ``gain_window``-voxel box
     (each plus a floor of 1e-3: 1 where both are empty). ``warped``, ``fixed``: (B, C, *S), the warped moving image
     and the fixed image on one grid, intensities of the network's inputs; squared intensity units."""
+    shape = tuple(int(n) for n in velocity_shape)
+    if len(shape) != warped.ndim - 2 or min(shape) < 1:
+        raise ValueError(f"expected {warped.ndim - 2} velocity grid sizes >= 1; got {tuple(velocity_shape)}")
+    _check_box("window", window)
+    squared = squared_difference(warped, fixed, smoothing, gain_window)
+    return F.interpolate(_box_average(squared, window), size=shape, mode="area")
+
+
+def squared_difference(
+    warped: Tensor, fixed: Tensor, smoothing: int = RESIDUAL_SMOOTHING, gain_window: int = RESIDUAL_GAIN_WINDOW
+) -> Tensor:
+    """(B, 1, *S): ``(g s(warped) - s(fixed))^2`` per voxel (channels averaged), before :func:`residual_variance`'s
+    box and averaging (its docstring); the error model boxes it over several windows (uncertainty.error_model)."""
     if warped.shape != fixed.shape or warped.ndim not in (4, 5):
         raise ValueError(
             f"expected the warped and fixed images (B, C, *S) of one shape, 2D or 3D; got {tuple(warped.shape)} and "
             f"{tuple(fixed.shape)}"
         )
-    shape = tuple(int(n) for n in velocity_shape)
-    if len(shape) != warped.ndim - 2 or min(shape) < 1:
-        raise ValueError(f"expected {warped.ndim - 2} velocity grid sizes >= 1; got {tuple(velocity_shape)}")
-    for name, size in (("window", window), ("smoothing", smoothing), ("gain_window", gain_window)):
-        if isinstance(size, bool) or not isinstance(size, int) or size < 1 or size % 2 == 0:
-            raise ValueError(f"{name} must be an odd number of voxels >= 1; got {size!r}")
+    _check_box("smoothing", smoothing)
+    _check_box("gain_window", gain_window)
     moving, target = warped.float(), fixed.float()
     if gain_window > 1:
         gain = (_box_average(target, gain_window) + _GAIN_FLOOR) / (_box_average(moving, gain_window) + _GAIN_FLOOR)
         moving = moving * gain
-    squared = (_box_average(moving, smoothing) - _box_average(target, smoothing)).square().mean(1, keepdim=True)
-    return F.interpolate(_box_average(squared, window), size=shape, mode="area")
+    return (_box_average(moving, smoothing) - _box_average(target, smoothing)).square().mean(1, keepdim=True)
+
+
+def _check_box(name: str, size: int) -> None:
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1 or size % 2 == 0:
+        raise ValueError(f"{name} must be an odd number of voxels >= 1; got {size!r}")

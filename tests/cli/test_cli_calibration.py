@@ -14,6 +14,7 @@ from conftest import FIXED_LPS, asymmetric_phantom, save_lps, tiny_bundle
 from monai_probreg.cli.main import main
 from monai_probreg.spatial.volume_io import read_image
 from monai_probreg.uncertainty.calibration import calibration_path, save_calibration
+from monai_probreg.uncertainty.error_model import ERROR_FEATURES
 from monai_probreg.uncertainty.residual import residual_form
 
 BUNDLE = Path(__file__).resolve().parents[2] / "bundle"
@@ -148,13 +149,40 @@ def test_the_residual_term_reaches_the_written_maps(scene):
         rc, summary, widened = _register(scene, "residual", "--refine", "0", moving=moving)
         assert rc == 0 and summary["model"]["posterior_residual_weight"] == RESIDUAL_WEIGHT
         assert summary["model"]["posterior_residual_form"] == residual_form()
+        assert summary["model"]["posterior_term"] == "residual"
     finally:
         calibration_path(weights).write_text(record)
     rc, summary, raw = _register(scene, "raw_for_residual", "--raw-uncertainty", "--refine", "0", moving=moving)
     assert rc == 0 and summary["model"]["posterior_residual_weight"] == 0.0
-    assert summary["model"]["posterior_residual_form"] is None
+    assert summary["model"]["posterior_residual_form"] is None and summary["model"]["posterior_term"] is None
     inside = raw > 0
     assert np.median(widened[inside] / raw[inside]) > 1.2
+
+
+def test_an_error_model_reaches_the_written_maps(scene):
+    """A sidecar with an error model: the summary says the term reads it, and the std follows its prediction: an
+    error model of the fixed intensity alone (exp(4 intensity)) widens the posterior where the fixed image is bright
+    against one of the intercept alone, the same seeded samples otherwise."""
+    root, _, weights, _, _ = scene
+    names = list(ERROR_FEATURES)
+    bright = [0.0] * (len(names) + 1)
+    bright[names.index("fixed intensity")] = 4.0
+    flat = [0.0] * (len(names) + 1)
+    record = calibration_path(weights).read_text()
+    stds = {}
+    try:
+        for name, model in (("bright", bright), ("flat", flat)):
+            save_calibration(weights, 1.0, ["synthetic"], 2, residual_weight=RESIDUAL_WEIGHT, error_model=model)
+            rc, summary, stds[name] = _register(scene, f"error_model_{name}", "--refine", "0")
+            assert rc == 0 and summary["model"]["posterior_term"] == "error model"
+    finally:
+        calibration_path(weights).write_text(record)
+    image, _ = asymmetric_phantom()
+    ratio = stds["bright"] / np.maximum(stds["flat"], 1e-12)
+    inside = stds["flat"] > 0
+    brightest = inside & (image >= np.percentile(image[inside], 90))
+    darkest = inside & (image <= np.percentile(image[inside], 10))
+    assert np.median(ratio[brightest]) > 1.2 * np.median(ratio[darkest])
 
 
 def test_student_t_intervals_are_recorded_and_raw_on_request_is_gaussian(scene):

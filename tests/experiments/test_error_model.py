@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 from conftest import load_script
 
@@ -40,20 +41,50 @@ def test_features_are_one_map_per_name_on_the_image_grid():
     assert edge[0, 0, 0] == 0 and edge[8, 9, 10] > 0
 
 
-def test_a_model_of_only_an_intercept_predicts_its_exponential_on_the_velocity_grid():
+def test_the_torch_features_are_one_map_per_name_on_the_velocity_grid():
+    warped, fixed, mean, log_var, displacement = _pair()
+    features = study.velocity_grid_features(warped, fixed, mean, log_var, displacement)
+    assert features.shape == (1, len(study.FEATURES), 8, 9, 10)
+    assert bool(torch.isfinite(features).all())
+    names = list(study.FEATURES)
+    variance = features[0, names.index("log network velocity variance")]
+    assert torch.allclose(variance, torch.full_like(variance, math.log(0.01 + study.LOG_FLOOR)))
+    # the residual over 9 voxels is the calibration's own residual (its log)
+    residual = study.residual_variance(warped, fixed, (8, 9, 10))
+    assert torch.allclose(features[0, 0], (residual[0, 0] + study.LOG_FLOOR).log())
+    inside = features[0, names.index("distance to the fixed image's edge")]
+    assert float(inside.min()) >= 0 and float(inside.max()) <= 1 and float(inside[4, 4, 5]) > float(inside[0, 0, 0])
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_the_torch_laplacian_energy_of_a_parabola_is_four_inside(axis):
+    shape = (8, 9, 10)
+    coord = torch.arange(shape[axis], dtype=torch.float32)
+    view = [1, 1, 1]
+    view[axis] = shape[axis]
+    field = torch.zeros(1, 3, *shape)
+    field[0, 1] = coord.view(view).square().expand(shape)
+    energy = study._laplacian_energy_torch(field, 1)
+    assert energy.shape == (1, 1, *shape)
+    assert torch.allclose(energy[0, 0, 1:-1, 1:-1, 1:-1], torch.full((6, 7, 8), 4.0))
+
+
+@pytest.mark.parametrize("feature_set", list(study.FEATURE_SETS))
+def test_a_model_of_only_an_intercept_predicts_its_exponential_on_the_velocity_grid(feature_set):
     warped, fixed, mean, log_var, displacement = _pair()
     coef = np.zeros(len(study.FEATURES) + 1)
     coef[-1] = math.log(0.3)
-    variance = study.ErrorModel(coef).variance(warped, fixed, mean, log_var, displacement)
+    variance = study.ErrorModel(coef, feature_set).variance(warped, fixed, mean, log_var, displacement)
     assert variance.shape == (1, 1, 8, 9, 10)
     assert torch.allclose(variance, torch.full_like(variance, 0.3))
 
 
-def test_a_model_of_the_residual_alone_follows_the_residual():
+@pytest.mark.parametrize("feature_set", list(study.FEATURE_SETS))
+def test_a_model_of_the_residual_alone_follows_the_residual(feature_set):
     warped, fixed, mean, log_var, displacement = _pair()
     coef = np.zeros(len(study.FEATURES) + 1)
-    coef[0] = 1.0  # exp(log(residual + floor)): the residual itself, upsampled and averaged back
-    variance = study.ErrorModel(coef).variance(warped, fixed, mean, log_var, displacement)
+    coef[0] = 1.0  # exp(log(residual + floor)): the residual itself
+    variance = study.ErrorModel(coef, feature_set).variance(warped, fixed, mean, log_var, displacement)
     residual = study.residual_variance(warped, fixed, tuple(mean.shape[2:]))
     assert float(np.corrcoef(variance.flatten().numpy(), residual.flatten().numpy())[0, 1]) > 0.9
 
@@ -78,3 +109,18 @@ def test_no_dataset_is_a_clean_skip(tmp_path, capsys):
     assert study.main(["--dataset-dir", str(tmp_path / "missing"), "--out-dir", str(tmp_path)]) == 0
     assert "skipped" in capsys.readouterr().out
     assert not list(tmp_path.glob("*.json"))
+
+
+def test_cross_fitted_coverage_of_errors_drawn_from_twice_the_std_is_nominal():
+    rng = np.random.default_rng(0)
+
+    def case(n=4000):
+        std = rng.uniform(0.2, 2.0, (3, n))
+        return std, 2.0 * std * rng.standard_normal((3, n)), np.zeros((3, n))  # the samples' std is half the truth's
+
+    coverage = study.cross_fitted_coverage([case() for _ in range(4)], [case() for _ in range(4)])
+    for probe in ("population", "subject"):
+        assert abs(coverage[probe]["68%"] - 0.68) < 0.03 and abs(coverage[probe]["95%"] - 0.95) < 0.02
+    # unrefitted, the same intervals would cover far less: the refit widened them
+    std, error, _ = case()
+    assert float(np.mean(np.abs(error) <= 1.96 * std)) < 0.75

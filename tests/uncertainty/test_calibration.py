@@ -188,7 +188,7 @@ def test_fit_calibration_recovers_a_known_scale_and_bias_fraction(scale, bias_fr
 def test_fit_calibration_without_bias_matches_fit_std_scale():
     std, error = _toy(3.0)
     fitted = fit_calibration(std, error, np.ones_like(std), bias_fractions=(0.0,), interval_dofs=(None,))
-    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0, None, 0.0)
+    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0, None, 0.0, None)
 
 
 @pytest.mark.parametrize(
@@ -235,12 +235,12 @@ def test_bias_variance_is_the_squared_fraction_of_the_length():
 
 def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
     save_calibration(weights, 2.0, bias_fraction=0.15)
-    assert calibration_for(weights) == (2.0, 0.15, None, 0.0) and load_calibration(weights).bias_fraction == 0.15
-    assert calibration_for(weights, calibrate=False) == (1.0, 0.0, None, 0.0)
+    assert calibration_for(weights) == (2.0, 0.15, None, 0.0, None) and load_calibration(weights).bias_fraction == 0.15
+    assert calibration_for(weights, calibrate=False) == (1.0, 0.0, None, 0.0, None)
     record = json.loads(calibration_path(weights).read_text())
     del record["bias_fraction"]  # written before the bias term existed
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (2.0, 0.0, None, 0.0)
+    assert calibration_for(weights) == (2.0, 0.0, None, 0.0, None)
     record["bias_fraction"] = -0.5
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: bias_fraction"):
@@ -251,11 +251,11 @@ def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
 
 def test_sidecar_keeps_the_residual_weight_and_old_sidecars_read_as_zero(weights):
     save_calibration(weights, 1.5, interval_dof=2.0, residual_weight=300.0)
-    assert calibration_for(weights) == (1.5, 0.0, 2.0, 300.0)
+    assert calibration_for(weights) == (1.5, 0.0, 2.0, 300.0, None)
     record = json.loads(calibration_path(weights).read_text())
     del record["residual_weight"]  # written before the residual term existed
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (1.5, 0.0, 2.0, 0.0)
+    assert calibration_for(weights) == (1.5, 0.0, 2.0, 0.0, None)
     record["residual_weight"] = -1.0
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: residual_weight"):
@@ -404,11 +404,11 @@ def test_fit_rejects_bad_interval_dofs(dofs, match):
 
 def test_sidecar_keeps_the_interval_dof_and_old_sidecars_read_as_gaussian(weights):
     save_calibration(weights, 1.3, interval_dof=3.0)
-    assert calibration_for(weights) == (1.3, 0.0, 3.0, 0.0) and load_calibration(weights).interval_dof == 3.0
+    assert calibration_for(weights) == (1.3, 0.0, 3.0, 0.0, None) and load_calibration(weights).interval_dof == 3.0
     record = json.loads(calibration_path(weights).read_text())
     del record["interval_dof"]  # written before bundle 0.21.0
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (1.3, 0.0, None, 0.0)
+    assert calibration_for(weights) == (1.3, 0.0, None, 0.0, None)
 
 
 @pytest.mark.parametrize("dof", [0.0, -1.0, "3", True])
@@ -421,3 +421,34 @@ def test_a_sidecar_with_a_bad_interval_dof_is_refused(weights, dof):
         load_calibration(weights)
     with pytest.raises(ValueError, match="interval_dof"):
         save_calibration(weights, 1.3, interval_dof=dof)
+
+
+def test_sidecar_keeps_the_error_model_with_its_features(weights):
+    from monai_probreg.uncertainty.error_model import ERROR_FEATURES
+
+    coefficients = tuple(0.1 * k for k in range(len(ERROR_FEATURES) + 1))
+    save_calibration(weights, 1.5, residual_weight=10.0, error_model=coefficients)
+    record = json.loads(calibration_path(weights).read_text())
+    assert record["error_features"] == list(ERROR_FEATURES) and len(record["error_model"]) == len(ERROR_FEATURES) + 1
+    assert calibration_for(weights).error_model == pytest.approx(coefficients)
+    assert isinstance(calibration_for(weights).error_model, tuple)
+    del record["error_model"], record["error_features"]  # written before the error model: the residual
+    calibration_path(weights).write_text(json.dumps(record))
+    assert calibration_for(weights).error_model is None
+
+
+def test_an_error_model_of_other_features_is_refused_with_the_refit_command(weights):
+    from monai_probreg.uncertainty.error_model import ERROR_FEATURES
+
+    save_calibration(weights, 1.5, residual_weight=10.0, error_model=(0.0,) * (len(ERROR_FEATURES) + 1))
+    record = json.loads(calibration_path(weights).read_text())
+    record["error_features"] = record["error_features"][:-1] + ["something else"]
+    calibration_path(weights).write_text(json.dumps(record))
+    with pytest.raises(ValueError, match=r"model.calibration.json: an error model of the features .*refit it"):
+        load_calibration(weights)
+
+
+@pytest.mark.parametrize("coefficients", [(1.0, 2.0), (float("nan"),) * 13, ("a",) * 13, (True,) * 13])
+def test_a_bad_error_model_is_refused(coefficients, weights):
+    with pytest.raises(ValueError, match="an error model is 13 finite numbers"):
+        save_calibration(weights, 1.0, residual_weight=1.0, error_model=coefficients)

@@ -66,6 +66,7 @@ from monai_probreg.registration.options import RegistrationOptions
 from monai_probreg.registration.scan import register_scan
 from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration, fit_calibration
+from monai_probreg.uncertainty.error_model import squared_laplacian
 from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.tensors import plain_tensor
 
@@ -130,18 +131,10 @@ def _area(x: torch.Tensor, grid: tuple[int, ...]) -> torch.Tensor:
 
 
 def _laplacian_energy_torch(field: torch.Tensor, window: int) -> torch.Tensor:
-    """(1, C, *S) -> (1, 1, *S): the squared 2D-neighbour Laplacian summed over components (the border replicated),
-    averaged over a ``window``-voxel box (the voxels outside counted as zeros, as the residual's boxes)."""
-    dims = field.ndim - 2
-    padded = F.pad(field, [1, 1] * dims, mode="replicate")
-    laplacian = -2 * dims * field
-    for axis in range(dims):
-        for low, high in ((0, -2), (2, None)):
-            index = [slice(1, -1)] * dims
-            index[axis] = slice(low, high)
-            laplacian = laplacian + padded[(slice(None), slice(None), *index)]
-    energy = laplacian.square().sum(1, keepdim=True)
-    return box_sum(energy, window) / window**dims if window > 1 else energy
+    """(1, C, *S) -> (1, 1, *S): the package's squared Laplacian (the border replicated, components summed), averaged
+    over a ``window``-voxel box (the voxels outside counted as zeros, as the residual's boxes)."""
+    energy = squared_laplacian(field)
+    return box_sum(energy, window) / window ** (field.ndim - 2) if window > 1 else energy
 
 
 def velocity_grid_features(warped, fixed, mean, log_var, displacement) -> torch.Tensor:

@@ -12,7 +12,6 @@ a length).
 
 from __future__ import annotations
 
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,11 +21,8 @@ from tqdm.auto import tqdm
 from monai_probreg.data.dataset import DatasetIndex
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.fitting.population_probe import VOXELS_PER_CASE
-from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case
+from monai_probreg.fitting.subject_probe import SUBJECT_SEED, registered_case, subject_case
 from monai_probreg.registration.model import LoadedModel
-from monai_probreg.registration.options import RegistrationOptions
-from monai_probreg.registration.scan import Registered, register_scan
-from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.uncertainty.error_model import fit_error_model
 
 __all__ = ["ERROR_MODEL_SEED", "ERROR_MODEL_TEMPLATES", "SQUARED_ERROR_FLOOR", "error_case", "fitted_error_model"]
@@ -42,25 +38,7 @@ def error_case(
     """(features (N, F), squared errors (N,) mm^2) of the synthetic subject of the scan at ``path`` for ``seed``,
     registered by the command's path with ``model`` (raw posterior) and ``refinement``."""
     case = subject_case(template_id, path, seed, VOXELS_PER_CASE, model.divisor)
-    options = RegistrationOptions(
-        samples=0,
-        seed=seed,
-        qc=False,
-        inverse=False,
-        maps=False,
-        affine=AffineSettings(seed=seed),
-        refinement=refinement,
-        error_features=True,
-    )
-    kept: list[Registered] = []
-
-    def keep(registered: Registered) -> dict:
-        kept.append(registered)
-        return {}
-
-    with tempfile.TemporaryDirectory() as tmp:  # the outputs themselves are not needed
-        register_scan(model, case.fixed, case.subject.image, Path(tmp) / "out", options=options, check=keep)
-    registered = kept[0]
+    registered = registered_case(model, case, 0, refinement, error_features=True)
     grid = case.fixed.grid
     columns = [grid.to_fixed(f[..., None])[..., 0].reshape(-1)[case.voxels] for f in registered.error_features]
     warp = registered.warp.reshape(-1, 3)[case.voxels].astype(np.float64)

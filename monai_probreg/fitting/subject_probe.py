@@ -36,7 +36,7 @@ from monai_probreg.registration.scan import Registered, register_scan
 from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.uncertainty.calibration import Calibration
 
-__all__ = ["SUBJECT_SEED", "SubjectCase", "subject_case", "subject_errors"]
+__all__ = ["SUBJECT_SEED", "SubjectCase", "registered_case", "subject_case", "subject_errors"]
 
 SUBJECT_SEED = 1000  # template n's synthetic subject is drawn with seed SUBJECT_SEED + n (the demo uses 0, 1, 2)
 
@@ -61,6 +61,37 @@ def subject_case(template_id: str, path: str | Path, seed: int, voxels: int, div
     return SubjectCase(template_id, fixed, subject, seed, np.sort(inside[pick]))
 
 
+def registered_case(
+    model: LoadedModel,
+    case: SubjectCase,
+    samples: int,
+    refinement: RefinementSettings | None,
+    error_features: bool = False,
+) -> Registered:
+    """``case``'s synthetic subject registered onto its template by the command's path (no files kept), ``samples``
+    posterior samples and the affine stage seeded by the case; ``error_features``: the registration also hands the
+    pair's error-model features (``RegistrationOptions.error_features``)."""
+    options = RegistrationOptions(
+        samples=samples,
+        seed=case.seed,
+        qc=False,
+        inverse=False,
+        maps=False,
+        affine=AffineSettings(seed=case.seed),
+        refinement=refinement,
+        error_features=error_features,
+    )
+    kept: list[Registered] = []
+
+    def keep(registered: Registered) -> dict:
+        kept.append(registered)
+        return {}
+
+    with tempfile.TemporaryDirectory() as tmp:  # the outputs themselves are not needed
+        register_scan(model, case.fixed, case.subject.image, Path(tmp) / "out", options=options, check=keep)
+    return kept[0]
+
+
 def subject_errors(
     model: LoadedModel,
     case: SubjectCase,
@@ -72,24 +103,7 @@ def subject_errors(
     with its posterior calibrated by ``calibration`` (``refinement``: the model's own when None), ``samples``
     posterior samples (seeded by the case)."""
     model = dataclasses.replace(model, calibration=calibration, quality=None)
-    options = RegistrationOptions(
-        samples=samples,
-        seed=case.seed,
-        qc=False,
-        inverse=False,
-        maps=False,
-        affine=AffineSettings(seed=case.seed),
-        refinement=refinement,
-    )
-    kept: list[Registered] = []
-
-    def keep(registered: Registered) -> dict:
-        kept.append(registered)
-        return {}
-
-    with tempfile.TemporaryDirectory() as tmp:  # the outputs themselves are not needed
-        register_scan(model, case.fixed, case.subject.image, Path(tmp) / "out", options=options, check=keep)
-    registered = kept[0]
+    registered = registered_case(model, case, samples, refinement)
 
     def flat(field: np.ndarray) -> np.ndarray:  # (*S, 3) -> (N, 3) at the case's voxels
         return field.reshape(-1, 3)[case.voxels].astype(np.float64)

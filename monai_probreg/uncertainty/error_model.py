@@ -40,6 +40,8 @@ __all__ = [
     "fit_error_model",
     "pair_term",
     "predicted_variance",
+    "squared_gradient",
+    "squared_laplacian",
 ]
 
 RESIDUAL_WINDOWS = (9, 3, 15)  # the residual over these boxes (image-grid voxels; the first is the residual term's)
@@ -69,7 +71,7 @@ def _box_mean(x: Tensor, window: int) -> Tensor:
     return box_sum(x, window) / window ** (x.ndim - 2) if window > 1 else x
 
 
-def _squared_laplacian(field: Tensor) -> Tensor:
+def squared_laplacian(field: Tensor) -> Tensor:
     """(B, C, *S) -> (B, 1, *S): the squared 2D-neighbour Laplacian (the border replicated), summed over components.
     One component at a time, in place: a fifth of the time of the whole field's slices on a CPU."""
     dims = field.ndim - 2
@@ -88,7 +90,7 @@ def _squared_laplacian(field: Tensor) -> Tensor:
     return total
 
 
-def _squared_gradient(image: Tensor) -> Tensor:
+def squared_gradient(image: Tensor) -> Tensor:
     """(B, 1, *S) -> (B, 1, *S): the squared length of the image's gradient, central differences inside and one-sided
     ones at the borders (``torch.gradient``'s values, one axis at a time in place: a third of its time on a CPU)."""
     total = torch.zeros_like(image)
@@ -135,15 +137,15 @@ def _feature_maps(
     for window in RESIDUAL_WINDOWS:
         yield logged(upsampled(F.interpolate(_box_mean(squared, window), size=grid, mode="area")))
     del squared
-    yield logged(upsampled(_squared_laplacian(mean.float())))
-    bending = _squared_laplacian(displacement)
+    yield logged(upsampled(squared_laplacian(mean.float())))
+    bending = squared_laplacian(displacement)
     for window in LAPLACIAN_WINDOWS:
         yield logged(_box_mean(bending, window))
     del bending
     yield logged(upsampled(log_var.float().exp().mean(1, keepdim=True)))
     # lengths as the root of summed squares: torch's norm over the channel axis is many times slower on a CPU
     yield logged(displacement.square().sum(1, keepdim=True).sqrt())
-    gradient = _squared_gradient(_box_mean(fixed, GRADIENT_SMOOTHING)).sqrt_()
+    gradient = squared_gradient(_box_mean(fixed, GRADIENT_SMOOTHING)).sqrt_()
     yield logged(_box_mean(gradient, GRADIENT_WINDOW))
     yield _box_mean((fixed > EDGE_LEVEL).float(), INSIDE_WINDOW)
     yield fixed

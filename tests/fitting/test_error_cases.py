@@ -12,7 +12,7 @@ import torch
 from conftest import FIXED_LPS, asymmetric_phantom, save_lps
 
 from monai_probreg.engines.refinement import RefinementSettings
-from monai_probreg.fitting import error_cases
+from monai_probreg.fitting import error_cases, subject_probe
 from monai_probreg.registration.model import LoadedModel
 from monai_probreg.registration.scan import Registered
 from monai_probreg.uncertainty.error_model import ERROR_FEATURES
@@ -57,7 +57,7 @@ def test_a_case_reads_the_features_at_the_probes_voxels_and_the_squared_error(te
         return case
 
     monkeypatch.setattr(error_cases, "subject_case", subject_case)
-    monkeypatch.setattr(error_cases, "register_scan", _fake_register_scan(seen))
+    monkeypatch.setattr(subject_probe, "register_scan", _fake_register_scan(seen))
     model = LoadedModel(torch.nn.Identity(), 16, torch.device("cpu"), Path("model.pt"), Path("inference.yaml"))
     refinement = RefinementSettings(num_iterations=2)
     features, squared = error_cases.error_case(model, "T", template, 5, refinement)

@@ -17,6 +17,8 @@ from monai_probreg.uncertainty.error_model import (
     fit_error_model,
     pair_term,
     predicted_variance,
+    squared_gradient,
+    squared_laplacian,
 )
 from monai_probreg.uncertainty.residual import residual_variance
 
@@ -151,17 +153,13 @@ def test_the_fit_refuses_mismatched_or_empty_cases():
 
 @pytest.mark.parametrize("shape", [(5, 2, 7), (6, 9, 4), (1, 4, 3)])
 def test_the_squared_gradient_is_torchs_gradient_squared(shape):
-    from monai_probreg.uncertainty.error_model import _squared_gradient
-
     image = torch.rand(1, 1, *shape, generator=torch.Generator().manual_seed(1))
     axes = [a for a in range(2, 5) if image.shape[a] > 1]
     expected = sum(g.square() for g in torch.gradient(image, dim=tuple(axes)))
-    assert torch.allclose(_squared_gradient(image), expected, atol=1e-6)
+    assert torch.allclose(squared_gradient(image), expected, atol=1e-6)
 
 
 def test_the_squared_laplacian_is_the_explicit_neighbour_sum():
-    from monai_probreg.uncertainty.error_model import _squared_laplacian
-
     field = torch.rand(1, 3, 5, 6, 7, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     padded = torch.nn.functional.pad(field, [1] * 6, mode="replicate")
     expected = torch.zeros(1, 1, 5, 6, 7, dtype=torch.float64)
@@ -180,5 +178,5 @@ def test_the_squared_laplacian_is_the_explicit_neighbour_sum():
                         + p[i + 1, j + 1, k + 2]
                     )
                     expected[0, 0, i, j, k] += (neighbours - 6 * centre) ** 2
-    assert torch.allclose(_squared_laplacian(field), expected)
-    assert _squared_laplacian(field).shape == (1, 1, 5, 6, 7)
+    assert torch.allclose(squared_laplacian(field), expected)
+    assert squared_laplacian(field).shape == (1, 1, 5, 6, 7)

@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -58,13 +57,10 @@ from monai_probreg.engines.registration import register_pair
 from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
 from monai_probreg.fitting.population_probe import SEED_STRIDE, VOXELS_PER_CASE, PairPosterior, case_errors
 from monai_probreg.fitting.stages import bundle_setup
-from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
+from monai_probreg.fitting.subject_probe import SUBJECT_SEED, registered_case, subject_case, subject_errors
 from monai_probreg.losses.lncc import box_sum
 from monai_probreg.metrics.calibration import interval_z, spearman
 from monai_probreg.registration.model import load_model
-from monai_probreg.registration.options import RegistrationOptions
-from monai_probreg.registration.scan import register_scan
-from monai_probreg.spatial.affine import AffineSettings
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration, fit_calibration
 from monai_probreg.uncertainty.error_model import squared_laplacian
 from monai_probreg.uncertainty.residual import residual_variance
@@ -242,26 +238,7 @@ def fit_error_models(model, captured: Captured, index, templates: list[str], ref
     targets = []
     for n, template in enumerate(templates):
         case = subject_case(template, index.images[template], FIT_SEED + n, VOXELS_PER_CASE, model.divisor)
-        options = RegistrationOptions(
-            samples=2,
-            seed=case.seed,
-            qc=False,
-            inverse=False,
-            maps=False,
-            affine=AffineSettings(seed=case.seed),
-            refinement=refinement,
-        )
-        kept = []
-        with tempfile.TemporaryDirectory() as tmp:
-            register_scan(
-                model,
-                case.fixed,
-                case.subject.image,
-                Path(tmp) / "out",
-                options=options,
-                check=lambda r: kept.append(r) or {},
-            )
-        registered, last = kept[0], captured.last
+        registered, last = registered_case(model, case, 2, refinement), captured.last
         grid = case.fixed.grid
         size = tuple(last["fixed"].shape[2:])
         for name, features_of in FEATURE_SETS.items():

@@ -32,9 +32,9 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
 import torch
 from common import write_report
+from residual_forms import mean_spearman
 
 import monai_probreg.registration.network as registration_network
 from monai_probreg.data.dataset import index_dataset
@@ -43,7 +43,6 @@ from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, case_errors
 from monai_probreg.fitting.stages import bundle_setup
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
 from monai_probreg.losses.lncc import box_sum
-from monai_probreg.metrics.calibration import spearman
 from monai_probreg.registration.model import load_model
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
@@ -90,11 +89,6 @@ def mixed(residual: torch.Tensor, mean: torch.Tensor, form) -> torch.Tensor:
     rough = roughness(mean, kind, window)
     rough = rough * (residual.mean() / rough.mean().clamp_min(torch.finfo(rough.dtype).tiny))
     return (1 - a) * residual + a * rough
-
-
-def mean_spearman(errors: Sequence[tuple[np.ndarray, ...]]) -> tuple[float, list[float]]:
-    per_case = [float(np.mean([spearman(std[k], np.abs(err[k])) for k in range(3)])) for std, err, _ in errors]
-    return float(np.mean(per_case)), per_case
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -146,9 +146,8 @@ class CalibrationProbes:
         (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
         weight = self.residual_weight_for(sids) if len(self.residual_weights) > 1 else self.residual_weights[0]
         unit = self.unit_scale(sids, weight)
-        base = Calibration(
-            unit, 0.0, None, weight, self.error_model
-        )  # the residual term's spread, as large as the network's alone
+        # the term's spread, as large as the network's alone
+        base = Calibration(unit, 0.0, None, weight, self.error_model)
         population = {s: self.raw[s] if weight == 0 else self.population_errors(s, base) for s in sids}
         population_std = pool_errors([e for s in sids for e in population[s]])[0]
         velocity_std = unit * np.concatenate(

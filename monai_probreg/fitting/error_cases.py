@@ -6,8 +6,8 @@ own (:mod:`monai_probreg.fitting.subject_probe`: a training scan turned, shifted
 bias field and noise, registered back onto it by :func:`~monai_probreg.registration.scan.register_scan`), from other
 training scans than the subject probe's and seeds far from its own (:data:`ERROR_MODEL_SEED`): the calibration is
 then fitted, and scored held out, on cases the error model never saw. Per case, at the subject probe's subsampled
-brain voxels: the features (on the model grid, read on the fixed grid) and the squared error of the answer's deformable step, mm^2 (its components summed; the frame does not change
-a length).
+brain voxels: the features (on the model grid, read on the fixed grid) and the squared error of the answer's
+deformable step, mm^2 (its components summed; the frame does not change a length).
 """
 
 from __future__ import annotations

@@ -139,7 +139,8 @@ class CalibrationRecord:
         "coverage matching: (std_scale, bias_fraction, interval_dof) of sigma^2 = std_scale^2 (sigma^2 + "
         "residual_weight r) + (bias_fraction |mean velocity|)^2 and the intervals +- t_interval_dof(level) sigma "
         "minimise the sum over levels and probes of (coverage - level)^2 of the sampled displacements (r: the "
-        "registered pair's local residual; residual_weight chosen first, by the population probe's ranking)"
+        "registered pair's error_model prediction, or its local residual without one; residual_weight chosen first, "
+        "by the population probe's ranking)"
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe

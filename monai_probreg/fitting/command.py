@@ -33,6 +33,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from monai_probreg.data.dataset import index_dataset
 from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings
+from monai_probreg.fitting.error_cases import ERROR_MODEL_TEMPLATES
 from monai_probreg.fitting.population_probe import SEED_STRIDE
 from monai_probreg.fitting.quality_fit import CommandSetup
 from monai_probreg.fitting.stages import (
@@ -71,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--deformations", type=int, default=DEFAULT_DEFORMATIONS, help="population probe: per subject")
     ap.add_argument("--samples", type=int, default=POSTERIOR_SAMPLES, help="posterior samples of the calibration")
     ap.add_argument("--subject-probe", type=int, default=SUBJECT_PROBE_TEMPLATES, help="templates of the subject probe")
+    ap.add_argument("--error-model-templates", type=int, default=ERROR_MODEL_TEMPLATES, help="training scans after the "
+                    "subject probe's that the error model is fitted on (0: none, the term reads the residual)")  # fmt: skip
     ap.add_argument("--native-dir", type=Path, default=None, help="subjects with a scan here are left out of the "
                     "whole-command cases (default: <dataset-dir>-native, when there)")  # fmt: skip
     ap.add_argument("--seed", type=int, default=0)
@@ -84,6 +87,7 @@ def _check(args: argparse.Namespace) -> None:
         ("--deformations", args.deformations, 1, SEED_STRIDE),  # more would reuse the next subject's seeds
         ("--samples", args.samples, 2, None),
         ("--subject-probe", args.subject_probe, 0, None),
+        ("--error-model-templates", args.error_model_templates, 0, None),
         ("--train-subjects", args.train_subjects, 1, None),
         ("--threads", args.threads, 1, None),
     ]
@@ -143,7 +147,9 @@ def run(args: argparse.Namespace) -> list[Path]:
     calibration = None
     if args.only != "quality":
         settings = ProbeSettings(args.deformations, args.samples, args.seed, args.subject_probe)
-        calibration = fit_calibration_stage(setup, index, subjects, bundle_root, work_dir, settings, args.resume)
+        calibration = fit_calibration_stage(
+            setup, index, subjects, bundle_root, work_dir, settings, args.resume, args.error_model_templates
+        )
         fitted = calibration.calibration
         _LOG.info(
             f"calibration: std_scale {fitted.std_scale:.3f}, bias_fraction {fitted.bias_fraction:.3f}, interval dof "

@@ -158,11 +158,13 @@ def fit_calibration_stage(
     work_dir: Path,
     settings: ProbeSettings,
     resume: bool = False,
+    error_model_templates: int = ERROR_MODEL_TEMPLATES,
 ) -> FittedCalibration:
     """The calibration of ``setup``'s network and refinement, fitted on the cases ``settings`` asks for: the
     population probe of ``subjects`` and the subject probe of the first training subjects
-    (:func:`~monai_probreg.fitting.calibration_probes.calibration_probes`); taken from the log when ``resume`` finds
-    one of the same settings."""
+    (:func:`~monai_probreg.fitting.calibration_probes.calibration_probes`), with the error model fitted first on the
+    ``error_model_templates`` training subjects after those (:mod:`~monai_probreg.fitting.error_cases`; none: the term
+    reads the residual); taken from the log when ``resume`` finds one of the same settings."""
     header = {
         "weights_sha256": file_sha256(setup.model_file),
         "refinement": setup.refinement.as_dict(),
@@ -171,7 +173,7 @@ def fit_calibration_stage(
         "training_subjects": [i for i in index.ids if i not in subjects],
         **settings._asdict(),
         "fit_iterations": FIT_ITERATIONS,
-        "error_model_templates": ERROR_MODEL_TEMPLATES,
+        "error_model_templates": error_model_templates,
         "error_model_seed": ERROR_MODEL_SEED,
     }
     log = RecordLog(work_dir / CALIBRATION_LOG, header, resume=resume)
@@ -186,7 +188,7 @@ def fit_calibration_stage(
     # the error model first, on training scans after the subject probe's: the probes' cases are then registered with
     # the term it gives (fitting.error_cases); with too few training scans the term reads the pair's residual
     training = [i for i in index.ids if i not in subjects]
-    templates = training[settings.subject_probe : settings.subject_probe + ERROR_MODEL_TEMPLATES]
+    templates = training[settings.subject_probe : settings.subject_probe + error_model_templates]
     error_model = None
     if templates:
         command_model = load_model(bundle_root, setup.model_file, calibrate=False, quality=False)

@@ -18,8 +18,10 @@ from conftest import BUNDLE_DIR, make_tiny_dataset, tiny_bundle
 from monai_probreg.engines.refinement import RefinementSettings
 from monai_probreg.fitting import command, stages
 from monai_probreg.fitting.calibration_probes import RESIDUAL_WEIGHTS, SUBJECT_PROBE_TEMPLATES
+from monai_probreg.fitting.error_cases import ERROR_MODEL_TEMPLATES
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED
 from monai_probreg.uncertainty.calibration import Calibration
+from monai_probreg.uncertainty.error_model import ERROR_FEATURES
 
 REPO = Path(__file__).resolve().parents[2]
 LPBA40 = REPO.parent / "shared" / "data" / "lpba40"
@@ -87,6 +89,10 @@ def test_one_command_writes_both_sidecars_and_a_stopped_run_resumes(setup, tmp_p
     assert calibration["interval_dof"] is None or calibration["interval_dof"] > 0
     assert calibration["fitted_on"] == ["T01", "T02", f"T03 (subject probe, seed {SUBJECT_SEED})"]
     assert calibration["num_samples"] == 2 and calibration["refinement"] == {}
+    # the error model: fitted first, on the training subject after the subject probe's (T04), for the package's features
+    assert len(calibration["error_model"]) == len(ERROR_FEATURES) + 1
+    assert calibration["error_features"] == list(ERROR_FEATURES)
+    assert logged["header"]["error_model_templates"] == ERROR_MODEL_TEMPLATES
     # the quality model: fitted on the training subject, its entropy feature under the calibration just fitted
     assert quality["fitted_on"] == ["T03"]
     assert quality["entropy_calibration"] == {k: calibration[k] for k in ("std_scale", "bias_fraction")}
@@ -120,6 +126,10 @@ BAD = {  # name: (arguments replacing the good ones, the message expected)
     "beyond the seed stride": (["--deformations", "101"], "--deformations: expected 1 to 100, got 101"),
     "one sample": (["--samples", "1"], "--samples: expected >= 2, got 1"),
     "negative subject probe": (["--subject-probe", "-1"], "--subject-probe: expected >= 0, got -1"),
+    "negative error-model templates": (
+        ["--error-model-templates", "-1"],
+        "--error-model-templates: expected >= 0, got -1",
+    ),
     "no training subject": (["--train-subjects", "0"], "--train-subjects: expected >= 1, got 0"),
     "no thread": (["--threads", "0"], "--threads: expected >= 1, got 0"),
     "missing dataset": (["--dataset-dir", "{tmp}/nowhere"], "--dataset-dir '{tmp}/nowhere': expected a dataset folder"),
@@ -230,3 +240,12 @@ def test_the_defaults_are_the_settings_of_the_shipped_sidecars():
     # RefinementSettings.differences); the two sidecars may be fitted at different times, so one may record more
     assert shipped.differences(calibration["refinement"]) == {}
     assert shipped.differences(quality["refinement"]) == {}
+
+
+def test_no_error_model_templates_fits_the_residual_term(setup, tmp_path, single_thread):
+    """``--error-model-templates 0``: no error model is fitted, the sidecar's term reads the pair's residual."""
+    dataset, bundle = setup
+    out = tmp_path / "sidecars"
+    assert command.main(arguments(dataset, bundle, out, "--only", "calibration", "--error-model-templates", "0")) == 0
+    calibration = json.loads((out / "model.calibration.json").read_text())
+    assert calibration["error_model"] is None and calibration["error_features"] is None

@@ -73,7 +73,7 @@ def _box_mean(x: Tensor, window: int) -> Tensor:
 
 def squared_laplacian(field: Tensor) -> Tensor:
     """(B, C, *S) -> (B, 1, *S): the squared 2D-neighbour Laplacian (the border replicated), summed over components.
-    One component at a time, in place: a fifth of the time of the whole field's slices on a CPU."""
+    One component at a time, in place (faster on a CPU than the whole field's slices; docs/uncertainty.md)."""
     dims = field.ndim - 2
     total = None
     for channel in range(field.shape[1]):
@@ -92,7 +92,7 @@ def squared_laplacian(field: Tensor) -> Tensor:
 
 def squared_gradient(image: Tensor) -> Tensor:
     """(B, 1, *S) -> (B, 1, *S): the squared length of the image's gradient, central differences inside and one-sided
-    ones at the borders (``torch.gradient``'s values, one axis at a time in place: a third of its time on a CPU)."""
+    ones at the borders (``torch.gradient``'s values, one axis at a time in place, faster on a CPU; docs/uncertainty.md)."""
     total = torch.zeros_like(image)
     for axis in range(2, image.ndim):
         n = image.shape[axis]
@@ -143,7 +143,7 @@ def _feature_maps(
         yield logged(_box_mean(bending, window))
     del bending
     yield logged(upsampled(log_var.float().exp().mean(1, keepdim=True)))
-    # lengths as the root of summed squares: torch's norm over the channel axis is many times slower on a CPU
+    # lengths as the root of summed squares: torch's norm over the channel axis is slower on a CPU
     yield logged(displacement.square().sum(1, keepdim=True).sqrt())
     gradient = squared_gradient(_box_mean(fixed, GRADIENT_SMOOTHING)).sqrt_()
     yield logged(_box_mean(gradient, GRADIENT_WINDOW))

@@ -1,8 +1,10 @@
-"""How long the bundle's sampled uncertainty maps take for one pair, this tree side by side with another source.
+"""How long the bundle's uncertainty maps take for one pair, this tree side by side with another source.
 
 The bundle's writer (``engines/handlers.py``) makes, per pair, the map the calibration's term reads (the error model's
-prediction since bundle 0.33.0, the registered pair's residual before: ``uncertainty.error_model.pair_term``) and :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` with K posterior samples: the
-displacement std, and the label entropy when the moving labels are given. On each LPBA40 validation pair
+prediction since bundle 0.33.0, the registered pair's residual before: ``uncertainty.error_model.pair_term``) and
+:func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` with K posterior samples: the displacement std (first
+order since bundle 0.34.0: no sample drawn; the std of the K samples before), and the label entropy of the K samples
+when the moving labels are given. On each LPBA40 validation pair
 (``refinement_speed.PAIRS``, the aligned 160 x 192 x 160 grid; the network's registration refined as the bundle
 refines it, untimed) both are timed: "std" (``displacement_std`` alone) and "std + label entropy", after one untimed
 warm-up, as the writer calls them with the weights' calibration, freed memory kept for reuse as the bundle's
@@ -96,8 +98,11 @@ def time_maps(dataset: Path, samples: int, threads: int, memory_reuse: bool = Tr
                     calibration.bias_fraction,
                     residual=residual,
                     residual_weight=calibration.residual_weight,
+                    **gain,
                 )
 
+        # the samples' gain since bundle 0.34.0 (the std map first order); an older checkout's maps take none
+        gain = {"sample_gain": calibration.sample_gain} if hasattr(calibration, "sample_gain") else {}
         maps(moving_label)  # warm-up
         times[pair] = {}
         for kind, label in zip(KINDS, (None, moving_label)):

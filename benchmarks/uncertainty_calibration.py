@@ -10,8 +10,9 @@ cases (:mod:`monai_probreg.fitting.calibration_probes`) and by the same fit.
    noise of the RMS of the model's own displacement for S -> atlas: out of the training distribution, the mean
    registration recovers only a fraction of it, ``recovered_fraction`` in the JSON: the pessimistic bound). The
    reference R is the atlas by default (``--reference atlas``): the model is trained scan-to-atlas, so the atlas is
-   the only fixed image it knows; ``--reference subject`` takes R = S (out of the training distribution). K posterior
-   samples give a mean and a per-component std, compared with the truth exp(-v) inside the brain: coverage of the
+   the only fixed image it knows; ``--reference subject`` takes R = S (out of the training distribution). The answer (the
+   posterior mean's displacement) and its first-order std per component (:mod:`monai_probreg.uncertainty.spread`)
+   are compared with the truth exp(-v) inside the brain: coverage of the
    nominal 68% / 95% intervals, Spearman(std, |error|) per component and of the vectors (sqrt(sum_c std_c^2) against
    the length of the error vector), each with its ceiling: the Spearman errors drawn from N(0, std^2) themselves
    would reach (|error| of one Gaussian component varies so much at a given std that even a perfect std ranks it
@@ -23,7 +24,7 @@ cases (:mod:`monai_probreg.fitting.calibration_probes`) and by the same fit.
 3. Calibration held out: the coverage-matching fit of (std_scale, bias_fraction, interval_dof)
    (:meth:`~monai_probreg.fitting.calibration_probes.CalibrationProbes.fit`, ``--fit-iterations`` refits) is
    cross-fitted: the subjects are split in ``--folds`` folds; each fold is scored with the calibration fitted on the
-   others, with fresh samples drawn from the calibrated posterior. Raw (scale 1) rows use the same subjects.
+   others, its std maps mapped at that calibration. Raw (scale 1) rows use the same subjects.
 4. The subject probe (``--subject-probe N``, :mod:`monai_probreg.fitting.subject_probe`): N training subjects' scans
    are each the template of one synthetic subject made as ``monai-probreg demo`` makes its own, registered back by
    the command's path (affine stage, network, refinement) and scored in mm in the posterior's frame. Fitted together
@@ -38,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 import time
 from pathlib import Path
@@ -66,7 +68,6 @@ from monai_probreg.fitting.population_probe import (
     VOXELS_PER_CASE,
     pool_errors,
     posterior_for,
-    sample_displacements,
 )
 from monai_probreg.metrics.calibration import (
     auroc,
@@ -83,6 +84,7 @@ from monai_probreg.uncertainty.calibration import (
 )
 from monai_probreg.uncertainty.entropy import velocity_entropy
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
+from monai_probreg.uncertainty.spread import displacement_variance
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
 from monai_probreg.weights.loading import load_weights
@@ -173,9 +175,10 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed, refin
         atlas_label = pair["fixed_label"].to(torch.int16)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
         generator = torch.Generator().manual_seed(seed)
-        reader = PartialVolumeLabels(atlas_label)  # the bundle's label entropy (posterior_maps)
+        reader = PartialVolumeLabels(atlas_label)  # the bundle's label entropy (posterior_maps), its samples widened
+        sample_log_var = log_var + 2.0 * math.log(calibration.sample_gain)
         for start in range(0, num_samples, 4):
-            z = sample_velocity(posterior.mean, log_var, min(4, num_samples - start), generator=generator)
+            z = sample_velocity(posterior.mean, sample_log_var, min(4, num_samples - start), generator=generator)
             for inverse in network.velocity_to_displacement(-z.flatten(0, 1), size):
                 reader.add(inverse[None])
         entropy = reader.entropy()
@@ -459,9 +462,7 @@ def main(argv=None) -> int:
     )
     sid, pair, labels = figure_case
     size = tuple(pair["fixed"].shape[2:])
-    variance = sample_displacements(
-        network, labels["mean"], labels["log_var"], size, args.samples, torch.Generator().manual_seed(args.seed)
-    )[1]
+    variance = displacement_variance(labels["log_var"], size)
     figure4(
         pair,
         labels,

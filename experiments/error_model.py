@@ -34,7 +34,6 @@ image grid and is fitted and scored by the refit command and ``benchmarks/uncert
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import time
@@ -48,15 +47,15 @@ import uncertainty_calibration
 from common import write_report
 from monai.data import Dataset
 from scipy import ndimage
+from study_setup import study_parser, study_start
 from uncertainty_calibration import label_case
 
 import monai_probreg.fitting.population_probe as population_probe
 import monai_probreg.registration.network as registration_network
-from monai_probreg.data.dataset import index_dataset, labelled_pairs
+from monai_probreg.data.dataset import labelled_pairs
 from monai_probreg.engines.registration import register_pair
 from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
-from monai_probreg.fitting.population_probe import SEED_STRIDE, VOXELS_PER_CASE, PairPosterior, case_errors
-from monai_probreg.fitting.stages import bundle_setup
+from monai_probreg.fitting.population_probe import SEED_STRIDE, VOXELS_PER_CASE, PairPosterior, sampled_case_errors
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, registered_case, subject_case, subject_errors
 from monai_probreg.losses.lncc import box_sum
 from monai_probreg.metrics.calibration import interval_z, spearman
@@ -66,7 +65,6 @@ from monai_probreg.uncertainty.error_model import squared_laplacian
 from monai_probreg.uncertainty.residual import residual_variance
 from monai_probreg.utils.tensors import plain_tensor
 
-REPO = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
 FEATURES = (
     "log residual",
@@ -313,20 +311,13 @@ def cross_fitted_coverage(population: list, subject: list) -> dict[str, dict[str
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--dataset-dir", type=Path, default=REPO.parent / "shared" / "data" / "lpba40")
-    ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
+    ap = study_parser(__doc__, RESULTS)
     ap.add_argument("--fit-templates", type=int, default=8, help="training templates the error model is fitted on")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
-    if not (args.dataset_dir / "images").is_dir():
-        print(f"skipped: no dataset at {args.dataset_dir}")
+    started = study_start(args)
+    if started is None:
         return 0
-    torch.set_num_threads(args.threads)
-    start = time.perf_counter()
-    setup = bundle_setup(args.bundle_root, args.dataset_dir)
-    index = index_dataset(args.dataset_dir)
+    setup, index, start = started
     model = dataclasses.replace(
         load_model(args.bundle_root, setup.model_file, calibrate=True, quality=False), quality=None
     )
@@ -377,7 +368,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     displacement = setup.network.velocity_to_displacement(case["mean"], case["size"])
                 residual = scaled(spread.variance(warped, fixed, case["mean"], case["log_var"], displacement), residual)
             case["residual"] = residual
-            std, error, norm = case_errors(setup.network, case, calibration, POSTERIOR_SAMPLES)
+            std, error, norm = sampled_case_errors(setup.network, case, calibration, POSTERIOR_SAMPLES)
             triples.append((std, error, norm))
             posterior = posterior_std(calibration, case["mean"], case["log_var"], residual, case["size"])
             sampled.append(ranking(std, error))

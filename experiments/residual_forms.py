@@ -30,7 +30,6 @@ Prints a table and writes ``experiments/results/residual_forms.json``.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from collections.abc import Sequence
@@ -39,20 +38,18 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import write_report
+from study_setup import study_parser, study_start
 
 import monai_probreg.fitting.population_probe as population_probe
 import monai_probreg.registration.network as registration_network
-from monai_probreg.data.dataset import index_dataset
 from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
-from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, case_errors
-from monai_probreg.fitting.stages import bundle_setup
+from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, sampled_case_errors
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
 from monai_probreg.metrics.calibration import spearman
 from monai_probreg.registration.model import load_model
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration
 from monai_probreg.uncertainty.residual import PLAIN_RESIDUAL_FORM, residual_variance
 
-REPO = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
 # bundle 0.28.0's calibration (fitted for the plain residual): every form is sampled at it
 CALIBRATION_0_28 = Calibration(0.045070806777433255, 0.16473948165107596, 2.5, 1e4)
@@ -83,20 +80,13 @@ def mean_spearman(errors: Sequence[tuple[np.ndarray, ...]]) -> tuple[float, list
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--dataset-dir", type=Path, default=REPO.parent / "shared" / "data" / "lpba40")
-    ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
+    ap = study_parser(__doc__, RESULTS)
     ap.add_argument("--forms", nargs="+", default=list(FORMS), choices=list(FORMS))
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
-    if not (args.dataset_dir / "images").is_dir():
-        print(f"skipped: no dataset at {args.dataset_dir}")
+    started = study_start(args)
+    if started is None:
         return 0
-    torch.set_num_threads(args.threads)
-    start = time.perf_counter()
-    setup = bundle_setup(args.bundle_root, args.dataset_dir)
-    index = index_dataset(args.dataset_dir)
+    setup, index, start = started
     # the population probe's cases, each pair's warped and fixed images kept to score every form on the same cases
     pairs = []
 
@@ -128,7 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for case, (warped, fixed, shape) in zip(cases, pairs):
             case["residual"] = residual(warped, fixed, shape)
         population, population_cases = mean_spearman(
-            [case_errors(setup.network, c, CALIBRATION_0_28, POSTERIOR_SAMPLES) for c in cases]
+            [sampled_case_errors(setup.network, c, CALIBRATION_0_28, POSTERIOR_SAMPLES) for c in cases]
         )
         registration_network.residual_variance = residual  # the command's path (the subject probe)
         subject, subject_cases = mean_spearman(

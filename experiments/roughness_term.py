@@ -26,7 +26,6 @@ Prints a table and writes ``experiments/results/roughness_term.json``.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from collections.abc import Sequence
@@ -35,18 +34,16 @@ from pathlib import Path
 import torch
 from common import write_report
 from residual_forms import mean_spearman
+from study_setup import study_parser, study_start
 
 import monai_probreg.registration.network as registration_network
-from monai_probreg.data.dataset import index_dataset
 from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
-from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, case_errors
-from monai_probreg.fitting.stages import bundle_setup
+from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, sampled_case_errors
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
 from monai_probreg.losses.lncc import box_sum
 from monai_probreg.registration.model import load_model
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
-REPO = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
 # name -> (roughness, box window on the velocity grid, mixing fraction a)
 FORMS = {
@@ -92,20 +89,13 @@ def mixed(residual: torch.Tensor, mean: torch.Tensor, form) -> torch.Tensor:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--dataset-dir", type=Path, default=REPO.parent / "shared" / "data" / "lpba40")
-    ap.add_argument("--bundle-root", type=Path, default=REPO / "bundle")
+    ap = study_parser(__doc__, RESULTS)
     ap.add_argument("--forms", nargs="+", default=list(FORMS), choices=list(FORMS))
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
-    if not (args.dataset_dir / "images").is_dir():
-        print(f"skipped: no dataset at {args.dataset_dir}")
+    started = study_start(args)
+    if started is None:
         return 0
-    torch.set_num_threads(args.threads)
-    start = time.perf_counter()
-    setup = bundle_setup(args.bundle_root, args.dataset_dir)
-    index = index_dataset(args.dataset_dir)
+    setup, index, start = started
     probes = calibration_probes(
         setup.network,
         setup.evaluate.get_parsed_content("preprocessing"),
@@ -132,7 +122,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for case, residual in zip(cases, shipped):
             case["residual"] = mixed(residual, case["mean"], form)
         population, population_cases = mean_spearman(
-            [case_errors(setup.network, c, calibration, POSTERIOR_SAMPLES) for c in cases]
+            [sampled_case_errors(setup.network, c, calibration, POSTERIOR_SAMPLES) for c in cases]
         )
 
         def maps(network, mean, log_var, *a, residual=None, form=form, **k):  # the command's path (subject probe)

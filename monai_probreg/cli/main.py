@@ -85,14 +85,15 @@ def _add_common(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
         type=int,
         default=0,
         metavar="K",
-        help="posterior samples for the displacement std map (0 = none, default; else >= 2)",
+        help="write the displacement std map: K >= 2 (0 = none, default); the map is first order, no sample is "
+        "drawn, so every K >= 2 gives the same map",
     )
     reg.add_argument(
         "--seed",
         type=int,
         default=0,
-        help="random seed of the affine stage's metric sampling and of the "
-        "posterior samples (default 0); the same inputs, options and seed give the same outputs",
+        help="random seed of the affine stage's metric sampling (default 0); the same inputs, options and seed "
+        "give the same outputs",
     )
     reg.add_argument(
         "--raw-uncertainty",

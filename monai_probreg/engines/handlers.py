@@ -32,6 +32,7 @@ from monai_probreg.engines.registration import timed_register_pair
 from monai_probreg.engines.score_files import summary_table, write_scores
 from monai_probreg.metrics.scores import PairScores, score_pair
 from monai_probreg.networks.probreg_net import RegistrationOutput
+from monai_probreg.uncertainty.calibration import check_calibration
 from monai_probreg.uncertainty.error_model import check_error_model, pair_term
 from monai_probreg.uncertainty.posterior_maps import posterior_maps
 from monai_probreg.utils.files import write_text
@@ -99,9 +100,10 @@ class RegistrationWriter(_PerSubjectHandler):
     :data:`~monai_probreg.engines.outputs.OUTPUT_NAMES`; the label maps only when the batch has labels).
 
     With ``network`` given, the uncertainty maps are :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` of the
-    posterior calibrated by ``std_scale``, ``bias_fraction``, ``residual_weight`` and ``error_model`` (1, 0, 0 and None = raw;
-    :class:`~monai_probreg.uncertainty.calibration.Calibration`'s fields), from ``num_samples`` seeded samples
-    (needed, >= 2, for :data:`~monai_probreg.engines.outputs.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's.
+    posterior calibrated by ``std_scale``, ``bias_fraction``, ``residual_weight``, ``error_model`` and ``sample_gain``
+    (1, 0, 0, None and 1 = raw; :class:`~monai_probreg.uncertainty.calibration.Calibration`'s fields), the label
+    entropy from ``num_samples`` seeded samples (``num_samples`` >= 2 is needed for
+    :data:`~monai_probreg.engines.outputs.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's.
     With ``quality``, each subject's quality estimate is written as ``<id>/quality.json`` (and a probable failure
     logged as a warning)."""
 
@@ -117,6 +119,7 @@ class RegistrationWriter(_PerSubjectHandler):
         quality: QualityCheck | None = None,
         residual_weight: float = 0.0,
         error_model: Sequence[float] | None = None,
+        sample_gain: float = 1.0,
     ) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
@@ -130,6 +133,8 @@ class RegistrationWriter(_PerSubjectHandler):
         self.output_dir, self.names = Path(output_dir), tuple(names)
         self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
         self.bias_fraction, self.residual_weight = float(bias_fraction), float(residual_weight)
+        check_calibration(self.std_scale, self.bias_fraction, None, self.residual_weight, float(sample_gain))
+        self.sample_gain = float(sample_gain)
         check_error_model(error_model)
         self.error_model = None if error_model is None else tuple(float(c) for c in error_model)
         self.quality = quality
@@ -166,6 +171,7 @@ class RegistrationWriter(_PerSubjectHandler):
                 self.bias_fraction,
                 residual=residual,
                 residual_weight=self.residual_weight,
+                sample_gain=self.sample_gain,
             )
         write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
         record = self.quality(sid, pair, targets) if self.quality is not None else None

@@ -59,12 +59,13 @@ that grid's affine, so it overlays the atlas in world coordinates.
   entropy.nii.gz       entropy (nats) of the calibrated velocity posterior q(z) (Dalca et al. 2018, Eq. 8),
                        resized to this grid; relative: compare regions, not absolute values
   warped_label.nii.gz  moving labels warped nearest neighbour (written when labels exist)
-  displacement_std.nii.gz  sqrt(sum of the 3 variances) of K displacements drawn from the calibrated posterior,
-                       in voxels: how far, roughly, each voxel's correspondence may be off; a component's
+  displacement_std.nii.gz  sqrt(sum of the 3 variances) of the displacement under the calibrated posterior, first
+                       order (its velocity std resized onto this grid; no sampling), in voxels: how far,
+                       roughly, each voxel's correspondence may be off; a component's
                        calibrated p-interval is +- t(p) times its own std (about this map / sqrt(3)), t the
                        Student-t quantile with the calibration sidecar's interval_dof (calibration and its limits:
                        the bundle docs, "Uncertainty")
-  label_entropy.nii.gz entropy (nats) of the moving labels read by the K samples with partial volume (each
+  label_entropy.nii.gz entropy (nats) of the moving labels read by K posterior samples with partial volume (each
                        sample weighs the labels around its point as linear interpolation does): 0 = every sample
                        reads one label wholly; high values flag voxels whose warped label is likely wrong (written
                        when labels exist)
@@ -119,7 +120,11 @@ def write_outputs(
             "velocity entropy" + (" (raw)" if maps is None else ""),
             None,
         ),
-        "displacement_std": (lambda: maps.displacement_std, "displacement std over posterior samples, voxels", None),
+        "displacement_std": (
+            lambda: maps.displacement_std,
+            "first-order displacement std of the posterior, voxels",
+            None,
+        ),
         "label_entropy": (
             lambda: maps.label_entropy,
             "entropy of labels read by posterior samples (partial volume)",

@@ -2,7 +2,8 @@
 
 :func:`calibration_probes` registers the cases of both probes (:mod:`~monai_probreg.fitting.population_probe` on the
 bundle's validation subjects, :mod:`~monai_probreg.fitting.subject_probe` on the first training subjects' scans) and
-keeps each case's posterior, so that :meth:`CalibrationProbes.errors_at` can sample them again at any calibration.
+keeps each case's posterior, so that :meth:`CalibrationProbes.errors_at` can map its first-order std again at any
+calibration.
 :meth:`CalibrationProbes.fit` chooses the residual term's weight (:meth:`CalibrationProbes.residual_weight_for`) and is
 the coverage-matching fit of (std_scale, bias_fraction, interval_dof) at that weight on any subset of the cases, each probe's coverage matched on its own (``fit_calibration``'s ``groups``): on all of them for the
 sidecar (``python -m monai_probreg.fitting``), on the other folds for the held-out numbers of
@@ -34,6 +35,7 @@ from monai_probreg.fitting.population_probe import (
     displacement_case,
     pool_errors,
     population_velocities,
+    sampled_case_variance,
 )
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, SubjectCase, subject_case, subject_errors
 from monai_probreg.metrics.calibration import interval_coverage, spearman
@@ -44,6 +46,8 @@ from monai_probreg.utils.tensors import plain_tensor
 __all__ = [
     "FIT_ITERATIONS",
     "FIT_TOLERANCE",
+    "GAIN_ITERATIONS",
+    "GAIN_TOLERANCE",
     "RESIDUAL_WEIGHTS",
     "SUBJECT_PROBE_TEMPLATES",
     "POPULATION",
@@ -59,16 +63,19 @@ FIT_ITERATIONS = 3  # at most this many re-samplings at the fitted pair and refi
 # the two scalars trade along a ridge of near-equal coverage, and more refits drift on to a
 # smaller scale and a larger bias fraction without covering better)
 FIT_TOLERANCE = 0.02  # ... stopping once a refit asks for less than this: |scale - 1| and the bias fraction
+GAIN_ITERATIONS = 6  # at most this many measurements of the samples' damping (sample_gain_for) ...
+GAIN_TOLERANCE = 0.01  # ... stopping once the samples' mean variance is within this fraction of the map's
 SUBJECT_PROBE_TEMPLATES = 6  # training subjects whose synthetic subjects make the subject probe (0: none)
 POPULATION, SUBJECTS = 0, 1  # the fit's groups: each probe's coverage is matched on its own (fit_calibration)
 RAW = Calibration(1.0, 0.0)
 # the residual term's weights the fit tries (Calibration.residual_weight; velocity-grid voxels^2 per squared intensity):
-# the one whose sampled std ranks the population probe's errors best (Spearman per component) is kept
+# the one whose std map ranks the population probe's errors best (Spearman per component) is kept
 RESIDUAL_WEIGHTS: tuple[float, ...] = (0.0, 10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0, 10000.0)
 
 
 class ProbeSettings(NamedTuple):
-    """The probes' cases: ``deformations`` population-probe cases per subject, ``samples`` posterior samples, the
+    """The probes' cases: ``deformations`` population-probe cases per subject, ``samples`` posterior samples (the
+    fit's measure of the samples' damping, ``sample_gain``), the
     ``seed`` of the population probe, ``subject_probe`` templates, the population probe's model (``probe``:
     "population", or "noise": smoothed noise of the RMS of the subject's own registration) and the image it deforms
     (``reference``: "atlas", or "subject")."""
@@ -85,7 +92,7 @@ class ProbeSettings(NamedTuple):
 class CalibrationProbes:
     """The registered cases of both probes. ``cases``: each validation subject's population-probe cases (posterior and
     truth); ``items``: its preprocessed pair (moving = the subject, fixed = the atlas); ``subject_cases``: each
-    template's synthetic subject; ``raw`` / ``subject_raw``: their errors sampled from the raw posterior."""
+    template's synthetic subject; ``raw`` / ``subject_raw``: their errors and the raw posterior's std map."""
 
     network: nn.Module
     samples: int
@@ -101,8 +108,8 @@ class CalibrationProbes:
     error_model: tuple[float, ...] | None = None
 
     def population_errors(self, sid: str, calibration: Calibration) -> list[tuple[np.ndarray, ...]]:
-        """(std, error, norm) of each population case of ``sid``, sampled at ``calibration``."""
-        return [case_errors(self.network, c, calibration, self.samples) for c in self.cases[sid]]
+        """(std, error, norm) of each population case of ``sid``, the std map at ``calibration``."""
+        return [case_errors(c, calibration) for c in self.cases[sid]]
 
     def subject_errors(self, tid: str, calibration: Calibration) -> tuple[np.ndarray, ...]:
         """(std, error, norm) of template ``tid``'s synthetic subject, registered by the command's path."""
@@ -113,21 +120,13 @@ class CalibrationProbes:
         sids: list[str],
         tids: list[str],
         calibration: Calibration | None,
-        population: dict[str, list[tuple[np.ndarray, ...]]] | None = None,
     ) -> tuple[np.ndarray, ...]:
         """(std, error, norm, group) pooled over the population cases of ``sids`` and the subject cases of
-        ``tids``, sampled at ``calibration`` (None: the raw samples already drawn); ``population``: the population
-        cases' errors at that calibration when already sampled."""
+        ``tids``, the std maps at ``calibration`` (None: the raw posterior's, already mapped)."""
         parts = [
             (*e, np.full(e[0].shape, POPULATION))
             for s in sids
-            for e in (
-                population[s]
-                if population is not None
-                else self.raw[s]
-                if calibration is None
-                else self.population_errors(s, calibration)
-            )
+            for e in (self.raw[s] if calibration is None else self.population_errors(s, calibration))
         ]
         parts += [
             (*e, np.full(e[0].shape, SUBJECTS))
@@ -138,27 +137,18 @@ class CalibrationProbes:
     def fit(self, sids: list[str], tids: list[str], iterations: int = FIT_ITERATIONS) -> Calibration:
         """The residual term's weight (:meth:`residual_weight_for`), then coverage-matching (scale, bias fraction,
         dof) on the population cases of ``sids`` and the subject-probe cases of ``tids``, each probe matched on its
-        own: fitted on the samples of the unscaled posterior with that weight, then re-sampled at the current pair and
-        refitted, at most ``iterations`` times. Independent velocity noise reaches the displacement damped by
-        a factor kappa (interpolation and integration average neighbours; kappa = sampled raw displacement variance /
-        raw velocity variance on the image grid), so a refit (c, a) of samples drawn at (s, b) means a variance of
-        about c^2 kappa (s^2 sigma^2 + b^2 |mu|^2) + a^2 |u|^2 (u ~ mu once integrated): the new pair is
-        (c s, sqrt(c^2 b^2 + a^2 / kappa))."""
+        own: fitted on the std maps of the unscaled posterior with that weight, then mapped again at the current pair
+        and refitted, at most ``iterations`` times (the map is first order: a refit (c, a) of maps at (s, b) means a
+        variance of about c^2 (s^2 sigma^2 + b^2 |mu|^2) + a^2 |u|^2, u ~ mu once integrated, so the new pair is
+        (c s, sqrt(c^2 b^2 + a^2)); the bias term is where the map is not exactly linear). Last, the samples' gain
+        (:meth:`sample_gain_for`)."""
         weight = self.residual_weight_for(sids) if len(self.residual_weights) > 1 else self.residual_weights[0]
         unit = self.unit_scale(sids, weight)
         # the term's spread, as large as the network's alone
         base = Calibration(unit, 0.0, None, weight, self.error_model)
-        population = {s: self.raw[s] if weight == 0 else self.population_errors(s, base) for s in sids}
-        population_std = pool_errors([e for s in sids for e in population[s]])[0]
-        velocity_std = unit * np.concatenate(
-            [case_velocity_std(c, weight).numpy() for s in sids for c in self.cases[s]], axis=1
-        )
-        kappa = float(np.mean(population_std**2) / np.mean(velocity_std**2))
-        std, error, norm, groups = self.errors_at(sids, tids, None if weight == 0 else base, population)
+        std, error, norm, groups = self.errors_at(sids, tids, None if weight == 0 else base)
         first = fit_calibration(std, error, norm, groups=groups)
-        current = Calibration(
-            first.std_scale * unit, first.bias_fraction / math.sqrt(kappa), first.interval_dof, weight, self.error_model
-        )
+        current = Calibration(first.std_scale * unit, first.bias_fraction, first.interval_dof, weight, self.error_model)
         for iteration in tqdm(range(1, iterations + 1), desc="calibration refits", unit="refit", disable=None):
             std, error, norm, groups = self.errors_at(sids, tids, current)
             refit = fit_calibration(std, error, norm, groups=groups)
@@ -167,26 +157,46 @@ class CalibrationProbes:
                 and refit.bias_fraction < FIT_TOLERANCE
                 and refit.interval_dof == current.interval_dof
             ):
-                break  # the samples at the current pair already cover as nominal as the fit can make them
-            current = Calibration(  # the dof is the refit's: it reads the tails of the samples drawn at current
+                break  # the maps at the current pair already cover as nominal as the fit can make them
+            current = Calibration(  # the dof is the refit's: it reads the tails of the maps at current
                 refit.std_scale * current.std_scale,
-                math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction / math.sqrt(kappa)),
+                math.hypot(refit.std_scale * current.bias_fraction, refit.bias_fraction),
                 refit.interval_dof,
                 weight,
                 self.error_model,
             )
+        current = current._replace(sample_gain=self.sample_gain_for(sids, current))
         _LOG.info(
-            f"  fit on {', '.join(sids + [t + ' (subject probe)' for t in tids])}: kappa {kappa:.3f}, "
+            f"  fit on {', '.join(sids + [t + ' (subject probe)' for t in tids])}: "
             f"refit {iteration} ({refit.std_scale:.3f}, "
-            f"{refit.bias_fraction:.3f}, dof {refit.interval_dof}) -> std_scale {current.std_scale:.3f}, bias_fraction "
-            f"{current.bias_fraction:.3f}, interval dof {current.interval_dof}, residual weight {weight:g}"
+            f"{refit.bias_fraction:.3f}, dof {refit.interval_dof}) -> std_scale {current.std_scale:.4f}, bias_fraction "
+            f"{current.bias_fraction:.3f}, interval dof {current.interval_dof}, residual weight {weight:g}, sample gain "
+            f"{current.sample_gain:.3f}"
         )
         return current
 
+    def sample_gain_for(self, sids: list[str], calibration: Calibration) -> float:
+        """The gain whose samples spread as far as the std map says, on average over the population cases of
+        ``sids`` at ``calibration``: independent velocity noise reaches the displacement damped (interpolation and
+        integration average neighbours) by kappa, the mean variance of :attr:`samples` sampled displacements over the
+        map's; the gain starts at 1 and is multiplied by 1 / sqrt(kappa) measured at it until kappa is within
+        :data:`GAIN_TOLERANCE` of 1, at most :data:`GAIN_ITERATIONS` times (the integration is not linear in the noise:
+        the damping grows with the spread, so one pass leaves the samples short)."""
+        cases = [c for s in sids for c in self.cases[s]]
+        mapped = np.mean([np.square(case_errors(c, calibration)[0]).mean() for c in cases])
+        gain = 1.0
+        for _ in range(GAIN_ITERATIONS):
+            at = calibration._replace(sample_gain=gain)
+            kappa = np.mean([sampled_case_variance(self.network, c, at, self.samples).mean() for c in cases]) / mapped
+            if abs(kappa - 1.0) < GAIN_TOLERANCE:
+                break
+            gain *= float(1.0 / math.sqrt(kappa))
+        return gain
+
     def unit_scale(self, sids: list[str], weight: float) -> float:
         """The scale that gives the posterior with the residual term of ``weight`` the mean velocity variance of the
-        network's alone over the population cases' voxels of ``sids`` (1 for weight 0): samples of either stay in the
-        regime the network's posterior is sampled in (scaling and squaring is not linear in a large velocity)."""
+        network's alone over the population cases' voxels of ``sids`` (1 for weight 0): the fit starts from a spread
+        of the network's own size whatever the weight."""
         if weight == 0:
             return 1.0
         cases = [c for s in sids for c in self.cases[s]]
@@ -196,7 +206,7 @@ class CalibrationProbes:
 
     def residual_weight_for(self, sids: list[str]) -> float:
         """The weight of :attr:`residual_weights` whose posterior ranks the errors of the population cases of ``sids``
-        best: the mean over cases and components of Spearman(sampled std, |error|), each weight sampled at its
+        best: the mean over cases and components of Spearman(std map, |error|), each weight mapped at its
         :meth:`unit_scale`. The scale hardly changes a ranking, so it is chosen before the coverage fit; the subject
         probe, which needs the whole command per weight, is left out of the choice (its coverage is matched as
         before)."""
@@ -270,7 +280,7 @@ def calibration_probes(
             f"true RMS {', '.join(f'{r:.2f}' for r in truth_rms)} voxels (the model's own for {sid} -> atlas: "
             f"{rms:.2f})"
         )
-    raw = {sid: [case_errors(network, c, RAW, samples) for c in cs] for sid, cs in cases.items()}
+    raw = {sid: [case_errors(c, RAW) for c in cs] for sid, cs in cases.items()}
 
     templates = [i for i in index.ids if i not in subjects][:subject_probe]
     command_model = load_model(bundle_root, model_file, calibrate=False, quality=False) if templates else None

@@ -14,9 +14,10 @@ are drawn by one of two models:
 
 With our own integration (:data:`TRUTH_STEPS` squarings at full resolution): moving = R warped by exp(v), fixed = R;
 the true displacement of moving onto fixed is exp(-v). The registration is the one users get (:func:`posterior_for`:
-the network's mean, refined when the refinement is on; the network's variance and the pair's residual); :func:`case_errors` samples it at a
-calibration and returns the arrays :func:`~monai_probreg.uncertainty.calibration.fit_calibration` takes, on
-:data:`VOXELS_PER_CASE` subsampled brain voxels, in voxels.
+the network's mean, refined when the refinement is on; the network's variance and the pair's residual); :func:`case_errors` gives its
+first-order std map (:mod:`~monai_probreg.uncertainty.spread`) at a calibration and the answer's error, the arrays
+:func:`~monai_probreg.uncertainty.calibration.fit_calibration` takes, on :data:`VOXELS_PER_CASE` subsampled brain
+voxels, in voxels; :func:`sampled_case_variance` samples it (the fit's measure of the samples' damping).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from monai_probreg.engines.registration import register_pair
 from monai_probreg.uncertainty.calibration import Calibration, calibrate_log_var
 from monai_probreg.uncertainty.entropy import sampled_displacement_moments
 from monai_probreg.uncertainty.error_model import pair_term
+from monai_probreg.uncertainty.spread import displacement_variance
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.tensors import plain_tensor
 
@@ -52,6 +54,8 @@ __all__ = [
     "case_velocity_std",
     "displacement_case",
     "case_errors",
+    "sampled_case_variance",
+    "sampled_case_errors",
     "pool_errors",
 ]
 
@@ -175,6 +179,7 @@ def displacement_case(
         "voxels": voxels,
         "size": tuple(fixed.shape[2:]),
         "seed": seed,
+        "answer": registration[0].flatten(1)[:, voxels],
         "displacement_norm": registration[0].flatten(1)[:, voxels].norm(dim=0),
         "velocity_std": velocity_std[0].flatten(1)[:, voxels],
         "residual_std": residual_std[0].flatten(1)[:, voxels],
@@ -187,10 +192,8 @@ def case_velocity_std(case: dict[str, Any], residual_weight: float) -> torch.Ten
     return (case["velocity_std"].square() + residual_weight * case["residual_std"].square()).sqrt()
 
 
-def case_errors(network, case, calibration: Calibration, num_samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(std, error, |mean displacement|), each (3, N): per subsampled voxel and component, from ``num_samples``
-    samples of the posterior calibrated by ``calibration``."""
-    log_var = calibrate_log_var(
+def _calibrated_log_var(case: dict[str, Any], calibration: Calibration) -> torch.Tensor:
+    return calibrate_log_var(
         case["log_var"],
         calibration.std_scale,
         case["mean"],
@@ -198,12 +201,38 @@ def case_errors(network, case, calibration: Calibration, num_samples) -> tuple[n
         case["residual"],
         calibration.residual_weight,
     )
-    generator = torch.Generator().manual_seed(case["seed"] + 1)
-    mean, variance = sample_displacements(network, case["mean"], log_var, case["size"], num_samples, generator)
+
+
+def case_errors(case: dict[str, Any], calibration: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(std, error, |mean displacement|), each (3, N): per subsampled voxel and component of ``case``
+    (:func:`displacement_case`), the first-order std of the posterior calibrated by ``calibration``
+    (:func:`~monai_probreg.uncertainty.spread.displacement_variance`) and the answer's error (the mean's displacement
+    minus the truth), image-grid voxels."""
+    with torch.inference_mode():
+        variance = displacement_variance(_calibrated_log_var(case, calibration), case["size"])
     pick = case["voxels"]
-    error = mean[0].flatten(1)[:, pick] - case["truth"]
+    error = case["answer"] - case["truth"]
     norm = case["displacement_norm"].expand_as(error)
     return variance[0].flatten(1)[:, pick].sqrt().numpy(), error.numpy(), norm.numpy()
+
+
+def sampled_case_variance(network, case: dict[str, Any], calibration: Calibration, num_samples: int) -> np.ndarray:
+    """(3, N) the variance of ``num_samples`` displacements sampled from ``case``'s posterior calibrated by
+    ``calibration`` (its velocity std widened by ``calibration.sample_gain``, as the label entropy's samples are), per
+    subsampled voxel and component, image-grid voxels: what the samples' spread is beside :func:`case_errors`' map."""
+    log_var = _calibrated_log_var(case, calibration) + 2.0 * math.log(calibration.sample_gain)
+    generator = torch.Generator().manual_seed(case["seed"] + 1)
+    _, variance = sample_displacements(network, case["mean"], log_var, case["size"], num_samples, generator)
+    return variance[0].flatten(1)[:, case["voxels"]].numpy()
+
+
+def sampled_case_errors(
+    network, case: dict[str, Any], calibration: Calibration, num_samples: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`case_errors` with the std of ``num_samples`` samples (:func:`sampled_case_variance`) in place of the map:
+    what the uncertainty maps of bundles before 0.34.0 were (the studies in ``experiments/`` measured it)."""
+    _, error, norm = case_errors(case, calibration)
+    return np.sqrt(sampled_case_variance(network, case, calibration, num_samples)), error, norm
 
 
 def pool_errors(errors: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:

@@ -175,6 +175,7 @@ def fit_calibration_stage(
         "fit_iterations": FIT_ITERATIONS,
         "error_model_templates": error_model_templates,
         "error_model_seed": ERROR_MODEL_SEED,
+        "displacement_std": "first order",  # a log of the sampled std's fit (before bundle 0.34.0) is not resumed
     }
     log = RecordLog(work_dir / CALIBRATION_LOG, header, resume=resume)
     if _FITTED in log.records:
@@ -265,6 +266,7 @@ def write_sidecars(
             path=path,
             residual_weight=fitted.residual_weight,
             error_model=fitted.error_model,
+            sample_gain=fitted.sample_gain,
         )
         written.append(path)
     if quality is not None:

@@ -6,7 +6,7 @@ benchmarks call alike. In the order a scan goes through it:
 - :mod:`.options`: what a registration is asked to do (:class:`~.options.RegistrationOptions`);
 - :mod:`.inputs`: the fixed image prepared once (:func:`~.inputs.prepare_fixed`) and the moving scan read;
 - :mod:`.affine_stage`: the affine pre-alignment, then the moving scan on the model grid;
-- :mod:`.network`: the network's registration, its test-time refinement, the maps and the posterior samples;
+- :mod:`.network`: the network's registration, its test-time refinement and the maps;
 - :mod:`.quality_estimate`: the label-free quality estimate;
 - :mod:`.compose`: affine + deformable composed, the original scan and labels resampled once, Dice;
 - :mod:`.output_files`, :mod:`.output_folder`, :mod:`.qc`, :mod:`.summary`: what each file is (``README.txt``),

@@ -9,8 +9,9 @@
 - ``maps``: the Jacobian and the velocity entropy; then, after the quality estimate, the inverse displacement
   (``exp(-v)``; unless ``inverse`` is off; :func:`add_inverse`), so that it is not held beside the quality estimate's
   working set and the network's own registration;
-- ``samples``: with ``samples = K >= 2``, K posterior samples -> displacement standard deviation
-  (:func:`monai_probreg.uncertainty.posterior_maps.posterior_maps`, calibrated as the model is).
+- ``samples``: with ``samples = K >= 2``, the displacement standard deviation, first order (no sampling:
+  :func:`monai_probreg.uncertainty.posterior_maps.posterior_maps`, calibrated as the model is; the stage keeps its
+  name from when the map was sampled).
 """
 
 from __future__ import annotations
@@ -135,6 +136,7 @@ def run_network(
                 spacing=spacing,
                 residual=residual,
                 residual_weight=model.calibration.residual_weight,
+                sample_gain=model.calibration.sample_gain,
             )
             maps.entropy, maps.std = float_numpy(sampled.velocity_entropy), float_numpy(sampled.displacement_std)
             maps.variance = float_numpy(sampled.displacement_variance)

@@ -62,8 +62,9 @@ class InitialTransform:
 
 @dataclass(frozen=True)
 class RegistrationOptions:
-    """``samples``: K posterior samples for the std map (0 = none, else >= 2); ``seed``: their RNG seed (the
-    command line gives the same seed to ``affine.seed``);
+    """``samples``: the std map with K >= 2 (0 = none; first order, :mod:`monai_probreg.uncertainty.spread`: the same
+    map for every K); ``seed``: the RNG seed of posterior samples (the command line gives the same seed to
+    ``affine.seed``);
     ``affine``: settings of the ITK pre-alignment, or None to skip it (the identity: scans already aligned to the
     fixed image, as the paper assumes); ``refinement``: test-time refinement of the posterior mean, or None for the
     model's own (its config's ``refinement``: the default path, as ``monai-probreg register`` runs it);

@@ -22,7 +22,8 @@ OUTPUT_FILES = {
     "jacobian.nii.gz": "det(I + grad u) of the deformable part on the fixed grid (<= 0: folding); the composed "
     "transform's Jacobian is this times summary.json affine.determinant",
     "entropy.nii.gz": "entropy of the velocity posterior q(z) (Dalca et al. 2018, Eq. 8), fixed grid",
-    "displacement_std.nii.gz": "std of the displacement over K posterior samples, sqrt(sum of the 3 variances), mm; "
+    "displacement_std.nii.gz": "std of the displacement under the calibrated posterior, first order (no sampling), "
+    "sqrt(sum of the 3 variances), mm; "
     "a component's calibrated 95% interval is +- summary.json model.posterior_interval_95_half_width_std times that "
     "component's own std (about this map / sqrt(3)), Student-t tails [--samples K]",
     "subject.nii.gz": "the synthetic subject registered (the moving image), made from the template [demo]",

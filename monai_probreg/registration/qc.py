@@ -9,7 +9,7 @@ Rows: three orthogonal slices (axial, coronal, sagittal) through the fixed image
 4. the deformable part as a warped grid: lines every ``grid_mm`` of the fixed grid drawn where the deformation
    sends them in the (affinely aligned) moving image, in-plane components;
 5. the Jacobian determinant of the deformable part (blue < 1 < red: shrinking / growing; black = folding, <= 0);
-6. the uncertainty map (displacement std over posterior samples, or the velocity entropy without samples).
+6. the uncertainty map (the first-order displacement std, or the velocity entropy without it).
 
 Inputs are arrays on the model grid (:class:`~monai_probreg.spatial.model_grid.ModelGrid`: RAS axes, so axis 0 runs left to
 right, 1 posterior to anterior, 2 inferior to superior); slices are drawn in millimetres with the patient's right

@@ -80,11 +80,13 @@ def _feature_entropy(
     the ``maps``' entropy itself when ``posterior`` is their answer's and that calibration is the one in use (computed
     once)."""
     calibration = model.quality.feature_calibration(model.std_scale, model.bias_fraction)
-    # an entropy depends on every number of the calibration but the intervals' dof (the feature's has no residual term)
+    # an entropy depends on every number of the calibration but the intervals' dof and the samples' gain (the
+    # feature's has no residual term)
     if (
         maps is not None
         and posterior is maps.posterior
-        and calibration._replace(interval_dof=None) == model.calibration._replace(interval_dof=None)
+        and calibration._replace(interval_dof=None, sample_gain=1.0)
+        == model.calibration._replace(interval_dof=None, sample_gain=1.0)
     ):
         return maps.entropy
     return posterior_entropy(model, *posterior, shape, calibration)

@@ -8,7 +8,7 @@ Stages, timed under these names in ``summary.json["timings_s"]``, each in the mo
   :mod:`~monai_probreg.spatial.contrast`);
 - ``model``, ``refine``, ``maps``, ``samples``: the network's registration, its test-time refinement, the
   Jacobian, entropy and inverse (the inverse after the quality estimate: ``maps`` is timed in two parts), the
-  posterior samples (:mod:`.network`);
+  displacement std map (first order; the stage's name is from when it was sampled; :mod:`.network`);
 - ``quality``: the label-free quality estimate, with a quality model next to the weights (:mod:`.quality_estimate`);
 - ``compose``: affine + deformable -> one field fixed -> moving and its inverse; the original moving scan and labels
   resampled once through it; Dice (:mod:`.compose`);

@@ -23,15 +23,18 @@ moving and the fixed image, on the velocity grid). A fourth number weighs it in 
     sigma^2_calibrated,c = std_scale^2 * (sigma^2_c + residual_weight * r) + (bias_fraction * |mu|)^2
 
 ``residual_weight`` (velocity-grid voxels^2 per squared intensity of the [0, 1] inputs; 0: the network's spread
-alone) is chosen by the fit among a few values, as the one whose sampled std ranks the errors best
+alone) is chosen by the fit among a few values, as the one whose std map ranks the errors best
 (:meth:`monai_probreg.fitting.calibration_probes.CalibrationProbes.residual_weight_for`); the coverage matching then
-fits the other numbers at that weight. It stays a diagonal Gaussian on the velocity grid, so sampling
-(diffeomorphic samples), the velocity entropy, the displacement std and the label entropy all follow from the
-calibrated ``log_var``. For the small sigmas of a trained model the sampled displacement variance is, to first
-order, std_scale^2 times the raw one plus (bias_fraction |u|)^2 (u the displacement, about mu once integrated),
-which is how :func:`fit_calibration` fits both scalars from one set of samples: the pair whose intervals cover
-closest to nominal at :data:`FIT_LEVELS` (``python -m monai_probreg.fitting`` re-samples at the fitted pair and
-refits, :mod:`monai_probreg.fitting.calibration_probes`).
+fits the other numbers at that weight. It stays a diagonal Gaussian on the velocity grid, so the velocity entropy, the
+displacement std and the samples all follow from the calibrated ``log_var``. The displacement std is first order, the
+calibrated velocity std resized onto the image grid (:mod:`monai_probreg.uncertainty.spread`, no sampling), so its
+variance is about std_scale^2 times the raw map's plus (bias_fraction |u|)^2 (u the displacement, about mu once
+integrated), which is how :func:`fit_calibration` fits both scalars from one set of maps: the pair whose intervals
+cover closest to nominal at :data:`FIT_LEVELS` (``python -m monai_probreg.fitting`` recomputes the maps at the fitted
+pair and refits, :mod:`monai_probreg.fitting.calibration_probes`). Samples of the posterior (the label entropy reads
+K of them) are independent per velocity voxel, and their displacement spread is damped by interpolation and
+integration; a fifth number, ``sample_gain``, widens their velocity std beyond the calibrated one so that it matches
+the map on average (the fit's measured damping, kappa: ``sample_gain = 1 / sqrt(kappa)``).
 
 A third number says how the intervals are read. The calibrated std ranks the errors only weakly, so the error over
 the std is a Gaussian of uncertain variance: heavier-tailed than a Gaussian, and one scale cannot cover both the 68%
@@ -44,7 +47,8 @@ scale; None = Gaussian):
 posterior's; only the width of an interval at a given level follows the fitted tails.
 They are stored next to the weights they belong to, as ``<weights stem>.calibration.json``, with the weights'
 SHA-256 so that a retrained model is never paired with an old calibration; a field an older sidecar lacks reads as
-its neutral value (``bias_fraction`` 0, ``refinement`` None, ``interval_dof`` None, ``residual_weight`` 0). Raw
+its neutral value (``bias_fraction`` 0, ``refinement`` None, ``interval_dof`` None, ``residual_weight`` 0), but one
+without ``sample_gain`` was fitted on the sampled std of bundles before 0.34.0 and is refused with the refit command. Raw
 (uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``, Gaussian intervals (``interval_dof = None``), no
 residual term. Held-out coverage and how well
 the std ranks the errors: ``benchmarks/uncertainty_calibration.py``.
@@ -92,10 +96,9 @@ __all__ = [
 
 CALIBRATION_SIDECAR = "calibration"  # models/model.pt -> models/model.calibration.json (utils.sidecars)
 
-# posterior samples K the uncertainty maps draw by default and the calibration is fitted with (its sidecar's
-# num_samples): the intervals are fitted for the spread of K samples, a std from fewer is noisier and covers less
-# (docs/uncertainty.md). The one home of that count: inference.yaml's num_samples, the demo, the fit's and the
-# benchmarks' --samples read it
+# posterior samples K the label entropy reads by default, and the fit draws to measure the samples' damping (its
+# sidecar's num_samples; the std map is first order and needs none, uncertainty.spread). The one home of that count:
+# inference.yaml's num_samples, the demo, the fit's and the benchmarks' --samples read it
 POSTERIOR_SAMPLES = 16
 
 FIT_LEVELS: tuple[float, ...] = (0.5, 0.68, 0.8, 0.9, 0.95)  # nominal interval levels whose coverage the fit matches
@@ -120,6 +123,9 @@ class Calibration(NamedTuple):
     # the error model's coefficients (one per uncertainty.error_model.ERROR_FEATURES, the intercept last); None: the
     # term reads the pair's residual (uncertainty.residual)
     error_model: tuple[float, ...] | None = None
+    # the factor the samples' velocity std is widened by beyond the calibrated one (the label entropy reads them), so
+    # that their displacement spread matches the first-order std map on average (uncertainty.spread); 1: none
+    sample_gain: float = 1.0
 
 
 RAW = Calibration(1.0, 0.0, None)  # the raw posterior: no scale, no bias term, Gaussian intervals
@@ -138,9 +144,11 @@ class CalibrationRecord:
     method: str = (
         "coverage matching: (std_scale, bias_fraction, interval_dof) of sigma^2 = std_scale^2 (sigma^2 + "
         "residual_weight r) + (bias_fraction |mean velocity|)^2 and the intervals +- t_interval_dof(level) sigma "
-        "minimise the sum over levels and probes of (coverage - level)^2 of the sampled displacements (r: the "
-        "registered pair's error_model prediction, or its local residual without one; residual_weight chosen first, "
-        "by the population probe's ranking)"
+        "minimise the sum over levels and probes of (coverage - level)^2 of the first-order displacement std (the "
+        "calibrated velocity std resized onto the image grid; r: the registered pair's error_model prediction, or its "
+        "local residual without one; residual_weight chosen first, by the population probe's ranking); sample_gain: "
+        "the samples' velocity std widened until their displacement variance matches the map's on average over the "
+        "population probe"
     )
     bias_fraction: float = 0.0
     # the refinement settings (RefinementSettings.as_dict()) of the registrations it was fitted on: the maps describe
@@ -157,19 +165,36 @@ class CalibrationRecord:
     # (uncertainty.error_model.ERROR_FEATURES); None: the residual itself (also an older sidecar)
     error_model: list[float] | None = None
     error_features: list[str] | None = None
+    # Calibration.sample_gain; None: an older sidecar, fitted on the sampled displacement std (refused: the std map is
+    # first order since bundle 0.34.0)
+    sample_gain: float | None = None
 
     def calibration(self) -> Calibration:
         """The numbers inference uses."""
         error_model = None if self.error_model is None else tuple(float(c) for c in self.error_model)
-        return Calibration(self.std_scale, self.bias_fraction, self.interval_dof, self.residual_weight, error_model)
+        gain = 1.0 if self.sample_gain is None else float(self.sample_gain)
+        return Calibration(
+            self.std_scale, self.bias_fraction, self.interval_dof, self.residual_weight, error_model, gain
+        )
 
 
 def check_calibration(
-    std_scale: float, bias_fraction: float, interval_dof: float | None = None, residual_weight: float = 0.0
+    std_scale: float,
+    bias_fraction: float,
+    interval_dof: float | None = None,
+    residual_weight: float = 0.0,
+    sample_gain: float = 1.0,
 ) -> None:
-    """ValueError unless ``std_scale`` > 0, ``bias_fraction`` >= 0 and ``residual_weight`` >= 0, all finite, and
-    ``interval_dof`` None or a positive finite number."""
+    """ValueError unless ``std_scale`` > 0, ``bias_fraction`` >= 0, ``residual_weight`` >= 0 and ``sample_gain`` > 0,
+    all finite, and ``interval_dof`` None or a positive finite number."""
     _check_scale(std_scale)
+    if not (
+        isinstance(sample_gain, (int, float))
+        and not isinstance(sample_gain, bool)
+        and math.isfinite(sample_gain)
+        and sample_gain > 0
+    ):
+        raise ValueError(f"sample_gain must be a positive finite number; got {sample_gain!r}")
     _check_bias_fraction(bias_fraction)
     _check_dof(interval_dof)
     if not (
@@ -364,14 +389,16 @@ def save_calibration(
     path: str | os.PathLike | None = None,
     residual_weight: float = 0.0,
     error_model: Sequence[float] | None = None,
+    sample_gain: float = 1.0,
 ) -> CalibrationRecord:
     """Write the sidecar JSON of ``weights_file`` atomically (temporary file, then rename) and return it.
     ``refinement``: the settings of the refined mean it was fitted on (``RefinementSettings.as_dict()``; None: the
     network's mean); ``interval_dof``: the intervals' Student-t dof (None: Gaussian); ``path``: where to write it
     (default: next to the weights, :func:`calibration_path`); ``residual_weight``: the residual term's weight (0: none),
     per unit of the residual this package computes (recorded as ``residual``); ``error_model``: the coefficients of
-    the error model the term reads (recorded with the features they are for), or None (the residual)."""
-    check_calibration(std_scale, bias_fraction, interval_dof, residual_weight)
+    the error model the term reads (recorded with the features they are for), or None (the residual);
+    ``sample_gain``: :attr:`Calibration.sample_gain`."""
+    check_calibration(std_scale, bias_fraction, interval_dof, residual_weight, sample_gain)
     check_error_model(error_model)
     record = CalibrationRecord(
         float(std_scale),
@@ -387,22 +414,31 @@ def save_calibration(
         residual=residual_form(),
         error_model=None if error_model is None else [float(c) for c in error_model],
         error_features=None if error_model is None else list(ERROR_FEATURES),
+        sample_gain=float(sample_gain),
     )
     write_sidecar(weights_file, CALIBRATION_SIDECAR, asdict(record), path)
     return record
 
 
 def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
-    """Read the sidecar of ``weights_file``; refuses one fitted for other weights (SHA-256 mismatch) or, with a
-    residual term, for another form of the pair's residual (:func:`~monai_probreg.uncertainty.residual.residual_form`)."""
+    """Read the sidecar of ``weights_file``; refuses one fitted for other weights (SHA-256 mismatch), with a residual
+    term for another form of the pair's residual (:func:`~monai_probreg.uncertainty.residual.residual_form`), or on
+    the sampled displacement std of bundles before 0.34.0 (no ``sample_gain``)."""
     path = calibration_path(weights_file)
     data = read_sidecar(weights_file, CALIBRATION_SIDECAR, "calibration record", " or use std_scale 1 (raw)")
     try:
         record = CalibrationRecord(**data)
     except TypeError as err:
         raise ValueError(f"{path}: not a calibration record ({err})") from None
+    if record.sample_gain is None:
+        raise ValueError(
+            f"{path}: fitted on the sampled displacement std (before bundle 0.34.0); this package's std map is first "
+            "order (uncertainty.spread); refit it: python -m monai_probreg.fitting --only calibration"
+        )
     try:
-        check_calibration(record.std_scale, record.bias_fraction, record.interval_dof, record.residual_weight)
+        check_calibration(
+            record.std_scale, record.bias_fraction, record.interval_dof, record.residual_weight, record.sample_gain
+        )
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: {err}") from None
     if record.refinement is not None and not isinstance(record.refinement, dict):

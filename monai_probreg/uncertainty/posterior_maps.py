@@ -4,11 +4,13 @@
   resized to the image grid. Without a bias or residual term, calibration adds ``spatial_dims * log(std_scale)``
   everywhere; the bias term (:mod:`monai_probreg.uncertainty.calibration`) raises it more where the mean velocity is
   long, the residual term (:mod:`monai_probreg.uncertainty.residual`) where the registered images still differ.
-- ``displacement_std``: sqrt(sum_c var_c) of K displacements drawn from the calibrated posterior, in voxels of
-  the image grid: the radius-like spread of where each voxel maps. On held-out LPBA40 subjects its coverage is
+- ``displacement_std``: sqrt(sum_c var_c) of the calibrated posterior's displacement, first order (the calibrated
+  velocity std resized onto the image grid, :mod:`monai_probreg.uncertainty.spread`; no sampling), in voxels of the
+  image grid or mm: the radius-like spread of where each voxel maps. On held-out LPBA40 subjects its coverage is
   reported by ``benchmarks/uncertainty_calibration.py``.
-- ``label_entropy`` (when moving labels are given): entropy (nats) of the moving labels read by each of the K
-  sampled displacements with partial volume, each sample giving the labels around its point the weights of linear
+- ``label_entropy`` (when moving labels are given): entropy (nats) of the moving labels read by each of K
+  displacements sampled from the calibrated posterior (its velocity std widened by the calibration's
+  ``sample_gain``), with partial volume, each sample giving the labels around its point the weights of linear
   interpolation (:mod:`monai_probreg.uncertainty.partial_volume`): 0 where every sample reads one label wholly.
 
 All maps live on the fixed grid, like the rest of the outputs. The K samples use a seeded generator, so the
@@ -17,6 +19,7 @@ maps are reproducible.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -24,9 +27,11 @@ import torch
 from torch import Tensor, nn
 
 from monai_probreg.blocks.box_resize import resize_displacement_box
-from monai_probreg.uncertainty.calibration import calibrate_log_var
-from monai_probreg.uncertainty.entropy import sampled_displacement_moments, velocity_entropy
+from monai_probreg.blocks.sampling import sample_velocity
+from monai_probreg.uncertainty.calibration import calibrate_log_var, check_calibration
+from monai_probreg.uncertainty.entropy import velocity_entropy
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
+from monai_probreg.uncertainty.spread import displacement_variance
 
 __all__ = ["PosteriorMaps", "posterior_maps"]
 
@@ -34,10 +39,10 @@ SAMPLE_CHUNK = 4  # posterior samples integrated at once (memory: chunk x 3 full
 
 
 class PosteriorMaps(NamedTuple):
-    """(*S) maps on the fixed grid; ``displacement_std`` is None without sampling, ``label_entropy`` also without
-    moving labels. ``displacement_variance`` (D, *S): the sampled variance of each displacement component (along
-    the grid's axis of that channel; squared voxels, or mm^2 with ``spacing``), whose sum ``displacement_std`` is
-    the square root of; None without sampling."""
+    """(*S) maps on the fixed grid; ``displacement_std`` is None with ``num_samples`` 0, ``label_entropy`` also
+    without moving labels. ``displacement_variance`` (D, *S): the first-order variance of each displacement component
+    (along the grid's axis of that channel; squared voxels, or mm^2 with ``spacing``), whose sum ``displacement_std``
+    is the square root of; None with ``num_samples`` 0."""
 
     velocity_entropy: Tensor
     displacement_std: Tensor | None
@@ -59,15 +64,17 @@ def posterior_maps(
     spacing: Sequence[float] | None = None,
     residual: Tensor | None = None,
     residual_weight: float = 0.0,
+    sample_gain: float = 1.0,
 ) -> PosteriorMaps:
     """Maps of one pair. ``velocity_mean``, ``velocity_log_var``: (1, D, *V) raw posterior; ``network`` provides
     ``integrate`` (a velocity's displacement on the velocity grid, as ``ProbRegNet``); ``num_samples``: 0 (velocity
-    entropy only) or >= 2; ``std_scale`` and ``bias_fraction``: the calibration (1 and 0 = raw); ``moving_label``:
+    entropy only) or >= 2 (the displacement's maps: its std, which needs no sample, and with ``moving_label`` the label
+    entropy of that many samples); ``std_scale`` and ``bias_fraction``: the calibration (1 and 0 = raw); ``moving_label``:
     (1, 1, *S) integer labels on the moving grid, or None; ``spacing``: voxel size per axis of the fixed grid to
     give ``displacement_std`` in mm (the trace of the covariance is rotation-invariant, so per-axis voxel variances
     times spacing^2 give it exactly), or None for voxels; ``residual`` (1, 1, *V) and ``residual_weight``: the
     calibration's residual term (:func:`~monai_probreg.uncertainty.residual.residual_variance` of the pair; None and
-    0: none)."""
+    0: none); ``sample_gain``: the calibration's widening of the samples' velocity std (1: none)."""
     if velocity_mean.shape[0] != 1 or velocity_mean.shape != velocity_log_var.shape:
         raise ValueError(
             f"expected one pair's posterior, mean and log_var (1, D, *V); got "
@@ -82,27 +89,20 @@ def posterior_maps(
     entropy = velocity_entropy(log_var, size)[0, 0]
     if num_samples == 0:
         return PosteriorMaps(entropy, None, None)
+    variance = displacement_variance(log_var, size, spacing)[0]
+    std = variance.sum(0).sqrt()
+    if moving_label is None:
+        return PosteriorMaps(entropy, std, None, variance)
+    check_calibration(std_scale, bias_fraction, sample_gain=sample_gain)
     generator = torch.Generator(device=velocity_mean.device).manual_seed(seed)
-    labels = None if moving_label is None else PartialVolumeLabels(moving_label.to(velocity_mean.device))
-
-    def to_displacement(z: Tensor) -> Tensor:
+    labels = PartialVolumeLabels(moving_label.to(velocity_mean.device))
+    sample_log_var = log_var + 2.0 * math.log(sample_gain)
+    for start in range(0, num_samples, SAMPLE_CHUNK):
+        z = sample_velocity(velocity_mean.float(), sample_log_var, min(SAMPLE_CHUNK, num_samples - start), generator)
         # network.velocity_to_displacement's field: the resize by one small matrix per axis (blocks.box_resize) gives
         # F.interpolate's values, float rounding apart, and is the faster of the two on a CPU (docs/uncertainty.md);
         # the network itself keeps F.interpolate (blocks.integration.resize_displacement): its TorchScript export
         # and the answer's warp stay as they were, bit for bit
-        disp = resize_displacement_box(network.integrate(z), size, ([0] * len(size), size))  # (n, D, *S)
-        if labels is not None:  # each sample's reading of the labels, kept for the entropy
-            for d in disp:
-                labels.add(d[None])
-        return disp
-
-    _, variance = sampled_displacement_moments(
-        velocity_mean.float(), log_var, to_displacement, num_samples, generator, SAMPLE_CHUNK
-    )
-    if spacing is not None:
-        if len(spacing) != variance.shape[1]:
-            raise ValueError(f"expected one spacing per axis ({variance.shape[1]}); got {tuple(spacing)}")
-        weights = torch.as_tensor([float(v) ** 2 for v in spacing], dtype=variance.dtype, device=variance.device)
-        variance = variance * weights.view(1, -1, *([1] * (variance.ndim - 2)))
-    std = variance[0].sum(0).sqrt()
-    return PosteriorMaps(entropy, std, None if labels is None else labels.entropy(), variance[0])
+        for disp in resize_displacement_box(network.integrate(z[:, 0]), size, ([0] * len(size), size)):
+            labels.add(disp[None])  # each sample's reading of the labels, kept for the entropy
+    return PosteriorMaps(entropy, std, labels.entropy(), variance)

@@ -14,7 +14,7 @@ local gain that matches its ``RESIDUAL_GAIN_WINDOW``-voxel mean to the fixed ima
 shading: a smooth intensity ratio is no misalignment either), then the mean squared difference over a
 ``RESIDUAL_WINDOW``-voxel box, averaged onto the velocity grid (intensities of the network's inputs, in [0, 1]).
 :mod:`monai_probreg.uncertainty.calibration` adds it, times the fitted ``residual_weight``, to the network's velocity
-variance before the scale; the weight is chosen by how well the sampled std ranks the errors of the calibration's
+variance before the scale; the weight is chosen by how well the std map ranks the errors of the calibration's
 cases (``monai_probreg.fitting.calibration_probes``). The smoothing and the gain were chosen by how the std ranks the
 errors of both calibration probes (docs/uncertainty.md, "The pair's residual"). Written by hand: no library offers
 a local residual variance on another grid.

@@ -79,3 +79,19 @@ def test_the_choice_reads_only_the_subjects_asked_for(sids):
     probes.population_errors = spy
     probes.residual_weight_for(sids)
     assert set(read) == set(sids) and len(read) == len(sids) * len(RESIDUAL_WEIGHTS)
+
+
+def test_the_sample_gain_makes_the_samples_spread_as_far_as_the_map():
+    from test_population_probe import _case
+
+    from monai_probreg.fitting.calibration_probes import GAIN_TOLERANCE
+    from monai_probreg.fitting.population_probe import case_errors, sampled_case_variance
+
+    network, case = _case(sigma=0.2)
+    probes = CalibrationProbes(network, 16, None, {"S1": [case]}, {}, {}, None, {}, {})
+    calibration = Calibration(1.0, 0.0)
+    gain = probes.sample_gain_for(["S1"], calibration)
+    assert gain > 1.2
+    mapped = float(np.mean(case_errors(case, calibration)[0] ** 2))
+    sampled = float(sampled_case_variance(network, case, calibration._replace(sample_gain=gain), 16).mean())
+    assert sampled / mapped == pytest.approx(1.0, abs=GAIN_TOLERANCE)

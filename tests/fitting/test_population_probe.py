@@ -1,10 +1,12 @@
 """monai_probreg.fitting.population_probe: the random deformation has the asked RMS and its stated inverse, the
-population model is the training velocities' mean and deviations, the posterior is the default path's."""
+population model is the training velocities' mean and deviations, the posterior is the default path's; a case's
+errors are its first-order std map and the answer's error, its samples spread less, as much more as the gain asks."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -83,3 +85,68 @@ def test_the_posterior_of_the_default_path_has_the_refined_mean_and_the_networks
     refined = probe.posterior_for(network, moving, brain, RefinementSettings(num_iterations=3))
     assert torch.equal(refined.log_var, plain.log_var)  # the refinement moves the mean only
     assert (refined.mean - plain.mean).abs().max() > 1e-4
+
+
+def _case(mean_shift: float = 0.0, sigma: float = 0.05) -> dict:
+    """A population-probe case made by hand: the posterior N(mean, sigma^2) on an 8^3 velocity grid for a 15^3 image,
+    a truth 0.25 voxel off the answer along axis 0, every image voxel scored."""
+    from monai_probreg import ProbRegNet
+
+    torch.manual_seed(0)
+    network = ProbRegNet(enc_channels=(4, 4, 4, 4), dec_channels=(4, 4, 4, 4, 4)).eval()
+    size, grid = (15, 15, 15), (8, 8, 8)
+    mean = torch.zeros(1, 3, *grid)
+    mean[:, 0] = mean_shift
+    with torch.inference_mode():
+        answer = network.velocity_to_displacement(mean, size)[0].flatten(1)
+    voxels = torch.arange(answer.shape[1])
+    truth = answer.clone()
+    truth[0] += 0.25
+    case = {
+        "mean": mean,
+        "log_var": torch.full((1, 3, *grid), 2 * math.log(sigma)),
+        "residual": torch.zeros(1, 1, *grid),
+        "truth": truth,
+        "answer": answer,
+        "voxels": voxels,
+        "size": size,
+        "seed": 3,
+        "displacement_norm": answer.norm(dim=0),
+    }
+    return network, case
+
+
+def test_case_errors_are_the_calibrated_map_and_the_answers_error():
+    from monai_probreg.uncertainty.calibration import Calibration
+
+    _, case = _case(mean_shift=0.5)
+    std, error, norm = probe.case_errors(case, Calibration(2.0, 0.0))
+    # the std map: 2 * 0.05 velocity-grid voxels, times (15 - 1) / (8 - 1) = 2 image voxels, every component
+    assert std.shape == error.shape == norm.shape == (3, 15**3)
+    assert std == pytest.approx(0.2, rel=1e-5)
+    assert error[0] == pytest.approx(-0.25) and error[1:] == pytest.approx(0.0)  # answer - truth, the sign kept
+    assert norm == pytest.approx(case["displacement_norm"].numpy()[None].repeat(3, 0))
+
+
+def test_sampled_variance_is_damped_and_widened_by_the_gain():
+    from monai_probreg.uncertainty.calibration import Calibration
+
+    network, case = _case()
+    mapped = probe.case_errors(case, Calibration(1.0, 0.0))[0] ** 2
+    sampled = probe.sampled_case_variance(network, case, Calibration(1.0, 0.0), 64)
+    assert sampled.shape == (3, 15**3)
+    kappa = sampled.mean() / mapped.mean()
+    assert 0.2 < kappa < 0.7  # independent noise between the velocity grid's voxels: weights squared
+    gained = probe.sampled_case_variance(network, case, Calibration(1.0, 0.0, sample_gain=2.0), 64)
+    # the same draws, twice as wide: four times the variance were the integration linear; its damping grows with the
+    # spread, so a little less
+    assert 3.3 < gained.mean() / sampled.mean() < 4.0
+
+
+def test_sampled_case_errors_take_the_samples_std_and_the_answers_error():
+    from monai_probreg.uncertainty.calibration import Calibration
+
+    network, case = _case()
+    std, error, _ = probe.sampled_case_errors(network, case, Calibration(1.0, 0.0), 8)
+    np.testing.assert_allclose(std**2, probe.sampled_case_variance(network, case, Calibration(1.0, 0.0), 8), rtol=1e-6)
+    np.testing.assert_allclose(error, probe.case_errors(case, Calibration(1.0, 0.0))[1])

@@ -159,7 +159,8 @@ def test_the_shipped_default_weights_carry_their_own_calibration():
     parser = ConfigParser()
     parser.read_config(str(weights.parents[1] / "configs" / "inference.yaml"))
     assert parser.get_parsed_content("refinement").differences(record.refinement) == {}
-    # and sampled as it was fitted: a std from fewer samples is noisier and covers less
+    # and the label entropy sampled as the samples' gain was measured
+    assert record.sample_gain > 1.0  # independent velocity noise reaches the displacement damped
     assert DEMO_SAMPLES == parser.get_parsed_content("num_samples") == record.num_samples
 
 
@@ -188,7 +189,7 @@ def test_fit_calibration_recovers_a_known_scale_and_bias_fraction(scale, bias_fr
 def test_fit_calibration_without_bias_matches_fit_std_scale():
     std, error = _toy(3.0)
     fitted = fit_calibration(std, error, np.ones_like(std), bias_fractions=(0.0,), interval_dofs=(None,))
-    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0, None, 0.0, None)
+    assert fitted == (pytest.approx(fit_std_scale(std, error)), 0.0, None, 0.0, None, 1.0)
 
 
 @pytest.mark.parametrize(
@@ -235,12 +236,15 @@ def test_bias_variance_is_the_squared_fraction_of_the_length():
 
 def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
     save_calibration(weights, 2.0, bias_fraction=0.15)
-    assert calibration_for(weights) == (2.0, 0.15, None, 0.0, None) and load_calibration(weights).bias_fraction == 0.15
-    assert calibration_for(weights, calibrate=False) == (1.0, 0.0, None, 0.0, None)
+    assert (
+        calibration_for(weights) == (2.0, 0.15, None, 0.0, None, 1.0)
+        and load_calibration(weights).bias_fraction == 0.15
+    )
+    assert calibration_for(weights, calibrate=False) == (1.0, 0.0, None, 0.0, None, 1.0)
     record = json.loads(calibration_path(weights).read_text())
     del record["bias_fraction"]  # written before the bias term existed
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (2.0, 0.0, None, 0.0, None)
+    assert calibration_for(weights) == (2.0, 0.0, None, 0.0, None, 1.0)
     record["bias_fraction"] = -0.5
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: bias_fraction"):
@@ -251,11 +255,11 @@ def test_sidecar_keeps_the_bias_fraction_and_old_sidecars_read_as_zero(weights):
 
 def test_sidecar_keeps_the_residual_weight_and_old_sidecars_read_as_zero(weights):
     save_calibration(weights, 1.5, interval_dof=2.0, residual_weight=300.0)
-    assert calibration_for(weights) == (1.5, 0.0, 2.0, 300.0, None)
+    assert calibration_for(weights) == (1.5, 0.0, 2.0, 300.0, None, 1.0)
     record = json.loads(calibration_path(weights).read_text())
     del record["residual_weight"]  # written before the residual term existed
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (1.5, 0.0, 2.0, 0.0, None)
+    assert calibration_for(weights) == (1.5, 0.0, 2.0, 0.0, None, 1.0)
     record["residual_weight"] = -1.0
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: residual_weight"):
@@ -404,11 +408,11 @@ def test_fit_rejects_bad_interval_dofs(dofs, match):
 
 def test_sidecar_keeps_the_interval_dof_and_old_sidecars_read_as_gaussian(weights):
     save_calibration(weights, 1.3, interval_dof=3.0)
-    assert calibration_for(weights) == (1.3, 0.0, 3.0, 0.0, None) and load_calibration(weights).interval_dof == 3.0
+    assert calibration_for(weights) == (1.3, 0.0, 3.0, 0.0, None, 1.0) and load_calibration(weights).interval_dof == 3.0
     record = json.loads(calibration_path(weights).read_text())
     del record["interval_dof"]  # written before bundle 0.21.0
     calibration_path(weights).write_text(json.dumps(record))
-    assert calibration_for(weights) == (1.3, 0.0, None, 0.0, None)
+    assert calibration_for(weights) == (1.3, 0.0, None, 0.0, None, 1.0)
 
 
 @pytest.mark.parametrize("dof", [0.0, -1.0, "3", True])
@@ -452,3 +456,30 @@ def test_an_error_model_of_other_features_is_refused_with_the_refit_command(weig
 def test_a_bad_error_model_is_refused(coefficients, weights):
     with pytest.raises(ValueError, match="an error model is 13 finite numbers"):
         save_calibration(weights, 1.0, residual_weight=1.0, error_model=coefficients)
+
+
+def test_sidecar_keeps_the_sample_gain_and_refuses_a_sidecar_fitted_on_sampled_stds(weights):
+    save_calibration(weights, 1.5, residual_weight=10.0, sample_gain=1.7)
+    assert calibration_for(weights).sample_gain == 1.7 and load_calibration(weights).sample_gain == 1.7
+    assert calibration_for(weights, calibrate=False).sample_gain == 1.0
+    record = json.loads(calibration_path(weights).read_text())
+    del record["sample_gain"]  # written before bundle 0.34.0: its std_scale was fitted on the sampled std
+    calibration_path(weights).write_text(json.dumps(record))
+    with pytest.raises(ValueError, match=r"model.calibration.json: fitted on the sampled displacement std.*refit it"):
+        load_calibration(weights)
+
+
+@pytest.mark.parametrize("gain", [0.0, -1.0, float("nan"), float("inf"), "2", True])
+def test_a_bad_sample_gain_is_not_written(weights, gain):
+    with pytest.raises(ValueError, match="sample_gain"):
+        save_calibration(weights, 1.3, sample_gain=gain)
+
+
+@pytest.mark.parametrize("gain", [0.0, -1.0, "2", True])
+def test_a_sidecar_with_a_bad_sample_gain_is_refused(weights, gain):
+    save_calibration(weights, 1.3)
+    record = json.loads(calibration_path(weights).read_text())
+    record["sample_gain"] = gain
+    calibration_path(weights).write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="model.calibration.json: sample_gain"):
+        load_calibration(weights)

@@ -44,17 +44,16 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import uncertainty_calibration
-from common import write_report
 from monai.data import Dataset
 from scipy import ndimage
-from study_setup import study_parser, study_start
+from study_setup import finish_study, population_probe_cases, study_parser, study_start
 from uncertainty_calibration import label_case
 
 import monai_probreg.fitting.population_probe as population_probe
 import monai_probreg.registration.network as registration_network
 from monai_probreg.data.dataset import labelled_pairs
 from monai_probreg.engines.registration import register_pair
-from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
+from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES
 from monai_probreg.fitting.population_probe import SEED_STRIDE, VOXELS_PER_CASE, PairPosterior, sampled_case_errors
 from monai_probreg.fitting.subject_probe import SUBJECT_SEED, registered_case, subject_case, subject_errors
 from monai_probreg.losses.lncc import box_sum
@@ -317,7 +316,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = study_start(args)
     if started is None:
         return 0
-    setup, index, start = started
+    setup = started.setup
+    index = started.index
     model = dataclasses.replace(
         load_model(args.bundle_root, setup.model_file, calibrate=True, quality=False), quality=None
     )
@@ -348,17 +348,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return residual_variance(warped, fixed, grid)
 
     population_probe.residual_variance = keep_pair
-    probes = calibration_probes(
-        setup.network,
-        setup.evaluate.get_parsed_content("preprocessing"),
-        index,
-        setup.val_ids,
-        args.bundle_root,
-        setup.model_file,
-        setup.refinement,
-        ProbeSettings(subject_probe=0),
-    )
-    cases = [c for s in probes.cases for c in probes.cases[s]]
+    probes, cases = population_probe_cases(args, started)
     shipped = [c["residual"] for c in cases]
     for name, spread in spreads.items():
         sampled, exact, triples = [], [], []
@@ -424,12 +414,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "subjects": list(setup.val_ids),
         "coefficients": coefficients,
         "feature_seconds_per_pair": feature_seconds,
-        "threads": args.threads,
         "rows": rows,
-        "wall_s": round(time.perf_counter() - start, 1),
     }
-    write_report(args.out_dir, "error_model", result, lines)
-    return 0
+    return finish_study(args, "error_model", started, result, lines)
 
 
 if __name__ == "__main__":

@@ -27,21 +27,18 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from common import write_report
 from residual_forms import mean_spearman
-from study_setup import study_parser, study_start
+from study_setup import finish_study, population_probe_cases, study_parser, study_start, subject_probe_cases
 
 import monai_probreg.registration.network as registration_network
 from monai_probreg.blocks.box_resize import interpolation_matrix, resize_displacement_box
 from monai_probreg.blocks.sampling import sample_velocity
-from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
-from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, case_errors, sampled_case_errors
-from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
+from monai_probreg.fitting.population_probe import case_errors, sampled_case_errors
+from monai_probreg.fitting.subject_probe import subject_errors
 from monai_probreg.registration.model import load_model
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, calibrate_log_var
 from monai_probreg.uncertainty.posterior_maps import PosteriorMaps
@@ -112,14 +109,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = study_start(args)
     if started is None:
         return 0
-    setup, index, start = started
+    setup = started.setup
     model = load_model(args.bundle_root, setup.model_file, calibrate=True, quality=False)
     calibration = model.calibration
-    templates = [i for i in index.ids if i not in setup.val_ids][:SUBJECT_PROBE_TEMPLATES]
-    subjects = [
-        subject_case(t, index.images[t], SUBJECT_SEED + n, VOXELS_PER_CASE, model.divisor)
-        for n, t in enumerate(templates)
-    ]
+    templates, subjects = subject_probe_cases(started, model.divisor)
     shipped, rows = registration_network.posterior_maps, {}
     try:
         for variant in VARIANTS:
@@ -131,18 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{variant}: subject probe {score:.3f}", flush=True)
     finally:
         registration_network.posterior_maps = shipped
-    probes = calibration_probes(
-        setup.network,
-        setup.evaluate.get_parsed_content("preprocessing"),
-        index,
-        setup.val_ids,
-        args.bundle_root,
-        setup.model_file,
-        setup.refinement,
-        ProbeSettings(subject_probe=0),
-        calibration.error_model,
-    )
-    cases = [c for s in probes.cases for c in probes.cases[s]]
+    probes, cases = population_probe_cases(args, started, calibration.error_model)
     for variant in VARIANTS:
         if variant == "first order":
             errors = [case_errors(c, calibration) for c in cases]
@@ -173,12 +155,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "calibration": calibration._asdict(),
         "templates": templates,
         "subjects": list(probes.cases),
-        "threads": args.threads,
         "rows": rows,
-        "wall_s": round(time.perf_counter() - start, 1),
     }
-    write_report(args.out_dir, "first_order_std", result, lines)
-    return 0
+    return finish_study(args, "first_order_std", started, result, lines)
 
 
 if __name__ == "__main__":

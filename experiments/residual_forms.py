@@ -31,20 +31,17 @@ Prints a table and writes ``experiments/results/residual_forms.json``.
 from __future__ import annotations
 
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import write_report
-from study_setup import study_parser, study_start
+from study_setup import finish_study, population_probe_cases, study_parser, study_start, subject_probe_cases
 
 import monai_probreg.fitting.population_probe as population_probe
 import monai_probreg.registration.network as registration_network
-from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
-from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, sampled_case_errors
-from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
+from monai_probreg.fitting.population_probe import sampled_case_errors
+from monai_probreg.fitting.subject_probe import subject_errors
 from monai_probreg.metrics.calibration import spearman
 from monai_probreg.registration.model import load_model
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, Calibration
@@ -86,7 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = study_start(args)
     if started is None:
         return 0
-    setup, index, start = started
+    setup = started.setup
     # the population probe's cases, each pair's warped and fixed images kept to score every form on the same cases
     pairs = []
 
@@ -95,23 +92,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return residual_variance(warped, fixed, velocity_shape)
 
     population_probe.residual_variance = keep_pair
-    probes = calibration_probes(
-        setup.network,
-        setup.evaluate.get_parsed_content("preprocessing"),
-        index,
-        setup.val_ids,
-        args.bundle_root,
-        setup.model_file,
-        setup.refinement,
-        ProbeSettings(subject_probe=0),
-    )
-    cases = [c for s in probes.cases for c in probes.cases[s]]
+    probes, cases = population_probe_cases(args, started)
     model = load_model(args.bundle_root, setup.model_file, calibrate=False, quality=False)
-    templates = [i for i in index.ids if i not in setup.val_ids][:SUBJECT_PROBE_TEMPLATES]
-    subjects = [
-        subject_case(t, index.images[t], SUBJECT_SEED + n, VOXELS_PER_CASE, model.divisor)
-        for n, t in enumerate(templates)
-    ]
+    templates, subjects = subject_probe_cases(started, model.divisor)
     rows = {}
     for name in args.forms:
         residual = form_residual(FORMS[name])
@@ -145,12 +128,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "samples": POSTERIOR_SAMPLES,
         "subjects": list(probes.cases),
         "templates": templates,
-        "threads": args.threads,
         "rows": rows,
-        "wall_s": round(time.perf_counter() - start, 1),
     }
-    write_report(args.out_dir, "residual_forms", result, lines)
-    return 0
+    return finish_study(args, "residual_forms", started, result, lines)
 
 
 if __name__ == "__main__":

@@ -27,19 +27,16 @@ Prints a table and writes ``experiments/results/roughness_term.json``.
 from __future__ import annotations
 
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from common import write_report
 from residual_forms import mean_spearman
-from study_setup import study_parser, study_start
+from study_setup import finish_study, population_probe_cases, study_parser, study_start, subject_probe_cases
 
 import monai_probreg.registration.network as registration_network
-from monai_probreg.fitting.calibration_probes import SUBJECT_PROBE_TEMPLATES, ProbeSettings, calibration_probes
-from monai_probreg.fitting.population_probe import VOXELS_PER_CASE, sampled_case_errors
-from monai_probreg.fitting.subject_probe import SUBJECT_SEED, subject_case, subject_errors
+from monai_probreg.fitting.population_probe import sampled_case_errors
+from monai_probreg.fitting.subject_probe import subject_errors
 from monai_probreg.losses.lncc import box_sum
 from monai_probreg.registration.model import load_model
 from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
@@ -95,26 +92,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = study_start(args)
     if started is None:
         return 0
-    setup, index, start = started
-    probes = calibration_probes(
-        setup.network,
-        setup.evaluate.get_parsed_content("preprocessing"),
-        index,
-        setup.val_ids,
-        args.bundle_root,
-        setup.model_file,
-        setup.refinement,
-        ProbeSettings(subject_probe=0),
-    )
-    cases = [c for s in probes.cases for c in probes.cases[s]]
+    setup = started.setup
+    probes, cases = population_probe_cases(args, started)
     shipped = [c["residual"] for c in cases]
     model = load_model(args.bundle_root, setup.model_file, calibrate=True, quality=False)
     calibration = model.calibration
-    templates = [i for i in index.ids if i not in setup.val_ids][:SUBJECT_PROBE_TEMPLATES]
-    subjects = [
-        subject_case(t, index.images[t], SUBJECT_SEED + n, VOXELS_PER_CASE, model.divisor)
-        for n, t in enumerate(templates)
-    ]
+    templates, subjects = subject_probe_cases(started, model.divisor)
     command_maps = registration_network.posterior_maps
     rows = {}
     for name in args.forms:
@@ -151,12 +134,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "samples": POSTERIOR_SAMPLES,
         "subjects": list(probes.cases),
         "templates": templates,
-        "threads": args.threads,
         "rows": rows,
-        "wall_s": round(time.perf_counter() - start, 1),
     }
-    write_report(args.out_dir, "roughness_term", result, lines)
-    return 0
+    return finish_study(args, "roughness_term", started, result, lines)
 
 
 if __name__ == "__main__":

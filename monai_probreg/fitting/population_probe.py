@@ -230,7 +230,7 @@ def sampled_case_errors(
     network, case: dict[str, Any], calibration: Calibration, num_samples: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`case_errors` with the std of ``num_samples`` samples (:func:`sampled_case_variance`) in place of the map:
-    what the uncertainty maps of bundles before 0.34.0 were (the studies in ``experiments/`` measured it)."""
+    what older bundles' uncertainty maps were (the studies in ``experiments/`` measured it)."""
     _, error, norm = case_errors(case, calibration)
     return np.sqrt(sampled_case_variance(network, case, calibration, num_samples)), error, norm
 

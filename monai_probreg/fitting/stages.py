@@ -175,7 +175,7 @@ def fit_calibration_stage(
         "fit_iterations": FIT_ITERATIONS,
         "error_model_templates": error_model_templates,
         "error_model_seed": ERROR_MODEL_SEED,
-        "displacement_std": "first order",  # a log of the sampled std's fit (before bundle 0.34.0) is not resumed
+        "displacement_std": "first order",  # a log of a fit on the sampled std is not resumed
     }
     log = RecordLog(work_dir / CALIBRATION_LOG, header, resume=resume)
     if _FITTED in log.records:

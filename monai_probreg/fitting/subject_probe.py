@@ -12,8 +12,8 @@ whose residual error is not proportional to the displacement (the bias term's mo
   ``SyntheticSettings`` (a random rigid turn and shift, a random smooth deformation, a bias field, Rician noise),
   seed ``SUBJECT_SEED + n`` (far from the demo's seeds 0-2);
 - it is registered back onto its template by :func:`~monai_probreg.registration.scan.register_scan`, the code path of
-  ``monai-probreg register``, with the posterior sampled at a given calibration;
-- per brain voxel (subsampled) and component: the std of the sampled deformable displacement, its error against the
+  ``monai-probreg register``, its std map made at a given calibration;
+- per brain voxel (subsampled) and component: the first-order std of the deformable displacement, its error against the
   truth in the posterior's frame (:mod:`monai_probreg.metrics.recovery`'s ``delta = L^-1 (phi - phi_true)``) and the
   length of the deformable displacement ``L^-1 (phi(p) - A(p))``, all mm: the arrays ``fit_calibration`` takes.
 """
@@ -69,7 +69,7 @@ def registered_case(
     error_features: bool = False,
 ) -> Registered:
     """``case``'s synthetic subject registered onto its template by the command's path (no files kept), ``samples``
-    posterior samples and the affine stage seeded by the case; ``error_features``: the registration also hands the
+    (>= 2: the std map; 0: none) and the affine stage seeded by the case; ``error_features``: the registration also hands the
     pair's error-model features (``RegistrationOptions.error_features``)."""
     options = RegistrationOptions(
         samples=samples,
@@ -100,8 +100,8 @@ def subject_errors(
     refinement: RefinementSettings | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(std, error, |deformable displacement|), each (3, N) mm: the registration of ``case`` by the command's path
-    with its posterior calibrated by ``calibration`` (``refinement``: the model's own when None), ``samples``
-    posterior samples (seeded by the case)."""
+    with its posterior calibrated by ``calibration`` (``refinement``: the model's own when None), ``samples`` >= 2 for
+    the std map (the same map for every such count; seeded by the case)."""
     model = dataclasses.replace(model, calibration=calibration, quality=None)
     registered = registered_case(model, case, samples, refinement)
 

@@ -35,8 +35,8 @@ from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES
 
 __all__ = ["COVERAGE_LEVEL", "DEMO_SAMPLES", "run_demo"]
 
-# the demo's --samples default (>= 2 for the std map and its coverage; the map is first order since bundle 0.34.0,
-# the same for every K): the package's one count, POSTERIOR_SAMPLES
+# the demo's --samples default (>= 2 for the std map and its coverage; the map is first order, the same for every K):
+# the package's one count, POSTERIOR_SAMPLES
 DEMO_SAMPLES = POSTERIOR_SAMPLES
 
 COVERAGE_LEVEL = 0.95  # the calibrated interval whose coverage the demo reports
@@ -55,7 +55,7 @@ def run_demo(
     """Make the subject of ``seed`` from ``fixed`` (the template), register it back, write the outputs into
     ``out_dir`` (all or nothing) and return the summary, whose ``"demo"`` record holds the scores."""
     settings = settings or SyntheticSettings()
-    # the command line's rule: --seed seeds the affine stage's sampling and the posterior samples alike
+    # the command line's rule: --seed seeds the affine stage's sampling (and any posterior samples)
     options = options or RegistrationOptions(samples=DEMO_SAMPLES, seed=seed, affine=AffineSettings(seed=seed))
     template = fixed.image
     start = time.perf_counter()

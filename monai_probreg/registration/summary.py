@@ -68,7 +68,7 @@ def scan_summary(
             if model.calibration.error_model is None
             else "error model",
             # how displacement_std.nii.gz is made: "first order", the calibrated velocity std resized onto the grid
-            # (uncertainty.spread; no sampling), since bundle 0.34.0 (before: the std of K samples)
+            # (uncertainty.spread; no sampling; older bundles wrote the std of K samples)
             "displacement_std": "first order",
             "posterior_interval_dof": model.interval_dof,  # Student-t dof of the intervals; None: Gaussian
             # the calibrated 95% interval of one displacement component is +- this many times that component's

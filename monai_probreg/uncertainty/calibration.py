@@ -48,7 +48,7 @@ posterior's; only the width of an interval at a given level follows the fitted t
 They are stored next to the weights they belong to, as ``<weights stem>.calibration.json``, with the weights'
 SHA-256 so that a retrained model is never paired with an old calibration; a field an older sidecar lacks reads as
 its neutral value (``bias_fraction`` 0, ``refinement`` None, ``interval_dof`` None, ``residual_weight`` 0), but one
-without ``sample_gain`` was fitted on the sampled std of bundles before 0.34.0 and is refused with the refit command. Raw
+without ``sample_gain`` was fitted on the sampled std of an older bundle and is refused with the refit command. Raw
 (uncalibrated) values: ``std_scale = 1``, ``bias_fraction = 0``, Gaussian intervals (``interval_dof = None``), no
 residual term. Held-out coverage and how well
 the std ranks the errors: ``benchmarks/uncertainty_calibration.py``.
@@ -166,7 +166,7 @@ class CalibrationRecord:
     error_model: list[float] | None = None
     error_features: list[str] | None = None
     # Calibration.sample_gain; None: an older sidecar, fitted on the sampled displacement std (refused: the std map is
-    # first order since bundle 0.34.0)
+    # first order)
     sample_gain: float | None = None
 
     def calibration(self) -> Calibration:
@@ -423,7 +423,7 @@ def save_calibration(
 def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
     """Read the sidecar of ``weights_file``; refuses one fitted for other weights (SHA-256 mismatch), with a residual
     term for another form of the pair's residual (:func:`~monai_probreg.uncertainty.residual.residual_form`), or on
-    the sampled displacement std of bundles before 0.34.0 (no ``sample_gain``)."""
+    the sampled displacement std of an older bundle (no ``sample_gain``)."""
     path = calibration_path(weights_file)
     data = read_sidecar(weights_file, CALIBRATION_SIDECAR, "calibration record", " or use std_scale 1 (raw)")
     try:
@@ -432,7 +432,7 @@ def load_calibration(weights_file: str | os.PathLike) -> CalibrationRecord:
         raise ValueError(f"{path}: not a calibration record ({err})") from None
     if record.sample_gain is None:
         raise ValueError(
-            f"{path}: fitted on the sampled displacement std (before bundle 0.34.0); this package's std map is first "
+            f"{path}: fitted on the sampled displacement std of an older bundle; this package's std map is first "
             "order (uncertainty.spread); refit it: python -m monai_probreg.fitting --only calibration"
         )
     try:

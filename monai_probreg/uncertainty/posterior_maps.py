@@ -82,6 +82,7 @@ def posterior_maps(
         )
     if num_samples == 1 or num_samples < 0:
         raise ValueError(f"num_samples must be 0 (no sampling) or >= 2 (a spread needs two); got {num_samples}")
+    check_calibration(std_scale, bias_fraction, sample_gain=sample_gain)
     size = tuple(int(s) for s in spatial_size)
     log_var = calibrate_log_var(
         velocity_log_var.float(), std_scale, velocity_mean.float(), bias_fraction, residual, residual_weight
@@ -93,7 +94,6 @@ def posterior_maps(
     std = variance.sum(0).sqrt()
     if moving_label is None:
         return PosteriorMaps(entropy, std, None, variance)
-    check_calibration(std_scale, bias_fraction, sample_gain=sample_gain)
     generator = torch.Generator(device=velocity_mean.device).manual_seed(seed)
     labels = PartialVolumeLabels(moving_label.to(velocity_mean.device))
     sample_log_var = log_var + 2.0 * math.log(sample_gain)

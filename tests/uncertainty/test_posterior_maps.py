@@ -124,6 +124,8 @@ def test_a_bad_sample_gain_is_refused(setup, gain):
     network, mean, log_var, labels = setup
     with pytest.raises(ValueError, match="sample_gain"):
         posterior_maps(network, mean, log_var, SIZE, 2, moving_label=labels, sample_gain=gain)
+    with pytest.raises(ValueError, match="sample_gain"):  # refused with no label to sample for too
+        posterior_maps(network, mean, log_var, SIZE, 0, sample_gain=gain)
 
 
 def test_no_samples_gives_entropy_only(setup):

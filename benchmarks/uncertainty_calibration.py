@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
 import time
 from pathlib import Path
@@ -81,6 +80,7 @@ from monai_probreg.uncertainty.calibration import (
     Calibration,
     calibrate_log_var,
     calibration_for,
+    sample_log_var,
 )
 from monai_probreg.uncertainty.entropy import velocity_entropy
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
@@ -176,9 +176,9 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed, refin
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
         generator = torch.Generator().manual_seed(seed)
         reader = PartialVolumeLabels(atlas_label)  # the bundle's label entropy (posterior_maps), its samples widened
-        sample_log_var = log_var + 2.0 * math.log(calibration.sample_gain)
+        sampled = sample_log_var(log_var, calibration.sample_gain)
         for start in range(0, num_samples, 4):
-            z = sample_velocity(posterior.mean, sample_log_var, min(4, num_samples - start), generator=generator)
+            z = sample_velocity(posterior.mean, sampled, min(4, num_samples - start), generator=generator)
             for inverse in network.velocity_to_displacement(-z.flatten(0, 1), size):
                 reader.add(inverse[None])
         entropy = reader.entropy()

@@ -25,7 +25,6 @@ Prints a table and writes ``experiments/results/first_order_std.json``.
 
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -40,7 +39,7 @@ from monai_probreg.blocks.sampling import sample_velocity
 from monai_probreg.fitting.population_probe import case_errors, sampled_case_errors
 from monai_probreg.fitting.subject_probe import subject_errors
 from monai_probreg.registration.model import load_model
-from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, calibrate_log_var
+from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, calibrate_log_var, sample_log_var
 from monai_probreg.uncertainty.posterior_maps import PosteriorMaps
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -66,7 +65,7 @@ def sampled_variance(network, mean, log_var, size, num_samples: int, gain: float
     generator = torch.Generator().manual_seed(seed)
     total = squares = None
     for start in range(0, num_samples, 4):
-        z = sample_velocity(mean, log_var + 2 * math.log(gain), min(4, num_samples - start), generator)[:, 0]
+        z = sample_velocity(mean, sample_log_var(log_var, gain), min(4, num_samples - start), generator)[:, 0]
         disp = resize_displacement_box(network.integrate(z), size, ([0] * len(size), size)).double()
         total = disp.sum(0) if total is None else total + disp.sum(0)
         squares = disp.square().sum(0) if squares is None else squares + disp.square().sum(0)

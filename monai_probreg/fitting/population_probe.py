@@ -32,7 +32,7 @@ from monai.networks.layers import GaussianFilter
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.registration import register_pair
-from monai_probreg.uncertainty.calibration import Calibration, calibrate_log_var
+from monai_probreg.uncertainty.calibration import Calibration, calibrate_log_var, sample_log_var
 from monai_probreg.uncertainty.entropy import sampled_displacement_moments
 from monai_probreg.uncertainty.error_model import pair_term
 from monai_probreg.uncertainty.spread import displacement_variance
@@ -220,7 +220,7 @@ def sampled_case_variance(network, case: dict[str, Any], calibration: Calibratio
     """(3, N) the variance of ``num_samples`` displacements sampled from ``case``'s posterior calibrated by
     ``calibration`` (its velocity std widened by ``calibration.sample_gain``, as the label entropy's samples are), per
     subsampled voxel and component, image-grid voxels: what the samples' spread is beside :func:`case_errors`' map."""
-    log_var = _calibrated_log_var(case, calibration) + 2.0 * math.log(calibration.sample_gain)
+    log_var = sample_log_var(_calibrated_log_var(case, calibration), calibration.sample_gain)
     generator = torch.Generator().manual_seed(case["seed"] + 1)
     _, variance = sample_displacements(network, case["mean"], log_var, case["size"], num_samples, generator)
     return variance[0].flatten(1)[:, case["voxels"]].numpy()

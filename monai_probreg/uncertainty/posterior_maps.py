@@ -19,7 +19,6 @@ maps are reproducible.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -28,7 +27,7 @@ from torch import Tensor, nn
 
 from monai_probreg.blocks.box_resize import resize_displacement_box
 from monai_probreg.blocks.sampling import sample_velocity
-from monai_probreg.uncertainty.calibration import calibrate_log_var, check_calibration
+from monai_probreg.uncertainty.calibration import calibrate_log_var, check_calibration, sample_log_var
 from monai_probreg.uncertainty.entropy import velocity_entropy
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
 from monai_probreg.uncertainty.spread import displacement_variance
@@ -96,9 +95,9 @@ def posterior_maps(
         return PosteriorMaps(entropy, std, None, variance)
     generator = torch.Generator(device=velocity_mean.device).manual_seed(seed)
     labels = PartialVolumeLabels(moving_label.to(velocity_mean.device))
-    sample_log_var = log_var + 2.0 * math.log(sample_gain)
+    sampled = sample_log_var(log_var, sample_gain)
     for start in range(0, num_samples, SAMPLE_CHUNK):
-        z = sample_velocity(velocity_mean.float(), sample_log_var, min(SAMPLE_CHUNK, num_samples - start), generator)
+        z = sample_velocity(velocity_mean.float(), sampled, min(SAMPLE_CHUNK, num_samples - start), generator)
         # network.velocity_to_displacement's field: the resize by one small matrix per axis (blocks.box_resize) gives
         # F.interpolate's values, float rounding apart, and is the faster of the two on a CPU (docs/uncertainty.md);
         # the network itself keeps F.interpolate (blocks.integration.resize_displacement): its TorchScript export

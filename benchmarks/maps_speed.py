@@ -4,7 +4,8 @@ The bundle's writer (``engines/handlers.py``) makes, per pair, the map the calib
 prediction since bundle 0.33.0, the registered pair's residual before: ``uncertainty.error_model.pair_term``) and
 :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` with K posterior samples: the displacement std (first
 order since bundle 0.34.0: no sample drawn; the std of the K samples before), and the label entropy of the K samples
-when the moving labels are given. On each LPBA40 validation pair
+when the moving labels are given (drawn as the writer draws them: since bundle 0.35.0 Student-t with the
+calibration's ``interval_dof``). On each LPBA40 validation pair
 (``refinement_speed.PAIRS``, the aligned 160 x 192 x 160 grid; the network's registration refined as the bundle
 refines it, untimed) both are timed: "std" (``displacement_std`` alone) and "std + label entropy", after one untimed
 warm-up, as the writer calls them with the weights' calibration, freed memory kept for reuse as the bundle's
@@ -24,6 +25,7 @@ is reported, and the ratio.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import statistics
@@ -101,8 +103,10 @@ def time_maps(dataset: Path, samples: int, threads: int, memory_reuse: bool = Tr
                     **gain,
                 )
 
-        # the samples' gain since bundle 0.34.0 (the std map first order); an older checkout's maps take none
-        gain = {"sample_gain": calibration.sample_gain} if hasattr(calibration, "sample_gain") else {}
+        # the samples' gain since bundle 0.34.0 (the std map first order), their Student-t since 0.35.0: as the writer
+        # passes them (engines/handlers.py); an older checkout's maps take neither
+        accepted = inspect.signature(posterior_maps).parameters
+        gain = {k: getattr(calibration, k) for k in ("sample_gain", "interval_dof") if k in accepted}
         maps(moving_label)  # warm-up
         times[pair] = {}
         for kind, label in zip(KINDS, (None, moving_label)):

@@ -19,7 +19,7 @@ cases (:mod:`monai_probreg.fitting.calibration_probes`) and by the same fit.
    only partly), UCE (15 equal-count bins), reliability diagram; and the translation probe (the recovered fraction
    of a 3-voxel shift of the atlas per axis).
 2. Label uncertainty on real pairs: S -> atlas; the atlas labels are propagated into S by the K sampled inverse
-   warps exp(-z_k); the per-voxel label entropy is scored (AUROC) as a detector of voxels where the atlas labels
+   warps exp(-z_k) (drawn as the bundle draws them: :mod:`monai_probreg.uncertainty.samples`); the per-voxel label entropy is scored (AUROC) as a detector of voxels where the atlas labels
    propagated by the mean, exp(-mean), disagree with S's manual labels (voxels where either is non-background).
 3. Calibration held out: the coverage-matching fit of (std_scale, bias_fraction, interval_dof)
    (:meth:`~monai_probreg.fitting.calibration_probes.CalibrationProbes.fit`, ``--fit-iterations`` refits) is
@@ -80,16 +80,17 @@ from monai_probreg.uncertainty.calibration import (
     Calibration,
     calibrate_log_var,
     calibration_for,
-    sample_log_var,
 )
 from monai_probreg.uncertainty.entropy import velocity_entropy
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
+from monai_probreg.uncertainty.samples import sample_log_var, sample_scales
 from monai_probreg.uncertainty.spread import displacement_variance
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.files import write_text
 from monai_probreg.weights.loading import load_weights
 
 PROBE_SHIFT_VOXELS = 3.0  # translation of the diagnostic probe (recovered fraction per axis)
+LABEL_SEED_OFFSET = 7  # the label entropy's samples are seeded by --seed + this (apart from the probes' draws)
 
 
 def translation_probe(network, fixed: torch.Tensor, shift: float = PROBE_SHIFT_VOXELS) -> list[float]:
@@ -175,10 +176,13 @@ def label_case(network, pair, calibration: Calibration, num_samples, seed, refin
         atlas_label = pair["fixed_label"].to(torch.int16)
         predicted = warp_labels(atlas_label, network.velocity_to_displacement(-posterior.mean, size))[0, 0]
         generator = torch.Generator().manual_seed(seed)
-        reader = PartialVolumeLabels(atlas_label)  # the bundle's label entropy (posterior_maps), its samples widened
+        # the bundle's label entropy (posterior_maps): its samples widened and Student-t (uncertainty.samples)
+        reader = PartialVolumeLabels(atlas_label)
         sampled = sample_log_var(log_var, calibration.sample_gain)
+        scales = sample_scales(num_samples, calibration.interval_dof)
         for start in range(0, num_samples, 4):
-            z = sample_velocity(posterior.mean, sampled, min(4, num_samples - start), generator=generator)
+            chunk = scales[start : start + 4]
+            z = sample_velocity(posterior.mean, sampled, len(chunk), generator, chunk)
             for inverse in network.velocity_to_displacement(-z.flatten(0, 1), size):
                 reader.add(inverse[None])
         entropy = reader.entropy()
@@ -391,7 +395,9 @@ def main(argv=None) -> int:
         for name, cal in (("raw", Calibration(1.0, 0.0)), ("calibrated", calibration)):
             errors = probes.raw[sid] if name == "raw" else probes.population_errors(sid, cal)
             std, error, _ = pool_errors(errors)
-            labels = label_case(network, probes.items[sid], cal, args.samples, args.seed + 7, refinement)
+            labels = label_case(
+                network, probes.items[sid], cal, args.samples, args.seed + LABEL_SEED_OFFSET, refinement
+            )
             row_dofs[name].append(cal.interval_dof)
             rows[name]["std"].append(std)
             rows[name]["error"].append(error)

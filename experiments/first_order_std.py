@@ -39,8 +39,9 @@ from monai_probreg.blocks.sampling import sample_velocity
 from monai_probreg.fitting.population_probe import case_errors, sampled_case_errors
 from monai_probreg.fitting.subject_probe import subject_errors
 from monai_probreg.registration.model import load_model
-from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, calibrate_log_var, sample_log_var
+from monai_probreg.uncertainty.calibration import POSTERIOR_SAMPLES, calibrate_log_var
 from monai_probreg.uncertainty.posterior_maps import PosteriorMaps
+from monai_probreg.uncertainty.samples import sample_log_var
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MANY_SAMPLES = 128

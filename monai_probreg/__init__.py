@@ -46,7 +46,7 @@ from monai_probreg.uncertainty.entropy import (
 )
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
 
-__version__ = "0.34.0"  # the bundle release (bundle/configs/metadata.json "version"); pyproject reads it
+__version__ = "0.35.0"  # the bundle release (bundle/configs/metadata.json "version"); pyproject reads it
 
 __all__ = [
     "CachedWarp",

@@ -100,9 +100,9 @@ class RegistrationWriter(_PerSubjectHandler):
     :data:`~monai_probreg.engines.outputs.OUTPUT_NAMES`; the label maps only when the batch has labels).
 
     With ``network`` given, the uncertainty maps are :func:`~monai_probreg.uncertainty.posterior_maps.posterior_maps` of the
-    posterior calibrated by ``std_scale``, ``bias_fraction``, ``residual_weight``, ``error_model`` and ``sample_gain``
-    (1, 0, 0, None and 1 = raw; :class:`~monai_probreg.uncertainty.calibration.Calibration`'s fields), the label
-    entropy from ``num_samples`` seeded samples (``num_samples`` >= 2 is needed for
+    posterior calibrated by ``std_scale``, ``bias_fraction``, ``residual_weight``, ``error_model``, ``sample_gain`` and
+    ``interval_dof`` (1, 0, 0, None, 1 and None = raw; :class:`~monai_probreg.uncertainty.calibration.Calibration`'s
+    fields), the label entropy from ``num_samples`` seeded samples (``num_samples`` >= 2 is needed for
     :data:`~monai_probreg.engines.outputs.SAMPLED_NAMES`); without it, ``entropy`` is the raw posterior's.
     With ``quality``, each subject's quality estimate is written as ``<id>/quality.json`` (and a probable failure
     logged as a warning)."""
@@ -120,6 +120,7 @@ class RegistrationWriter(_PerSubjectHandler):
         residual_weight: float = 0.0,
         error_model: Sequence[float] | None = None,
         sample_gain: float = 1.0,
+        interval_dof: float | None = None,
     ) -> None:
         unknown = set(names) - set(OUTPUT_NAMES)
         if unknown:
@@ -133,8 +134,8 @@ class RegistrationWriter(_PerSubjectHandler):
         self.output_dir, self.names = Path(output_dir), tuple(names)
         self.network, self.num_samples, self.std_scale, self.seed = network, int(num_samples), float(std_scale), seed
         self.bias_fraction, self.residual_weight = float(bias_fraction), float(residual_weight)
-        check_calibration(self.std_scale, self.bias_fraction, None, self.residual_weight, float(sample_gain))
-        self.sample_gain = float(sample_gain)
+        check_calibration(self.std_scale, self.bias_fraction, interval_dof, self.residual_weight, float(sample_gain))
+        self.sample_gain, self.interval_dof = float(sample_gain), interval_dof
         check_error_model(error_model)
         self.error_model = None if error_model is None else tuple(float(c) for c in error_model)
         self.quality = quality
@@ -172,6 +173,7 @@ class RegistrationWriter(_PerSubjectHandler):
                 residual=residual,
                 residual_weight=self.residual_weight,
                 sample_gain=self.sample_gain,
+                interval_dof=self.interval_dof,
             )
         write_outputs(self.output_dir, sid, pair, affine, targets.get("moving_label"), self.names, maps)
         record = self.quality(sid, pair, targets) if self.quality is not None else None

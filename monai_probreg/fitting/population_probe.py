@@ -32,9 +32,10 @@ from monai.networks.layers import GaussianFilter
 from monai_probreg.blocks.integration import ScalingAndSquaring, resize_displacement
 from monai_probreg.blocks.warp import warp_image
 from monai_probreg.engines.registration import register_pair
-from monai_probreg.uncertainty.calibration import Calibration, calibrate_log_var, sample_log_var
+from monai_probreg.uncertainty.calibration import Calibration, calibrate_log_var
 from monai_probreg.uncertainty.entropy import sampled_displacement_moments
 from monai_probreg.uncertainty.error_model import pair_term
+from monai_probreg.uncertainty.samples import sample_log_var
 from monai_probreg.uncertainty.spread import displacement_variance
 from monai_probreg.utils.errors import InputError
 from monai_probreg.utils.tensors import plain_tensor
@@ -218,8 +219,9 @@ def case_errors(case: dict[str, Any], calibration: Calibration) -> tuple[np.ndar
 
 def sampled_case_variance(network, case: dict[str, Any], calibration: Calibration, num_samples: int) -> np.ndarray:
     """(3, N) the variance of ``num_samples`` displacements sampled from ``case``'s posterior calibrated by
-    ``calibration`` (its velocity std widened by ``calibration.sample_gain``, as the label entropy's samples are), per
-    subsampled voxel and component, image-grid voxels: what the samples' spread is beside :func:`case_errors`' map."""
+    ``calibration`` (its velocity std widened by ``calibration.sample_gain``; Gaussian, the samples the gain is fitted
+    on: the label entropy's are Student-t around them, :mod:`monai_probreg.uncertainty.samples`), per subsampled voxel
+    and component, image-grid voxels: what the samples' spread is beside :func:`case_errors`' map."""
     log_var = sample_log_var(_calibrated_log_var(case, calibration), calibration.sample_gain)
     generator = torch.Generator().manual_seed(case["seed"] + 1)
     _, variance = sample_displacements(network, case["mean"], log_var, case["size"], num_samples, generator)

@@ -137,6 +137,7 @@ def run_network(
                 residual=residual,
                 residual_weight=model.calibration.residual_weight,
                 sample_gain=model.calibration.sample_gain,
+                interval_dof=model.calibration.interval_dof,
             )
             maps.entropy, maps.std = float_numpy(sampled.velocity_entropy), float_numpy(sampled.displacement_std)
             maps.variance = float_numpy(sampled.displacement_variance)

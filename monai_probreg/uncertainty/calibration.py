@@ -82,7 +82,6 @@ __all__ = [
     "RAW",
     "CalibrationRecord",
     "calibrate_log_var",
-    "sample_log_var",
     "check_calibration",
     "bias_variance",
     "fit_calibration",
@@ -262,13 +261,6 @@ def calibrate_log_var(
             )
         variance = variance + bias_variance(mean, bias_fraction)
     return torch.log(variance)
-
-
-def sample_log_var(log_var: Tensor, sample_gain: float) -> Tensor:
-    """The log-variance the posterior's samples are drawn with: the calibrated ``log_var`` (any shape) with its std
-    widened by ``sample_gain`` (:attr:`Calibration.sample_gain`), ``log_var + 2 log(sample_gain)``."""
-    check_calibration(1.0, 0.0, sample_gain=sample_gain)
-    return log_var + 2.0 * math.log(sample_gain)
 
 
 def bias_variance(mean: Tensor, bias_fraction: float) -> Tensor:

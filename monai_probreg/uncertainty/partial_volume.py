@@ -86,8 +86,11 @@ class PartialVolumeLabels:
         self.shape = tuple(int(n) for n in labels.shape[2:])
         dims = len(self.shape)
         # the labels as their rank among those present (0 stays 0: it is present in the padding): the histogram of
-        # entropy() has one column per label present
-        present = torch.unique(torch.cat([labels.reshape(-1), labels.new_zeros(1)]))
+        # entropy() has one column per label present; found by a count per value (labels lie in [0, LABEL_LIMIT)),
+        # no sort of the whole grid as torch.unique makes
+        counts = torch.bincount(labels.reshape(-1).long())
+        counts[0] += 1
+        present = counts.nonzero()[:, 0]
         rank = torch.zeros(int(present.max()) + 1, dtype=torch.int16, device=labels.device)
         rank[present.long()] = torch.arange(present.numel(), dtype=torch.int16, device=labels.device)
         self._count = present.numel()

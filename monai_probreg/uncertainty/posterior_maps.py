@@ -10,8 +10,9 @@
   reported by ``benchmarks/uncertainty_calibration.py``.
 - ``label_entropy`` (when moving labels are given): entropy (nats) of the moving labels read by each of K
   displacements sampled from the calibrated posterior (its velocity std widened by the calibration's
-  ``sample_gain``), with partial volume, each sample giving the labels around its point the weights of linear
-  interpolation (:mod:`monai_probreg.uncertainty.partial_volume`): 0 where every sample reads one label wholly.
+  ``sample_gain``, Student-t with its ``interval_dof``: :mod:`monai_probreg.uncertainty.samples`), with partial
+  volume, each sample giving the labels around its point the weights of linear interpolation
+  (:mod:`monai_probreg.uncertainty.partial_volume`): 0 where every sample reads one label wholly.
 
 All maps live on the fixed grid, like the rest of the outputs. The K samples use a seeded generator, so the
 maps are reproducible.
@@ -27,9 +28,10 @@ from torch import Tensor, nn
 
 from monai_probreg.blocks.box_resize import resize_displacement_box
 from monai_probreg.blocks.sampling import sample_velocity
-from monai_probreg.uncertainty.calibration import calibrate_log_var, check_calibration, sample_log_var
+from monai_probreg.uncertainty.calibration import calibrate_log_var, check_calibration
 from monai_probreg.uncertainty.entropy import velocity_entropy
 from monai_probreg.uncertainty.partial_volume import PartialVolumeLabels
+from monai_probreg.uncertainty.samples import sample_log_var, sample_scales
 from monai_probreg.uncertainty.spread import displacement_variance
 
 __all__ = ["PosteriorMaps", "posterior_maps"]
@@ -64,6 +66,7 @@ def posterior_maps(
     residual: Tensor | None = None,
     residual_weight: float = 0.0,
     sample_gain: float = 1.0,
+    interval_dof: float | None = None,
 ) -> PosteriorMaps:
     """Maps of one pair. ``velocity_mean``, ``velocity_log_var``: (1, D, *V) raw posterior; ``network`` provides
     ``integrate`` (a velocity's displacement on the velocity grid, as ``ProbRegNet``); ``num_samples``: 0 (velocity
@@ -73,7 +76,8 @@ def posterior_maps(
     give ``displacement_std`` in mm (the trace of the covariance is rotation-invariant, so per-axis voxel variances
     times spacing^2 give it exactly), or None for voxels; ``residual`` (1, 1, *V) and ``residual_weight``: the
     calibration's residual term (:func:`~monai_probreg.uncertainty.residual.residual_variance` of the pair; None and
-    0: none); ``sample_gain``: the calibration's widening of the samples' velocity std (1: none)."""
+    0: none); ``sample_gain``: the calibration's widening of the samples' velocity std (1: none); ``interval_dof``: the
+    calibration's Student-t dof, the label entropy's samples drawn from that t (None: Gaussian)."""
     if velocity_mean.shape[0] != 1 or velocity_mean.shape != velocity_log_var.shape:
         raise ValueError(
             f"expected one pair's posterior, mean and log_var (1, D, *V); got "
@@ -81,7 +85,7 @@ def posterior_maps(
         )
     if num_samples == 1 or num_samples < 0:
         raise ValueError(f"num_samples must be 0 (no sampling) or >= 2 (a spread needs two); got {num_samples}")
-    check_calibration(std_scale, bias_fraction, sample_gain=sample_gain)
+    check_calibration(std_scale, bias_fraction, interval_dof, sample_gain=sample_gain)
     size = tuple(int(s) for s in spatial_size)
     log_var = calibrate_log_var(
         velocity_log_var.float(), std_scale, velocity_mean.float(), bias_fraction, residual, residual_weight
@@ -95,9 +99,10 @@ def posterior_maps(
         return PosteriorMaps(entropy, std, None, variance)
     generator = torch.Generator(device=velocity_mean.device).manual_seed(seed)
     labels = PartialVolumeLabels(moving_label.to(velocity_mean.device))
-    sampled = sample_log_var(log_var, sample_gain)
+    sampled, scales = sample_log_var(log_var, sample_gain), sample_scales(num_samples, interval_dof)
     for start in range(0, num_samples, SAMPLE_CHUNK):
-        z = sample_velocity(velocity_mean.float(), sampled, min(SAMPLE_CHUNK, num_samples - start), generator)
+        chunk = scales[start : start + SAMPLE_CHUNK]
+        z = sample_velocity(velocity_mean.float(), sampled, len(chunk), generator, chunk)
         # network.velocity_to_displacement's field: the resize by one small matrix per axis (blocks.box_resize) gives
         # F.interpolate's values, float rounding apart, and is the faster of the two on a CPU (docs/uncertainty.md);
         # the network itself keeps F.interpolate (blocks.integration.resize_displacement): its TorchScript export

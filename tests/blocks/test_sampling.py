@@ -99,3 +99,17 @@ def test_shape_mismatch_raises():
         sample_velocity(torch.zeros(1, 2, 4, 4), torch.zeros(1, 2, 4, 5))
     with pytest.raises(ValueError):
         VelocitySampler().train()(torch.zeros(1, 2, 4, 4), torch.zeros(1, 3, 4, 4))
+
+
+def test_scales_multiply_each_samples_deviation_from_the_same_draws():
+    mean, log_var = _posterior()
+    scales = torch.tensor([2.0, 0.5, 1.0], dtype=torch.float64)
+    plain = sample_velocity(mean, log_var, 3, torch.Generator().manual_seed(4))
+    scaled = sample_velocity(mean, log_var, 3, torch.Generator().manual_seed(4), scales)
+    torch.testing.assert_close(scaled - mean, (plain - mean) * scales.view(3, 1, 1, 1, 1))
+
+
+def test_scales_of_another_count_are_refused():
+    mean, log_var = _posterior()
+    with pytest.raises(ValueError, match=r"expected one scale per sample, shape \(3,\)"):
+        sample_velocity(mean, log_var, 3, scales=torch.ones(4))

@@ -125,3 +125,25 @@ def test_inference_twice_writes_the_same_files(tmp_path, tiny_dataset, bundle):
     )
     for path in first:
         assert (tmp_path / "first" / path).read_bytes() == (tmp_path / "second" / path).read_bytes(), path
+
+
+def test_the_writer_draws_the_label_entropy_as_the_shipped_sidecar_says():
+    """inference.yaml hands the writer the sidecar's sample_gain and interval_dof: the label entropy's samples are
+    drawn from the calibrated Student-t posterior the intervals describe."""
+    from monai_probreg.uncertainty.calibration import calibration_for
+
+    parser = bundle_parser(BUNDLE_DIR, ["inference.yaml"])
+    shipped = calibration_for(BUNDLE_DIR / "models" / "model.pt")
+    assert shipped.interval_dof is not None  # the shipped intervals are Student-t
+    assert parser.get_parsed_content("interval_dof") == shipped.interval_dof
+    assert parser.get_parsed_content("sample_gain") == shipped.sample_gain
+    writer = next(h for h in parser["handlers"] if h["_target_"].endswith("RegistrationWriter"))
+    assert (writer["interval_dof"], writer["sample_gain"]) == ("@interval_dof", "@sample_gain")
+
+
+@pytest.mark.parametrize("dof", [0.0, -2.0, float("nan")])
+def test_the_writer_refuses_a_bad_interval_dof(tmp_path, dof):
+    from monai_probreg.engines.handlers import RegistrationWriter
+
+    with pytest.raises(ValueError, match="interval_dof"):
+        RegistrationWriter(tmp_path, names=("warped",), interval_dof=dof)

@@ -483,13 +483,3 @@ def test_a_sidecar_with_a_bad_sample_gain_is_refused(weights, gain):
     calibration_path(weights).write_text(json.dumps(record))
     with pytest.raises(ValueError, match="model.calibration.json: sample_gain"):
         load_calibration(weights)
-
-
-def test_the_samples_log_var_widens_the_std_by_the_gain():
-    from monai_probreg.uncertainty.calibration import sample_log_var
-
-    log_var = torch.tensor([[-2.0, 0.5]])
-    torch.testing.assert_close(sample_log_var(log_var, 3.0).mul(0.5).exp(), 3.0 * log_var.mul(0.5).exp())
-    torch.testing.assert_close(sample_log_var(log_var, 1.0), log_var)
-    with pytest.raises(ValueError, match="sample_gain"):
-        sample_log_var(log_var, 0.0)

@@ -151,3 +151,31 @@ def test_spacing_of_the_wrong_length_is_refused(setup):
     network, mean, log_var, _ = setup
     with pytest.raises(ValueError, match="one spacing per axis"):
         posterior_maps(network, mean, log_var, SIZE, num_samples=2, spacing=(1.0, 1.0))
+
+
+def test_interval_dof_draws_the_label_entropys_samples_student_t_and_nothing_else(setup):
+    from monai_probreg.uncertainty.samples import sample_scales
+
+    network, mean, log_var, labels = setup
+    log_var = torch.full_like(log_var, -3.0)
+    student = posterior_maps(network, mean, log_var, SIZE, 4, 1.5, labels, seed=2, interval_dof=3.0)
+    gaussian = posterior_maps(network, mean, log_var, SIZE, 4, 1.5, labels, seed=2)
+    assert not torch.equal(student.label_entropy, gaussian.label_entropy)
+    torch.testing.assert_close(student.displacement_std, gaussian.displacement_std, rtol=0, atol=0)
+    torch.testing.assert_close(student.velocity_entropy, gaussian.velocity_entropy, rtol=0, atol=0)
+    # the same Gaussian draws, each sample's deviation times its scale: the labels read by hand
+    calibrated = calibrate_log_var(log_var, 1.5, mean)
+    generator = torch.Generator().manual_seed(2)
+    eps = torch.randn((4, *mean.shape), generator=generator)
+    z = mean + sample_scales(4, 3.0).view(4, 1, 1, 1, 1, 1) * calibrated.mul(0.5).exp() * eps
+    reader = PartialVolumeLabels(labels)
+    for velocity in z:
+        reader.add(network.velocity_to_displacement(velocity, SIZE))
+    torch.testing.assert_close(student.label_entropy, reader.entropy(), rtol=0, atol=1e-4)
+
+
+@pytest.mark.parametrize("dof", [0.0, -3.0, float("nan")])
+def test_a_bad_interval_dof_is_refused(setup, dof):
+    network, mean, log_var, labels = setup
+    with pytest.raises(ValueError, match="interval_dof"):
+        posterior_maps(network, mean, log_var, SIZE, 2, moving_label=labels, interval_dof=dof)

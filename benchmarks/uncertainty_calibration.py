@@ -157,13 +157,17 @@ def propagated_labels(network, velocities: torch.Tensor, atlas_label: torch.Tens
     ]
 
 
-def label_case(network, pair, calibration: Calibration, num_samples, seed, refinement=None) -> dict[str, Any]:
+def label_case(
+    network, pair, calibration: Calibration, num_samples, seed, refinement=None, posterior=None
+) -> dict[str, Any]:
     """Atlas labels into the subject by K sampled inverse warps, read with partial volume as the bundle's
     ``label_entropy`` reads them; label entropy vs wrongly labelled voxels.
-    ``refinement``: around the refined mean (:func:`posterior_for`)."""
+    ``refinement``: around the refined mean (:func:`posterior_for`); ``posterior``: the pair's
+    :func:`posterior_for` with ``calibration.error_model`` when already made (None: registered here)."""
     moving, fixed = pair["moving"], pair["fixed"]
     size = tuple(moving.shape[2:])
-    posterior = posterior_for(network, moving, fixed, refinement, calibration.error_model)
+    if posterior is None:
+        posterior = posterior_for(network, moving, fixed, refinement, calibration.error_model)
     with torch.inference_mode():
         log_var = calibrate_log_var(
             posterior.log_var,
